@@ -1,0 +1,35 @@
+# Set-up and tests on a fresh machine (no GPU, no ROS install): see README.md.
+VENV ?= .venv
+PY := $(VENV)/bin/python
+PIP := $(PY) -m pip
+export PATH := $(CURDIR)/$(VENV)/bin:$(PATH)
+
+PY_DEPS := "numpy<2" scipy pyyaml tqdm pillow matplotlib \
+	pytest pytest-timeout hypothesis \
+	rosbags mcap mcap-ros2-support
+ROS_WHEELS := ros-rclpy ros-rmw-fastrtps-cpp ros-sensor-msgs ros-std-msgs ros-geometry-msgs \
+	ros-nav-msgs ros-visualization-msgs ros-diagnostic-msgs ros-rosgraph-msgs
+ROSIDL_WHEELS := ros-ament-package ros-ament-cmake-include-directories \
+	ros-rosidl-core-generators ros-ament-cmake-ros-core colcon-common-extensions
+
+.PHONY: setup test demo msgs clean
+
+setup: $(VENV)/.setup-done
+
+$(VENV)/.setup-done: Makefile setup.py package.xml tools/build_msgs.sh $(wildcard msg/*.msg msg/*/*)
+	test -x $(PY) || python3 -m venv $(VENV)
+	# torch: the local CPU build only; never let pip resolve a CUDA build from the registry.
+	$(PY) -c "import torch" 2>/dev/null || $(PIP) install -q torch==2.13.0
+	$(PIP) install -q $(PY_DEPS) $(ROS_WHEELS) $(ROSIDL_WHEELS)
+	$(PIP) install -q --no-deps -e .
+	bash tools/build_msgs.sh $(VENV)
+	touch $@
+
+test: setup
+	$(PY) -m pytest -q test
+
+demo: setup
+	$(VENV)/bin/odg demo
+
+clean:
+	rm -rf $(VENV) build install log

@@ -1,0 +1,96 @@
+"""Frames, poses and projection matrices (NumPy, float64). Conventions used everywhere:
+
+* Quaternions are (w, x, y, z), as in nuScenes. Rotation matrices act on column vectors.
+* ``ego`` is base_link of one frame (x forward, y left, z up). ``global`` is the map frame.
+* A pose ``T_a_from_b`` is a 4x4 matrix taking homogeneous points in frame b to frame a.
+  nuScenes ``ego_pose`` is ``T_global_from_ego``; ``calibrated_sensor`` is ``T_ego_from_cam``.
+* ``ego2img`` (4x4) takes a point in one frame's ego coordinates to ``(u*d, v*d, d, 1)``
+  where (u, v) are pixels of the *network input* image (after resize/crop) and d the camera
+  depth. It is ``[[K', 0], [0, 1]] @ T_cam_from_ego`` with K' the adjusted intrinsics.
+* The ego warp from the current frame 0 to a history frame -i is
+  ``T_ego(-i)_from_ego(0) = inv(T_global_from_ego(-i)) @ T_global_from_ego(0)`` (paper: P_-i^-1 P_0).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+
+def quaternion_to_matrix(q) -> np.ndarray:
+    """(w, x, y, z) -> 3x3 rotation. Normalises; raises on a zero or non-finite quaternion."""
+    q = np.asarray(q, dtype=np.float64)
+    n = np.linalg.norm(q)
+    if not np.isfinite(n) or n < 1e-12:
+        raise ValueError(f"invalid quaternion {q}")
+    w, x, y, z = q / n
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+    ])
+
+
+def matrix_to_quaternion(R) -> np.ndarray:
+    """3x3 rotation -> (w, x, y, z) with w >= 0 (Shepperd's method, stable for all angles)."""
+    R = np.asarray(R, dtype=np.float64)
+    trace = np.trace(R)
+    if trace > 0:
+        s = 2.0 * np.sqrt(trace + 1.0)
+        q = [0.25 * s, (R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s]
+    elif R[0, 0] > R[1, 1] and R[0, 0] > R[2, 2]:
+        s = 2.0 * np.sqrt(1.0 + R[0, 0] - R[1, 1] - R[2, 2])
+        q = [(R[2, 1] - R[1, 2]) / s, 0.25 * s, (R[0, 1] + R[1, 0]) / s, (R[0, 2] + R[2, 0]) / s]
+    elif R[1, 1] > R[2, 2]:
+        s = 2.0 * np.sqrt(1.0 + R[1, 1] - R[0, 0] - R[2, 2])
+        q = [(R[0, 2] - R[2, 0]) / s, (R[0, 1] + R[1, 0]) / s, 0.25 * s, (R[1, 2] + R[2, 1]) / s]
+    else:
+        s = 2.0 * np.sqrt(1.0 + R[2, 2] - R[0, 0] - R[1, 1])
+        q = [(R[1, 0] - R[0, 1]) / s, (R[0, 2] + R[2, 0]) / s, (R[1, 2] + R[2, 1]) / s, 0.25 * s]
+    q = np.asarray(q)
+    q /= np.linalg.norm(q)
+    return q if q[0] >= 0 else -q
+
+
+def make_transform(rotation, translation) -> np.ndarray:
+    """4x4 from a quaternion (w, x, y, z) or a 3x3 matrix, and a translation."""
+    rotation = np.asarray(rotation, dtype=np.float64)
+    T = np.eye(4)
+    T[:3, :3] = quaternion_to_matrix(rotation) if rotation.shape == (4,) else rotation
+    T[:3, 3] = np.asarray(translation, dtype=np.float64)
+    return T
+
+
+def invert_transform(T) -> np.ndarray:
+    """Inverse of a rigid 4x4 transform (uses R^T, exact for orthonormal R)."""
+    T = np.asarray(T, dtype=np.float64)
+    inv = np.eye(4)
+    inv[:3, :3] = T[:3, :3].T
+    inv[:3, 3] = -T[:3, :3].T @ T[:3, 3]
+    return inv
+
+
+def is_rigid(T, tol: float = 1e-3) -> bool:
+    """True if T is a finite 4x4 rigid transform (orthonormal rotation with det +1)."""
+    T = np.asarray(T, dtype=np.float64)
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        return False
+    R = T[:3, :3]
+    return (np.allclose(R @ R.T, np.eye(3), atol=tol) and abs(np.linalg.det(R) - 1) < tol
+            and np.allclose(T[3], [0, 0, 0, 1]))
+
+
+def ego_to_image(intrinsics, T_ego_from_cam) -> np.ndarray:
+    """4x4 ``ego2img`` from 3x3 intrinsics (of the network input) and the camera extrinsics."""
+    P = np.eye(4)
+    P[:3, :3] = np.asarray(intrinsics, dtype=np.float64)
+    return P @ invert_transform(T_ego_from_cam)
+
+
+def ego_warp(T_global_from_ego_current, T_global_from_ego_past) -> np.ndarray:
+    """``T_ego(past)_from_ego(current)`` = P_past^-1 P_current (paper Sec. 3.3)."""
+    return invert_transform(T_global_from_ego_past) @ np.asarray(T_global_from_ego_current)
+
+
+def yaw_of(T) -> float:
+    """Heading (rotation about z) of a 4x4 transform or 3x3 rotation."""
+    R = np.asarray(T)[:3, :3]
+    return float(np.arctan2(R[1, 0], R[0, 0]))

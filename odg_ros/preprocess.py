@@ -1,0 +1,56 @@
+"""Image preprocessing shared by the dataset and the online node (one code path for both).
+
+Resize keeps the aspect ratio so the width matches the network input; then the top is
+cropped (or the bottom zero-padded) to the input height, the BEVDet/SparseBEV convention
+that keeps the road. Intrinsics are adjusted the same way.
+"""
+from __future__ import annotations
+
+import numpy as np
+import torch
+from PIL import Image
+
+IMAGENET_MEAN = (0.485, 0.456, 0.406)
+IMAGENET_STD = (0.229, 0.224, 0.225)
+
+
+def resize_crop_params(src_hw, dst_hw) -> tuple[float, int, tuple[int, int]]:
+    """(scale, crop_top, resized_hw) taking a (H, W) image to the network input (H', W')."""
+    src_h, src_w = src_hw
+    dst_h, dst_w = dst_hw
+    scale = dst_w / src_w
+    resized_h = int(round(src_h * scale))
+    crop_top = max(0, resized_h - dst_h)
+    return scale, crop_top, (resized_h, dst_w)
+
+
+def adjust_intrinsics(K, src_hw, dst_hw) -> np.ndarray:
+    """Intrinsics of the network input image given those of the source image."""
+    scale, crop_top, _ = resize_crop_params(src_hw, dst_hw)
+    K2 = np.asarray(K, dtype=np.float64).copy()
+    K2[:2] *= scale
+    K2[1, 2] -= crop_top
+    return K2
+
+
+def resize_crop(image: np.ndarray, dst_hw) -> np.ndarray:
+    """HxWx3 uint8 RGB -> H'xW'x3 uint8 (resize to width, crop top / pad bottom)."""
+    if image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
+        raise ValueError(f"expected HxWx3 uint8 RGB, got {image.shape} {image.dtype}")
+    scale, crop_top, (rh, rw) = resize_crop_params(image.shape[:2], dst_hw)
+    if (rh, rw) != image.shape[:2]:
+        image = np.asarray(Image.fromarray(image).resize((rw, rh), Image.BILINEAR))
+    image = image[crop_top:crop_top + dst_hw[0]]
+    if image.shape[0] < dst_hw[0]:
+        pad = np.zeros((dst_hw[0] - image.shape[0], dst_hw[1], 3), np.uint8)
+        image = np.concatenate([image, pad], axis=0)
+    return image
+
+
+def normalize(images_uint8: torch.Tensor) -> torch.Tensor:
+    """[..., H, W, 3] uint8 RGB -> [..., 3, H, W] float32, ImageNet mean/std normalised."""
+    x = images_uint8.float().div_(255.0)
+    mean = torch.tensor(IMAGENET_MEAN, dtype=x.dtype, device=x.device)
+    std = torch.tensor(IMAGENET_STD, dtype=x.dtype, device=x.device)
+    x = (x - mean) / std
+    return x.movedim(-1, -3).contiguous()
