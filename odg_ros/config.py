@@ -34,7 +34,7 @@ class ModelConfig:
     points_per_layer: tuple[int, ...] = (1, 4, 16, 32, 64, 128)  # K_l
     num_groups: int = 4
     sampling_points: int = 4             # per group per frame
-    mixing_out_points: int = 128         # AdaMixer output points
+    mixing_out_points: int = 32          # AdaMixer output points (OPUS: 32)
     # ablation switches (paper Table 4); the shipped presets keep all on
     motion_compensation: bool = True     # velocity warp of dynamic queries
     ego_compensation: bool = True        # ego-pose warp of every query
@@ -59,6 +59,9 @@ class ModelConfig:
                              f"num_layers is {self.num_layers}")
         if self.embed_dims % self.num_groups or self.embed_dims % self.num_heads:
             raise ValueError("embed_dims must be divisible by num_groups and num_heads")
+        if self.fpn_channels != self.embed_dims:
+            raise ValueError("fpn_channels must equal embed_dims: sampled features are mixed "
+                             "in the query's channel groups")
         if self.backbone not in ("resnet18", "resnet34", "resnet50"):
             raise ValueError(f"unknown backbone {self.backbone!r}")
 

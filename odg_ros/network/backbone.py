@@ -1,0 +1,139 @@
+"""ResNet-18/34/50 image encoder with torchvision-compatible state_dict keys.
+
+A standard ImageNet checkpoint saved from torchvision (``conv1.weight``, ``layer1.0.bn1.*``,
+``layer2.0.downsample.0.weight``, ...) loads with ``load_torchvision_state_dict``; the
+classifier (``fc.*``) is ignored. As in OPUS/SparseBEV the stem and ``layer1`` are frozen
+(``frozen_stages=1``) and every BatchNorm stays in eval mode, even while training.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+from torch import nn
+
+ARCHITECTURES = {
+    "resnet18": ("basic", (2, 2, 2, 2)),
+    "resnet34": ("basic", (3, 4, 6, 3)),
+    "resnet50": ("bottleneck", (3, 4, 6, 3)),
+}
+
+
+class BasicBlock(nn.Module):
+    expansion = 1
+
+    def __init__(self, in_ch: int, width: int, stride: int = 1):
+        super().__init__()
+        out_ch = width * self.expansion
+        self.conv1 = nn.Conv2d(in_ch, width, 3, stride, 1, bias=False)
+        self.bn1 = nn.BatchNorm2d(width)
+        self.conv2 = nn.Conv2d(width, width, 3, 1, 1, bias=False)
+        self.bn2 = nn.BatchNorm2d(width)
+        self.relu = nn.ReLU(inplace=True)
+        self.downsample = None
+        if stride != 1 or in_ch != out_ch:
+            self.downsample = nn.Sequential(nn.Conv2d(in_ch, out_ch, 1, stride, bias=False),
+                                            nn.BatchNorm2d(out_ch))
+
+    def forward(self, x):
+        identity = x if self.downsample is None else self.downsample(x)
+        out = self.relu(self.bn1(self.conv1(x)))
+        out = self.bn2(self.conv2(out))
+        return self.relu(out + identity)
+
+
+class Bottleneck(nn.Module):
+    expansion = 4
+
+    def __init__(self, in_ch: int, width: int, stride: int = 1):
+        super().__init__()
+        out_ch = width * self.expansion
+        self.conv1 = nn.Conv2d(in_ch, width, 1, bias=False)
+        self.bn1 = nn.BatchNorm2d(width)
+        self.conv2 = nn.Conv2d(width, width, 3, stride, 1, bias=False)  # stride on 3x3 (v1.5)
+        self.bn2 = nn.BatchNorm2d(width)
+        self.conv3 = nn.Conv2d(width, out_ch, 1, bias=False)
+        self.bn3 = nn.BatchNorm2d(out_ch)
+        self.relu = nn.ReLU(inplace=True)
+        self.downsample = None
+        if stride != 1 or in_ch != out_ch:
+            self.downsample = nn.Sequential(nn.Conv2d(in_ch, out_ch, 1, stride, bias=False),
+                                            nn.BatchNorm2d(out_ch))
+
+    def forward(self, x):
+        identity = x if self.downsample is None else self.downsample(x)
+        out = self.relu(self.bn1(self.conv1(x)))
+        out = self.relu(self.bn2(self.conv2(out)))
+        out = self.bn3(self.conv3(out))
+        return self.relu(out + identity)
+
+
+class ResNet(nn.Module):
+    """Returns C2..C5 (outputs of layer1..layer4, strides 4, 8, 16, 32)."""
+
+    def __init__(self, name: str = "resnet50", frozen_stages: int = 1):
+        super().__init__()
+        kind, depths = ARCHITECTURES[name]
+        block = BasicBlock if kind == "basic" else Bottleneck
+        self.frozen_stages = frozen_stages
+        self.conv1 = nn.Conv2d(3, 64, 7, 2, 3, bias=False)
+        self.bn1 = nn.BatchNorm2d(64)
+        self.relu = nn.ReLU(inplace=True)
+        self.maxpool = nn.MaxPool2d(3, 2, 1)
+        in_ch = 64
+        self.out_channels = []
+        for i, (width, depth) in enumerate(zip((64, 128, 256, 512), depths)):
+            blocks = []
+            for j in range(depth):
+                blocks.append(block(in_ch, width, stride=2 if (j == 0 and i > 0) else 1))
+                in_ch = width * block.expansion
+            setattr(self, f"layer{i + 1}", nn.Sequential(*blocks))
+            self.out_channels.append(in_ch)
+        for m in self.modules():
+            if isinstance(m, nn.Conv2d):
+                nn.init.kaiming_normal_(m.weight, mode="fan_out", nonlinearity="relu")
+        self._freeze()
+
+    def _freeze(self) -> None:
+        frozen = [self.conv1, self.bn1] if self.frozen_stages >= 0 else []
+        frozen += [getattr(self, f"layer{i}") for i in range(1, self.frozen_stages + 1)]
+        for module in frozen:
+            for p in module.parameters():
+                p.requires_grad_(False)
+
+    def train(self, mode: bool = True):
+        super().train(mode)
+        for m in self.modules():  # BN statistics stay fixed: batches of 6 views are too small
+            if isinstance(m, nn.BatchNorm2d):
+                m.eval()
+        return self
+
+    def forward(self, x: torch.Tensor) -> list[torch.Tensor]:
+        x = self.maxpool(self.relu(self.bn1(self.conv1(x))))
+        feats = []
+        for i in range(1, 5):
+            x = getattr(self, f"layer{i}")(x)
+            feats.append(x)
+        return feats
+
+
+def load_torchvision_state_dict(backbone: ResNet, source) -> list[str]:
+    """Load a torchvision-layout state_dict (a dict or a ``.pth`` path). Returns ignored keys.
+
+    Raises on missing or mis-shaped backbone keys so a wrong checkpoint never loads silently.
+    """
+    state = torch.load(source, map_location="cpu", weights_only=True) if isinstance(
+        source, (str, Path)) else source
+    if "state_dict" in state and isinstance(state["state_dict"], dict):
+        state = state["state_dict"]
+    own = backbone.state_dict()
+    ignored = [k for k in state if k not in own]
+    missing = [k for k in own if k not in state]
+    if missing:
+        raise KeyError(f"checkpoint lacks {len(missing)} backbone keys, e.g. {missing[:3]}")
+    for k in own:
+        if own[k].shape != state[k].shape:
+            raise ValueError(f"{k}: checkpoint shape {tuple(state[k].shape)} "
+                             f"!= model shape {tuple(own[k].shape)}")
+    backbone.load_state_dict({k: state[k] for k in own})
+    return ignored

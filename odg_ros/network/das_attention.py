@@ -1,0 +1,44 @@
+"""DaS (Dynamic-and-Static) attention, paper Sec. 3.4 (Eq. 15-16).
+
+Self-attention over concat(Q_d, Q_s), then split back, so dynamic and static queries
+exchange information both ways. As in OPUS, the logits of head h are biased by
+``-distance(centroid_i, centroid_j) * tau_h(query_i)`` (tau from a zero-initialised linear
+layer with bias U(0, 2)) so attention starts local. With ``mix_sets=False`` (ablation) the
+two sets attend only within themselves.
+"""
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+
+class DaSAttention(nn.Module):
+    def __init__(self, embed_dims: int, num_heads: int, dropout: float = 0.1,
+                 mix_sets: bool = True):
+        super().__init__()
+        self.num_heads = num_heads
+        self.mix_sets = mix_sets
+        self.qkv = nn.Linear(embed_dims, 3 * embed_dims)
+        self.proj = nn.Linear(embed_dims, embed_dims)
+        self.dropout = dropout
+        self.gen_tau = nn.Linear(embed_dims, num_heads)
+        nn.init.zeros_(self.gen_tau.weight)
+        nn.init.uniform_(self.gen_tau.bias, 0.0, 2.0)
+
+    def forward(self, query: torch.Tensor, centroids: torch.Tensor, num_dynamic: int):
+        """query [B, Q, E] (dynamic first), centroids [B, Q, 3] metres -> [B, Q, E]."""
+        B, Q, E = query.shape
+        H = self.num_heads
+        dist = torch.cdist(centroids, centroids)                       # [B, Q, Q]
+        tau = self.gen_tau(query).permute(0, 2, 1)                     # [B, H, Q]
+        bias = -dist.unsqueeze(1) * tau.unsqueeze(-1)                  # [B, H, Q, Q]
+        if not self.mix_sets and 0 < num_dynamic < Q:
+            is_dyn = torch.arange(Q, device=query.device) < num_dynamic
+            cross = is_dyn[:, None] != is_dyn[None, :]
+            bias = bias.masked_fill(cross, float("-inf"))
+        q, k, v = self.qkv(query).view(B, Q, 3, H, E // H).permute(2, 0, 3, 1, 4)
+        out = F.scaled_dot_product_attention(
+            q, k, v, attn_mask=bias.to(q.dtype),
+            dropout_p=self.dropout if self.training else 0.0)
+        return self.proj(out.transpose(1, 2).reshape(B, Q, E))

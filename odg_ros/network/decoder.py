@@ -1,0 +1,118 @@
+"""The ODG decoder: 6 layers T_l over the concatenated dual queries (paper Eq. 13-14).
+
+Per layer, for queries [dynamic; static]:
+1. position encoding of each query's previous means (+ the box for dynamic queries);
+2. DaS attention (das_attention.py);
+3. 4D sampling with the velocity warp (dynamic) and the ego warp (all) (sampling.py);
+4. adaptive mixing, FFN;
+5. heads: K_l new means + class logits (all), box code + box logits (dynamic);
+   Phi_s / Phi_r / Phi_sigma give every Gaussian's scale, rotation and opacity.
+Means and boxes are detached between layers (OPUS / SparseBEV), so each layer learns a
+refinement of the previous one.
+"""
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from ..config import ModelConfig
+from .box_head import BoxEncoder, BoxHead
+from .das_attention import DaSAttention
+from .gaussian_heads import GaussianAttributes, PointHead
+from .mixing import AdaptiveMixing
+from .outputs import LayerOutput
+from .sampling import SpatioTemporalSampling, sampling_centres
+
+
+class PositionEncoder(nn.Module):
+    """Embeds a query's previous K means (normalised to the grid range), as OPUS does."""
+
+    def __init__(self, num_prev_points: int, embed_dims: int, pc_range):
+        super().__init__()
+        self.register_buffer("range_min", torch.tensor(pc_range[:3], dtype=torch.float32),
+                             persistent=False)
+        self.register_buffer("range_size", torch.tensor(pc_range[3:], dtype=torch.float32)
+                             - torch.tensor(pc_range[:3], dtype=torch.float32), persistent=False)
+        self.mlp = nn.Sequential(
+            nn.Linear(3 * num_prev_points, embed_dims), nn.LayerNorm(embed_dims), nn.ReLU(),
+            nn.Linear(embed_dims, embed_dims), nn.LayerNorm(embed_dims), nn.ReLU())
+
+    def forward(self, means: torch.Tensor) -> torch.Tensor:
+        normalised = (means - self.range_min) / self.range_size
+        return self.mlp(normalised.flatten(2))
+
+
+class DecoderLayer(nn.Module):
+    def __init__(self, cfg: ModelConfig, num_prev_points: int, num_points: int,
+                 with_boxes: bool):
+        super().__init__()
+        E = cfg.embed_dims
+        self.position = PositionEncoder(num_prev_points, E, cfg.pc_range)
+        self.box_position = BoxEncoder(E, cfg.pc_range) if with_boxes else None
+        self.attention = DaSAttention(E, cfg.num_heads, mix_sets=cfg.das_attention)
+        self.sampling = SpatioTemporalSampling(E, cfg.num_groups, cfg.sampling_points,
+                                               cfg.num_levels)
+        self.mixing = AdaptiveMixing(E, cfg.num_groups, cfg.sampling_points * cfg.num_frames,
+                                     cfg.mixing_out_points)
+        self.ffn = nn.Sequential(nn.Linear(E, cfg.ffn_dims), nn.ReLU(), nn.Dropout(0.1),
+                                 nn.Linear(cfg.ffn_dims, E), nn.Dropout(0.1))
+        self.norm_attention = nn.LayerNorm(E)
+        self.norm_mixing = nn.LayerNorm(E)
+        self.norm_ffn = nn.LayerNorm(E)
+        self.points = PointHead(E, num_points, cfg.num_classes)
+        self.boxes = BoxHead(E, cfg.num_box_classes) if with_boxes else None
+
+    def forward(self, query, prev_means, prev_boxes, num_dynamic, geometry, mlvl_feats,
+                velocity_warp: bool, ego_warp: bool):
+        """query [B, Q, E]; prev_means [B, Q, K_prev, 3]; prev_boxes [B, D, 10] | None;
+        geometry: dict with ego2img [B,T,N,4,4], ego_warp [B,T,4,4], time_delta [B,T], image_hw.
+        Returns the new query and (means, logits, boxes, box_logits)."""
+        D = num_dynamic
+        position = self.position(prev_means)
+        if self.box_position is not None and D:
+            position = torch.cat([position[:, :D] + self.box_position(prev_boxes),
+                                  position[:, D:]], dim=1)
+        query = query + position
+        centroid, _ = sampling_centres(prev_means)
+        query = self.norm_attention(query + self.attention(query, centroid, D))
+
+        velocity = None
+        if velocity_warp and D:
+            velocity = torch.zeros_like(centroid[..., :2])
+            velocity = torch.cat([prev_boxes[..., 8:10], velocity[:, D:]], dim=1)
+        sampled = self.sampling(query, prev_means, velocity, mlvl_feats, geometry["ego2img"],
+                                geometry["ego_warp"] if ego_warp else None,
+                                geometry["time_delta"], geometry["image_hw"])
+        query = self.norm_mixing(self.mixing(sampled, query))
+        query = self.norm_ffn(query + self.ffn(query))
+
+        means, logits = self.points(query, centroid)
+        boxes = box_logits = None
+        if self.boxes is not None and D:
+            boxes, box_logits = self.boxes(query[:, :D], prev_boxes)
+        return query, means, logits, boxes, box_logits
+
+
+class Decoder(nn.Module):
+    def __init__(self, cfg: ModelConfig, num_dynamic: int):
+        super().__init__()
+        self.cfg = cfg
+        self.num_dynamic = num_dynamic
+        prev_points = (1,) + tuple(cfg.points_per_layer[:-1])
+        self.layers = nn.ModuleList(
+            DecoderLayer(cfg, k_prev, k, with_boxes=num_dynamic > 0)
+            for k_prev, k in zip(prev_points, cfg.points_per_layer))
+        self.attributes = GaussianAttributes(cfg.embed_dims, cfg.pc_range)
+
+    def forward(self, query, means, boxes, mlvl_feats, geometry) -> list[LayerOutput]:
+        outputs = []
+        for layer in self.layers:
+            query, means, logits, boxes_new, box_logits = layer(
+                query, means.detach(), None if boxes is None else boxes.detach(),
+                self.num_dynamic, geometry, mlvl_feats,
+                velocity_warp=self.cfg.motion_compensation, ego_warp=self.cfg.ego_compensation)
+            scales, rotations, opacities = self.attributes(means, query)
+            outputs.append(LayerOutput(means, logits, scales, rotations, opacities,
+                                       boxes_new, box_logits))
+            boxes = boxes_new
+        return outputs

@@ -1,0 +1,39 @@
+"""What the network returns (shared by losses, post-processing, the node)."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+
+@dataclass
+class LayerOutput:
+    """One decoder layer's prediction. Q = D + S queries, dynamic first; K points per query.
+
+    means      [B, Q, K, 3]  Gaussian means, metres, current ego frame
+    logits     [B, Q, K, C]  class logits (sigmoid scores, C = 17, no 'free' channel)
+    scales     [B, Q, K, 3]  metres > 0
+    rotations  [B, Q, K, 4]  unit quaternions (w, x, y, z)
+    opacities  [B, Q, K]     in (0, 1)
+    boxes      [B, D, 10]    (cx, cy, cz, log w, log l, log h, sin yaw, cos yaw, vx, vy) or None
+    box_logits [B, D, 10]    box class logits (classes.BOX_CLASSES order) or None
+    """
+    means: torch.Tensor
+    logits: torch.Tensor
+    scales: torch.Tensor
+    rotations: torch.Tensor
+    opacities: torch.Tensor
+    boxes: torch.Tensor | None = None
+    box_logits: torch.Tensor | None = None
+
+
+@dataclass
+class ODGOutput:
+    """init_means [B, Q, 1, 3]: the learnable initial points (supervised by Chamfer, Eq. 9)."""
+    init_means: torch.Tensor
+    layers: list[LayerOutput]
+    num_dynamic: int
+
+    @property
+    def last(self) -> LayerOutput:
+        return self.layers[-1]

@@ -1,0 +1,38 @@
+"""Dual Gaussian queries (paper Sec. 3.2, Eq. 2-3): S static + D dynamic queries.
+
+Every query has a feature vector and learnable initial Gaussian means, initialised from
+U[0, 1] of the grid range. Dynamic queries also carry box attributes (Eq. 3:
+log w, log l, log h, sin, cos, vx, vy; the box centre is the centroid of its means), also
+initialised from U[0, 1] as the paper says.
+"""
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+
+class DualGaussianQueries(nn.Module):
+    def __init__(self, num_dynamic: int, num_static: int, embed_dims: int, pc_range):
+        super().__init__()
+        self.num_dynamic = num_dynamic
+        self.num_static = num_static
+        self.register_buffer("range_min", torch.tensor(pc_range[:3], dtype=torch.float32),
+                             persistent=False)
+        self.register_buffer("range_size", torch.tensor(pc_range[3:], dtype=torch.float32)
+                             - torch.tensor(pc_range[:3], dtype=torch.float32), persistent=False)
+        num = num_dynamic + num_static
+        self.features = nn.Parameter(torch.zeros(num, embed_dims))
+        self.init_points = nn.Parameter(torch.rand(num, 1, 3))        # normalised, U[0, 1]
+        self.init_box = nn.Parameter(torch.rand(num_dynamic, 7))      # U[0, 1], paper Sec. 3.2
+
+    def forward(self, batch_size: int):
+        """-> features [B, Q, E], means [B, Q, 1, 3] metres, boxes [B, D, 10] or None."""
+        features = self.features.unsqueeze(0).expand(batch_size, -1, -1)
+        means = self.range_min + self.init_points * self.range_size
+        means = means.unsqueeze(0).expand(batch_size, -1, -1, -1)
+        boxes = None
+        if self.num_dynamic:
+            centre = means[:, :self.num_dynamic, 0]
+            attrs = self.init_box.unsqueeze(0).expand(batch_size, -1, -1)
+            boxes = torch.cat([centre, attrs], dim=-1)
+        return features, means, boxes
