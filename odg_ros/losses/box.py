@@ -1,0 +1,115 @@
+"""Box loss of the dynamic queries (paper Eq. 10) and the 10-d box code.
+
+Box (GT, infos, node output): (cx, cy, cz, w, l, h, yaw, vx, vy) in the ego frame, metres,
+centre = geometric centre, l along the heading.
+Code (network output, loss space):
+    (cx, cy, cz, log w, log l, log h, sin yaw, cos yaw, vx, vy)
+As SparseBEV's ``normalize_bbox`` / DETR3D: the sizes in log, the yaw as (sin, cos), centre
+and velocity as they are (metres, m/s). (SparseBEV's tensor order is cx, cy, w, l, cz, h, ...;
+ours keeps x, y, z together -- same entries.)
+
+Loss per layer, as SparseBEV's nuScenes config (whose matcher and weights ODG's box head takes):
+* Hungarian matching (``matcher.py``);
+* L1 on the code of matched pairs, code weights (2, 2, 1, 1, 1, 1, 1, 1, 1, 1) -- twice the
+  weight on cx, cy -- loss weight 0.25, normalised by the number of matched GT in the batch
+  (at least 1);
+* sigmoid focal loss (gamma 2, alpha 0.25, weight 2.0) on the box class logits, one-hot targets
+  for matched predictions and all-zero targets for the rest, same normaliser.
+GT code entries that are not finite (velocity missing in nuScenes) are left out of the L1 term
+(SparseBEV drops the whole box there; keeping its position and size is the better use of it)
+and counted. A GT box with a non-finite centre/size/yaw or a size <= 0 is bad input: ValueError.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence
+
+import torch
+
+from .focal import FOCAL_ALPHA, FOCAL_GAMMA, one_hot_targets, sigmoid_focal_loss
+from .matcher import box_match_cost, hungarian_match
+
+BOX_CODE_WEIGHTS = (2.0, 2.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0)
+BOX_L1_WEIGHT = 0.25
+BOX_FOCAL_WEIGHT = 2.0
+
+
+def encode_boxes(boxes: torch.Tensor) -> torch.Tensor:
+    """[..., 9] (cx, cy, cz, w, l, h, yaw, vx, vy) -> [..., 10] code."""
+    if boxes.shape[-1] != 9:
+        raise ValueError(f"boxes must be [..., 9], got {tuple(boxes.shape)}")
+    yaw = boxes[..., 6:7]
+    return torch.cat([boxes[..., 0:3], boxes[..., 3:6].log(), yaw.sin(), yaw.cos(),
+                      boxes[..., 7:9]], dim=-1)
+
+
+def decode_boxes(codes: torch.Tensor) -> torch.Tensor:
+    """[..., 10] code -> [..., 9] box; yaw = atan2(sin, cos) in (-pi, pi]."""
+    if codes.shape[-1] != 10:
+        raise ValueError(f"box codes must be [..., 10], got {tuple(codes.shape)}")
+    yaw = torch.atan2(codes[..., 6:7], codes[..., 7:8])
+    return torch.cat([codes[..., 0:3], codes[..., 3:6].exp(), yaw, codes[..., 8:10]], dim=-1)
+
+
+def check_gt_boxes(boxes: torch.Tensor, labels: torch.Tensor, num_classes: int) -> None:
+    """Raise ValueError on GT that cannot be encoded; NaN/inf velocity is allowed."""
+    if boxes.dim() != 2 or boxes.shape[1] != 9:
+        raise ValueError(f"gt_boxes must be [M, 9], got {tuple(boxes.shape)}")
+    if labels.shape != (boxes.shape[0],):
+        raise ValueError(f"gt_labels {tuple(labels.shape)} do not match {boxes.shape[0]} boxes")
+    if not torch.isfinite(boxes[:, :7]).all():
+        raise ValueError("gt_boxes has a non-finite centre, size or yaw")
+    if (boxes[:, 3:6] <= 0).any():
+        raise ValueError("gt_boxes has a size <= 0")
+    if labels.numel() and (labels.min() < 0 or labels.max() >= num_classes):
+        raise ValueError(f"gt_labels outside [0, {num_classes})")
+
+
+@dataclass
+class BoxLossResult:
+    l1: torch.Tensor            # scalar, includes BOX_L1_WEIGHT
+    focal: torch.Tensor         # scalar, includes BOX_FOCAL_WEIGHT
+    num_matched: int
+    num_nonfinite_costs: int
+    num_nonfinite_targets: int  # GT code entries left out of the L1 term
+
+
+def box_loss(codes: torch.Tensor, logits: torch.Tensor, gt_boxes: Sequence[torch.Tensor],
+             gt_labels: Sequence[torch.Tensor], code_weights: Sequence[float] = BOX_CODE_WEIGHTS,
+             l1_weight: float = BOX_L1_WEIGHT, focal_weight: float = BOX_FOCAL_WEIGHT,
+             alpha: float = FOCAL_ALPHA, gamma: float = FOCAL_GAMMA) -> BoxLossResult:
+    """codes [B, D, 10], logits [B, D, C]; gt_boxes: B x [M_b, 9]; gt_labels: B x [M_b] int."""
+    if codes.dim() != 3 or codes.shape[-1] != 10 or logits.shape[:2] != codes.shape[:2]:
+        raise ValueError(f"box codes {tuple(codes.shape)} / logits {tuple(logits.shape)} "
+                         "must be [B, D, 10] / [B, D, C]")
+    if not len(gt_boxes) == len(gt_labels) == codes.shape[0]:
+        raise ValueError("one gt_boxes and gt_labels entry per sample needed")
+    codes, logits = codes.float(), logits.float()
+    num_classes = logits.shape[-1]
+    w = codes.new_tensor(code_weights)
+    l1_sum = focal_sum = codes.new_zeros(())
+    num_matched = num_bad_cost = num_bad_target = 0
+    for b in range(codes.shape[0]):
+        boxes = gt_boxes[b].to(codes.device, torch.float32)
+        labels = gt_labels[b].to(codes.device).long()
+        check_gt_boxes(boxes, labels, num_classes)
+        targets = torch.zeros_like(logits[b])
+        if boxes.shape[0] and codes.shape[1]:
+            gt_codes = encode_boxes(boxes)
+            with torch.no_grad():
+                cost = box_match_cost(codes[b], logits[b], gt_codes, labels, code_weights)
+            pred_idx, gt_idx, bad = hungarian_match(cost)
+            pred_idx, gt_idx = pred_idx.to(codes.device), gt_idx.to(codes.device)
+            num_bad_cost += bad
+            matched_gt = gt_codes[gt_idx]
+            finite = torch.isfinite(matched_gt)
+            num_bad_target += int((~finite).sum())
+            diff = (codes[b, pred_idx] - torch.where(finite, matched_gt, 0)).abs() * w
+            l1_sum = l1_sum + torch.where(finite, diff, 0).sum()
+            targets[pred_idx] = one_hot_targets(labels[gt_idx], num_classes)
+            num_matched += int(pred_idx.numel())
+        focal_sum = focal_sum + sigmoid_focal_loss(logits[b], targets, alpha, gamma).sum()
+    norm = max(num_matched, 1)
+    return BoxLossResult(l1=l1_weight * l1_sum / norm, focal=focal_weight * focal_sum / norm,
+                         num_matched=num_matched, num_nonfinite_costs=num_bad_cost,
+                         num_nonfinite_targets=num_bad_target)
