@@ -221,3 +221,16 @@ def test_box_loss_matches_float64_bruteforce_on_random():
     focal = sigmoid_focal_loss(logits[0].double(), t).sum().item()
     assert res.l1.item() == pytest.approx(0.25 * l1 / M, rel=1e-5)
     assert res.focal.item() == pytest.approx(2.0 * focal / M, rel=1e-5)
+
+
+def test_box_loss_gradcheck_float64():
+    gt = torch.tensor([_box(1.0, 2.0, yaw=0.4, vx=1.0), _box(-3.0, 0.5)], dtype=torch.float64)
+    codes = (encode_boxes(gt) + 0.3 * torch.randn(2, 10, dtype=torch.float64))[None]
+    codes = torch.cat([codes, torch.randn(1, 1, 10, dtype=torch.float64)], 1).requires_grad_(True)
+    logits = torch.randn(1, 3, 10, dtype=torch.float64, requires_grad=True)
+
+    def f(c, x):
+        res = box_loss(c, x, [gt], [torch.tensor([0, 4])])
+        return res.l1 + res.focal
+
+    assert torch.autograd.gradcheck(f, (codes, logits))

@@ -84,13 +84,15 @@ def box_loss(codes: torch.Tensor, logits: torch.Tensor, gt_boxes: Sequence[torch
                          "must be [B, D, 10] / [B, D, C]")
     if not len(gt_boxes) == len(gt_labels) == codes.shape[0]:
         raise ValueError("one gt_boxes and gt_labels entry per sample needed")
-    codes, logits = codes.float(), logits.float()
+    # half precision is computed in float32, float64 stays (for gradcheck)
+    codes = codes if codes.dtype == torch.float64 else codes.float()
+    logits = logits.to(codes.dtype)
     num_classes = logits.shape[-1]
     w = codes.new_tensor(code_weights)
     l1_sum = focal_sum = codes.new_zeros(())
     num_matched = num_bad_cost = num_bad_target = 0
     for b in range(codes.shape[0]):
-        boxes = gt_boxes[b].to(codes.device, torch.float32)
+        boxes = gt_boxes[b].to(codes.device, codes.dtype)
         labels = gt_labels[b].to(codes.device).long()
         check_gt_boxes(boxes, labels, num_classes)
         targets = torch.zeros_like(logits[b])
@@ -106,7 +108,7 @@ def box_loss(codes: torch.Tensor, logits: torch.Tensor, gt_boxes: Sequence[torch
             num_bad_target += int((~finite).sum())
             diff = (codes[b, pred_idx] - torch.where(finite, matched_gt, 0)).abs() * w
             l1_sum = l1_sum + torch.where(finite, diff, 0).sum()
-            targets[pred_idx] = one_hot_targets(labels[gt_idx], num_classes)
+            targets[pred_idx] = one_hot_targets(labels[gt_idx], num_classes, logits.dtype)
             num_matched += int(pred_idx.numel())
         focal_sum = focal_sum + sigmoid_focal_loss(logits[b], targets, alpha, gamma).sum()
     norm = max(num_matched, 1)
