@@ -1,0 +1,37 @@
+"""The one exception of the online pipeline: an input that cannot be used.
+
+Every reason a camera set is skipped has a short ``kind`` (a diagnostics counter name and
+the name of the throttled warning) and a human message. The node catches ``BadInput``,
+logs it, counts it and keeps running; nothing else is caught, so programming errors still
+surface.
+"""
+from __future__ import annotations
+
+# Every kind the pipeline raises or counts; diagnostics report each of them (zeros included)
+# so a dashboard sees the same keys from the first message on.
+BAD_INPUT_KINDS = (
+    "corrupt_image",        # undecodable / truncated JPEG or PNG, short raw buffer
+    "unsupported_encoding",  # raw encoding or compressed format we do not decode
+    "wrong_image_size",     # decoded size differs from the CameraInfo
+    "missing_camera_info",  # no CameraInfo received yet for a camera of the set
+    "bad_camera_info",      # CameraInfo with a zero / non-finite K or zero size
+    "bad_pose",             # NaN or non-orthonormal pose
+    "pose_miss",            # no pose at a camera stamp (outside the buffer + bound)
+    "missing_extrinsics",   # no base_link -> camera transform
+    "future_stamp",         # image stamp ahead of the node clock
+    "unknown_camera",       # message from a camera not in the configured list
+)
+
+
+class BadInput(Exception):
+    """An unusable input. ``kind`` is one of ``BAD_INPUT_KINDS``."""
+
+    def __init__(self, kind: str, message: str):
+        if kind not in BAD_INPUT_KINDS:
+            raise ValueError(f"unknown bad-input kind {kind!r}")
+        super().__init__(message)
+        self.kind = kind
+        self.message = message
+
+    def __str__(self) -> str:
+        return f"{self.kind}: {self.message}"

@@ -1,0 +1,152 @@
+"""Approximate-time synchronisation of the cameras into sets (one set = one network input).
+
+The six nuScenes images of one set span ~42 ms and two sets mixed span >= ~74 ms
+(DESIGN.md sec. 3), so a set is a group of one message per camera whose stamps span at
+most ``slop`` seconds (0.05 by default).
+
+Messages are fed one by one as ``(camera, stamp, payload)``; arrival order is free
+(jitter, reordering between and within sets). Rules, all deterministic:
+
+* A message joins the pending set that lacks its camera and stays within ``slop`` with it
+  (the one whose stamps are closest, if several); otherwise it opens a new pending set.
+* A message whose camera already has exactly that stamp in a pending set is a duplicate
+  (dropped, counted).
+* When a set becomes complete it is emitted; every pending set older than it can no longer
+  be emitted in order, so it is dropped and counted as ``dropped_incomplete``.
+* A message not newer than the last emitted set is late (its set is gone): dropped, counted.
+  One more than ``time_jump`` seconds older than the newest stamp seen is a time jump
+  (a bag restarted): everything pending is cleared and synchronisation starts over.
+* At most ``max_pending`` sets wait; opening one more drops the oldest (a dead camera
+  therefore costs bounded memory, and shows up in ``dropped_incomplete``).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Sequence
+
+
+@dataclass
+class CameraSet:
+    """One message per camera. ``stamps``/``payloads`` are keyed by camera name, in the
+    configured camera order."""
+
+    stamps: dict[str, float]
+    payloads: dict[str, Any]
+
+    @property
+    def reference_camera(self) -> str:
+        """The first configured camera (CAM_FRONT): the set's ego frame is the ego at its
+        stamp, as for the history frames of the dataset (data/dataset.py)."""
+        return next(iter(self.stamps))
+
+    @property
+    def reference_stamp(self) -> float:
+        return self.stamps[self.reference_camera]
+
+    @property
+    def span(self) -> float:
+        return max(self.stamps.values()) - min(self.stamps.values())
+
+
+@dataclass
+class _Pending:
+    stamps: dict[str, float] = field(default_factory=dict)
+    payloads: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def low(self) -> float:
+        return min(self.stamps.values())
+
+    @property
+    def high(self) -> float:
+        return max(self.stamps.values())
+
+
+class CameraSetSync:
+    """Groups camera messages into complete sets. Not thread-safe: call from one thread."""
+
+    COUNTERS = ("sets_emitted", "dropped_incomplete", "late_messages", "duplicate_messages",
+                "time_jumps")
+
+    def __init__(self, camera_names: Sequence[str], slop: float = 0.05, max_pending: int = 8,
+                 time_jump: float = 1.0):
+        if len(set(camera_names)) != len(camera_names) or not camera_names:
+            raise ValueError(f"camera names must be unique and non-empty: {camera_names}")
+        if not slop > 0 or max_pending < 1 or not time_jump > slop:
+            raise ValueError(f"bad sync settings: slop={slop}, max_pending={max_pending}, "
+                             f"time_jump={time_jump}")
+        self.camera_names = tuple(camera_names)
+        self.slop = float(slop)
+        self.max_pending = int(max_pending)
+        self.time_jump = float(time_jump)
+        self.counters = {name: 0 for name in self.COUNTERS}
+        self._pending: list[_Pending] = []
+        self._last_emitted: float | None = None   # newest stamp of the last emitted set
+        self._newest_seen: float | None = None
+
+    def reset(self) -> None:
+        self._pending.clear()
+        self._last_emitted = None
+        self._newest_seen = None
+
+    @property
+    def num_pending(self) -> int:
+        return len(self._pending)
+
+    def add(self, camera: str, stamp: float, payload: Any) -> list[CameraSet]:
+        """Feed one message; returns the sets it completed (zero or one, oldest first)."""
+        if camera not in self.camera_names:
+            raise ValueError(f"unknown camera {camera!r}; expected one of {self.camera_names}")
+        stamp = float(stamp)
+        if self._newest_seen is not None and stamp < self._newest_seen - self.time_jump:
+            self.counters["time_jumps"] += 1
+            self.reset()
+        if self._last_emitted is not None and stamp <= self._last_emitted:
+            self.counters["late_messages"] += 1
+            return []
+        self._newest_seen = stamp if self._newest_seen is None else max(self._newest_seen, stamp)
+
+        target = self._best_pending(camera, stamp)
+        if target is None:
+            if any(p.stamps.get(camera) == stamp for p in self._pending):
+                self.counters["duplicate_messages"] += 1
+                return []
+            target = _Pending()
+            self._pending.append(target)
+        target.stamps[camera] = stamp
+        target.payloads[camera] = payload
+        self._pending.sort(key=lambda p: p.low)
+
+        if len(target.stamps) == len(self.camera_names):
+            return [self._emit(target)]
+        while len(self._pending) > self.max_pending:
+            self._pending.pop(0)
+            self.counters["dropped_incomplete"] += 1
+        return []
+
+    def _best_pending(self, camera: str, stamp: float) -> _Pending | None:
+        best, best_distance = None, None
+        for pending in self._pending:
+            if camera in pending.stamps:
+                continue
+            low, high = min(pending.low, stamp), max(pending.high, stamp)
+            if high - low > self.slop:
+                continue
+            distance = max(abs(stamp - pending.low), abs(stamp - pending.high))
+            if best is None or distance < best_distance:
+                best, best_distance = pending, distance
+        return best
+
+    def _emit(self, complete: _Pending) -> CameraSet:
+        older = [p for p in self._pending if p is not complete and p.low < complete.low]
+        self.counters["dropped_incomplete"] += len(older)
+        self._pending = [p for p in self._pending if p is not complete and p not in older]
+        # Pending sets that overlap the emitted one in time cannot be emitted in order either.
+        stale = [p for p in self._pending if p.low <= complete.high]
+        self.counters["dropped_incomplete"] += len(stale)
+        self._pending = [p for p in self._pending if p not in stale]
+        self._last_emitted = complete.high
+        self.counters["sets_emitted"] += 1
+        order = self.camera_names
+        return CameraSet(stamps={c: complete.stamps[c] for c in order},
+                         payloads={c: complete.payloads[c] for c in order})

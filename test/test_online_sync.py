@@ -1,0 +1,162 @@
+"""Camera set synchronisation: jitter, reordering, dropped cameras, duplicates, time jumps."""
+import random
+
+import pytest
+
+from odg_ros.online.sync import CameraSetSync
+
+CAMS = ("CAM_FRONT", "CAM_FRONT_RIGHT", "CAM_FRONT_LEFT", "CAM_BACK", "CAM_BACK_LEFT",
+        "CAM_BACK_RIGHT")
+# nuScenes-like: a set every 1/12 s, cameras 0..42 ms after the set start (DESIGN.md sec. 3)
+OFFSETS = (0.0, 0.008, 0.017, 0.025, 0.033, 0.042)
+PERIOD = 1 / 12
+
+
+def messages(num_sets, start=100.0, jitter=0.0, seed=0):
+    rng = random.Random(seed)
+    out = []
+    for k in range(num_sets):
+        for cam, offset in zip(CAMS, OFFSETS):
+            stamp = start + k * PERIOD + offset + rng.uniform(-jitter, jitter)
+            out.append((cam, stamp, (k, cam)))
+    return out
+
+
+def feed(sync, msgs):
+    sets = []
+    for cam, stamp, payload in msgs:
+        sets += sync.add(cam, stamp, payload)
+    return sets
+
+
+def assert_clean_set(camera_set, k):
+    assert list(camera_set.stamps) == list(CAMS)
+    assert all(payload == (k, cam) for cam, payload in camera_set.payloads.items())
+    assert camera_set.span <= 0.05
+
+
+def test_in_order_sets_complete_one_by_one():
+    sync = CameraSetSync(CAMS, slop=0.05)
+    sets = feed(sync, messages(5))
+    assert len(sets) == 5
+    for k, s in enumerate(sets):
+        assert_clean_set(s, k)
+        assert s.reference_camera == "CAM_FRONT"
+        assert s.reference_stamp == pytest.approx(100.0 + k * PERIOD)
+    assert sync.counters["dropped_incomplete"] == 0 and sync.num_pending == 0
+
+
+def test_jitter_and_reordering_within_and_across_sets():
+    # +-3 ms of jitter, and messages shuffled within a window of two sets
+    msgs = messages(20, jitter=0.003, seed=1)
+    rng = random.Random(2)
+    shuffled = []
+    for i in range(0, len(msgs), 12):
+        chunk = msgs[i:i + 12]
+        rng.shuffle(chunk)
+        shuffled += chunk
+    sync = CameraSetSync(CAMS, slop=0.05)
+    sets = feed(sync, shuffled)
+    # A set completed after a newer set is dropped (it can no longer be emitted in order);
+    # every emitted set is clean and the emitted sequence is strictly increasing in time.
+    assert len(sets) + sync.counters["dropped_incomplete"] == 20
+    assert len(sets) >= 10
+    for s in sets:
+        k = s.payloads["CAM_FRONT"][0]
+        assert_clean_set(s, k)
+    refs = [s.reference_stamp for s in sets]
+    assert refs == sorted(refs)
+
+
+def test_reordering_inside_one_set_loses_nothing():
+    msgs = messages(10, jitter=0.002, seed=3)
+    reordered = []
+    for k in range(10):
+        chunk = msgs[6 * k:6 * k + 6]
+        reordered += chunk[::-1]          # newest camera first, every set
+    sync = CameraSetSync(CAMS, slop=0.05)
+    sets = feed(sync, reordered)
+    assert [s.payloads["CAM_BACK"][0] for s in sets] == list(range(10))
+    assert sync.counters["dropped_incomplete"] == 0
+
+
+def test_missing_message_drops_that_set_only_and_counts_it():
+    msgs = [m for m in messages(6) if not (m[2] == (2, "CAM_BACK_LEFT"))]
+    sync = CameraSetSync(CAMS, slop=0.05)
+    sets = feed(sync, msgs)
+    assert [s.payloads["CAM_FRONT"][0] for s in sets] == [0, 1, 3, 4, 5]
+    assert sync.counters["dropped_incomplete"] == 1
+    assert sync.num_pending == 0
+
+
+def test_dead_camera_keeps_memory_bounded():
+    msgs = [m for m in messages(50) if m[0] != "CAM_BACK"]
+    sync = CameraSetSync(CAMS, slop=0.05, max_pending=4)
+    assert feed(sync, msgs) == []
+    assert sync.num_pending == 4
+    assert sync.counters["dropped_incomplete"] == 46
+    # the camera comes back: sets flow again
+    sets = feed(sync, messages(3, start=100.0 + 50 * PERIOD))
+    assert len(sets) == 3
+
+
+def test_late_message_after_its_set_was_dropped():
+    msgs = messages(3)
+    late = [m for m in msgs if m[2] == (1, "CAM_BACK")]
+    rest = [m for m in msgs if m[2] != (1, "CAM_BACK")]
+    sync = CameraSetSync(CAMS, slop=0.05)
+    sets = feed(sync, rest)
+    assert [s.payloads["CAM_FRONT"][0] for s in sets] == [0, 2]
+    assert feed(sync, late) == []
+    assert sync.counters["late_messages"] == 1
+    assert sync.counters["dropped_incomplete"] == 1
+
+
+def test_duplicate_stamps_are_dropped():
+    msgs = messages(2)
+    doubled = []
+    for m in msgs:
+        doubled += [m, (m[0], m[1], "copy")]
+    sync = CameraSetSync(CAMS, slop=0.05)
+    sets = feed(sync, doubled)
+    assert len(sets) == 2
+    for k, s in enumerate(sets):
+        assert_clean_set(s, k)
+    # the copies of the last message of each set arrive after it was emitted: late
+    assert sync.counters["duplicate_messages"] + sync.counters["late_messages"] == 12
+
+
+def test_sets_farther_apart_than_slop_never_mix():
+    # Two half sets 60 ms apart must not be merged into one set
+    sync = CameraSetSync(CAMS, slop=0.05)
+    out = []
+    for i, cam in enumerate(CAMS):
+        out += sync.add(cam, 10.0 + (0.06 if i >= 3 else 0.0), i)
+    assert out == []
+    assert sync.num_pending == 2
+
+
+def test_time_jump_backwards_restarts():
+    sync = CameraSetSync(CAMS, slop=0.05, time_jump=1.0)
+    first = feed(sync, messages(5, start=200.0))
+    again = feed(sync, messages(5, start=100.0))      # the bag looped
+    assert len(first) == 5 and len(again) == 5
+    assert sync.counters["time_jumps"] == 1
+    assert sync.counters["late_messages"] == 0
+
+
+def test_small_step_backwards_is_late_not_a_jump():
+    sync = CameraSetSync(CAMS, slop=0.05, time_jump=1.0)
+    feed(sync, messages(5, start=200.0))
+    assert feed(sync, messages(1, start=199.8)) == []
+    assert sync.counters["time_jumps"] == 0
+    assert sync.counters["late_messages"] == 6
+
+
+def test_bad_settings_and_unknown_camera():
+    with pytest.raises(ValueError):
+        CameraSetSync(CAMS, slop=0.0)
+    with pytest.raises(ValueError):
+        CameraSetSync(("A", "A"))
+    with pytest.raises(ValueError):
+        CameraSetSync(CAMS).add("CAM_SIDE", 1.0, None)
