@@ -415,3 +415,28 @@ def test_dataloader_workers(world, tmp_path):
     assert b["images"].shape == (2, 3, 6, 3, *INPUT_HW) and b["ego2img"].shape == (2, 3, 6, 4, 4)
     assert isinstance(b["render_targets"], list) and len(b["render_targets"]) == 2
     torch.testing.assert_close(b["ego2img"][1], ds[1]["ego2img"])
+
+
+def test_jpeg_draft_decode_keeps_geometry(tmp_path):
+    """Reduced-scale JPEG decoding lands edges where the full-decode path puts them."""
+    from odg_ros.data.dataset import decode_resized
+    img = np.full((360, 640, 3), 40, np.uint8)
+    img[:, 201:205] = 250           # vertical line, centre x = 203 (corner convention)
+    img[250:254, :] = 250           # horizontal line, centre y = 252
+    Image.fromarray(img).save(tmp_path / "lines.jpg", quality=95)
+    dst = (64, 176)                 # scale 0.275: resized 99 x 176, crop 35 rows
+    with Image.open(tmp_path / "lines.jpg") as im:
+        fast = decode_resized(im, dst).astype(float)[..., 0] - 40
+        assert im.size == (320, 180)                     # decoded at 1/2 scale
+    with Image.open(tmp_path / "lines.jpg") as im:
+        full = preprocess.resize_crop(np.asarray(im.convert("RGB")), dst).astype(float)[..., 0] - 40
+
+    def centroid(profile):
+        return (np.arange(len(profile)) * profile).sum() / profile.sum()
+
+    for out in (fast, full):
+        x = centroid(out[:25, 45:68].mean(0)) + 45      # rows clear of the horizontal line
+        y = centroid(out[20:50, 100:].mean(1)) + 20     # columns clear of the vertical line
+        assert abs(x - (203 * 0.275 - 0.5)) < 0.1
+        assert abs(y - (252 * 0.275 - 35 - 0.5)) < 0.1
+    assert np.abs(fast - full).mean() < 3
