@@ -1,0 +1,68 @@
+"""Rolling history of the last k frames for the temporal decoder (OPUS-style feature cache).
+
+Each frame's backbone features are computed once, when it is the newest frame, and reused
+by the next k-1 decodes. A frame also keeps what the decoder needs to look back at it: its
+ego pose, its ego->image matrices and its stamp. The history starts over when time runs
+backwards (a bag loop, a replayed set) or jumps forward by more than ``max_gap`` seconds
+(dropped input): frames across such a break would be warped with a meaningless ego motion.
+"""
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+
+@dataclass
+class Frame:
+    """One processed camera set.
+
+    features  list of L tensors [1, N, C, H_l, W_l] (model.extract_features of this set)
+    pose      float64 [4, 4] T_global_from_ego at the set's reference stamp
+    ego2img   float64 [N, 4, 4] this frame's ego -> network-input pixels
+    stamp     seconds (the set's reference stamp)
+    """
+
+    features: list[torch.Tensor]
+    pose: np.ndarray
+    ego2img: np.ndarray
+    stamp: float
+
+
+class FrameHistory:
+    """Newest-first list of at most ``capacity`` frames."""
+
+    def __init__(self, capacity: int, max_gap: float = 1.0):
+        if capacity < 1 or not max_gap > 0:
+            raise ValueError(f"bad history settings: capacity={capacity}, max_gap={max_gap}")
+        self.capacity = int(capacity)
+        self.max_gap = float(max_gap)
+        self._frames: deque[Frame] = deque(maxlen=self.capacity)
+        self.resets = {"time_backwards": 0, "gap": 0}
+
+    def __len__(self) -> int:
+        return len(self._frames)
+
+    def clear(self) -> None:
+        self._frames.clear()
+
+    def push(self, frame: Frame) -> str | None:
+        """Add the newest frame; returns the reason the history was reset first, or None."""
+        reason = None
+        if self._frames:
+            newest = self._frames[0].stamp
+            if frame.stamp <= newest:
+                reason = "time_backwards"
+            elif frame.stamp - newest > self.max_gap:
+                reason = "gap"
+        if reason is not None:
+            self.resets[reason] += 1
+            self._frames.clear()
+        self._frames.appendleft(frame)
+        return reason
+
+    def frames(self) -> list[Frame]:
+        """Frames newest first (index 0 = current)."""
+        return list(self._frames)

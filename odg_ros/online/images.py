@@ -1,0 +1,115 @@
+"""Camera image messages -> network input (decode, validate, resize/crop, intrinsics).
+
+Decoding: ``sensor_msgs/CompressedImage`` payloads in JPEG or PNG (Pillow), and raw
+``sensor_msgs/Image`` buffers in rgb8, bgr8, rgba8, bgra8 and mono8. Every failure is a
+``BadInput`` with a specific kind (corrupt data, an encoding we do not decode, a size that
+disagrees with the CameraInfo), never a crash and never a silently wrong image.
+The resize/crop and the intrinsics adjustment are preprocess.py's, shared with training.
+"""
+from __future__ import annotations
+
+import io
+from dataclasses import dataclass
+
+import numpy as np
+from PIL import Image, UnidentifiedImageError
+
+from ..preprocess import adjust_intrinsics, resize_crop
+from .errors import BadInput
+
+# raw encoding -> (channels, channel order to take RGB from)
+RAW_ENCODINGS = {
+    "rgb8": (3, (0, 1, 2)),
+    "bgr8": (3, (2, 1, 0)),
+    "rgba8": (4, (0, 1, 2)),
+    "bgra8": (4, (2, 1, 0)),
+    "mono8": (1, (0, 0, 0)),
+}
+
+
+@dataclass
+class EncodedImage:
+    """The fields of an image message that decoding needs (no ROS types).
+
+    compressed  True for CompressedImage, False for a raw Image
+    format      CompressedImage.format (e.g. 'jpeg', 'png', 'bgr8; jpeg compressed bgr8')
+                or Image.encoding (e.g. 'rgb8')
+    data        the payload bytes
+    height, width, step   raw images only (Image.height/width/step)
+    """
+
+    compressed: bool
+    format: str
+    data: bytes
+    height: int = 0
+    width: int = 0
+    step: int = 0
+
+
+def decode_compressed(data: bytes, fmt: str = "") -> np.ndarray:
+    """JPEG/PNG bytes -> HxWx3 uint8 RGB. Raises BadInput on corrupt or unsupported data."""
+    lowered = fmt.lower()
+    if "compresseddepth" in lowered or "16uc" in lowered or "32fc" in lowered:
+        raise BadInput("unsupported_encoding", f"compressed format {fmt!r} is not a colour "
+                       "JPEG/PNG image")
+    if len(data) == 0:
+        raise BadInput("corrupt_image", "empty compressed image")
+    try:
+        with Image.open(io.BytesIO(data), formats=("JPEG", "PNG")) as image:
+            image.load()     # decode now: truncated data raises here, not later
+            mode = image.mode
+            if mode in ("I", "I;16", "I;16B", "I;16L", "F"):
+                raise BadInput("unsupported_encoding", f"{image.format} with {mode} pixels "
+                               "(16-bit/float); expected 8-bit colour or grey")
+            rgb = image if mode == "RGB" else image.convert("RGB")
+            array = np.asarray(rgb, dtype=np.uint8)
+    except BadInput:
+        raise
+    except UnidentifiedImageError as error:
+        raise BadInput("corrupt_image", f"not a decodable JPEG/PNG ({fmt!r}, {len(data)} "
+                       f"bytes): {error}") from None
+    except (OSError, SyntaxError, ValueError, Image.DecompressionBombError) as error:
+        raise BadInput("corrupt_image", f"corrupt or truncated image ({fmt!r}, {len(data)} "
+                       f"bytes): {error}") from None
+    if array.ndim != 3 or array.shape[2] != 3 or array.size == 0:
+        raise BadInput("corrupt_image", f"decoded to an unusable array {array.shape}")
+    return array
+
+
+def decode_raw(data: bytes, encoding: str, height: int, width: int, step: int) -> np.ndarray:
+    """Raw ``sensor_msgs/Image`` buffer -> HxWx3 uint8 RGB."""
+    if encoding not in RAW_ENCODINGS:
+        raise BadInput("unsupported_encoding", f"raw encoding {encoding!r} is not supported; "
+                       f"use one of {sorted(RAW_ENCODINGS)}")
+    channels, order = RAW_ENCODINGS[encoding]
+    if height <= 0 or width <= 0:
+        raise BadInput("corrupt_image", f"raw image of size {height}x{width}")
+    if step < width * channels:
+        raise BadInput("corrupt_image", f"raw {encoding} step {step} < width*channels "
+                       f"{width * channels}")
+    if len(data) < step * height:
+        raise BadInput("corrupt_image", f"raw {encoding} buffer has {len(data)} bytes, "
+                       f"{step * height} expected (step {step} x height {height})")
+    rows = np.frombuffer(data, dtype=np.uint8, count=step * height).reshape(height, step)
+    pixels = rows[:, :width * channels].reshape(height, width, channels)
+    return np.ascontiguousarray(pixels[:, :, list(order)])
+
+
+def decode(image: EncodedImage) -> np.ndarray:
+    """Either kind of image message -> HxWx3 uint8 RGB."""
+    if image.compressed:
+        return decode_compressed(image.data, image.format)
+    return decode_raw(image.data, image.format, image.height, image.width, image.step)
+
+
+def to_network_input(rgb: np.ndarray, expected_hw, intrinsics, input_hw):
+    """Check the size against the CameraInfo, then resize/crop to the network input.
+
+    rgb [H, W, 3] uint8; expected_hw (H, W) of the CameraInfo; intrinsics 3x3 of the
+    original image -> (uint8 [H', W', 3], float64 3x3 intrinsics of the network input).
+    """
+    expected_hw = tuple(int(v) for v in expected_hw)
+    if tuple(rgb.shape[:2]) != expected_hw:
+        raise BadInput("wrong_image_size", f"image is {rgb.shape[0]}x{rgb.shape[1]} (HxW) but "
+                       f"its CameraInfo says {expected_hw[0]}x{expected_hw[1]}")
+    return resize_crop(rgb, input_hw), adjust_intrinsics(intrinsics, expected_hw, input_hw)

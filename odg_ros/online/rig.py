@@ -1,0 +1,91 @@
+"""Camera calibration online: rig files, CameraInfo checks and the ego->image matrices of a set.
+
+A rig file (``config/rig_nuscenes.yaml``) gives per camera its frame id, original image
+size, intrinsics and ``sensor2ego`` (T_ego_from_cam). Online, the intrinsics and size come
+from each camera's CameraInfo; the extrinsics from the rig file or TF.
+
+The six images of a set are taken at slightly different times (up to ~42 ms apart on
+nuScenes) while the car moves, so, as in the nuScenes infos, each camera is placed with the
+ego pose at its own stamp and the set's ego frame is the ego at the reference stamp::
+
+    ego2img[n] = [K'_n 0; 0 1] @ inv(sensor2ego_n) @ inv(P(t_n)) @ P(t_ref)
+
+with P = T_global_from_ego and K' the network-input intrinsics (geometry.ego_to_image).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from ..geometry import ego_to_image, invert_transform, is_rigid, make_transform
+from .errors import BadInput
+
+
+@dataclass
+class CameraCalibration:
+    """intrinsics float64 [3, 3] of the original image; image_hw (H, W); sensor2ego [4, 4]."""
+
+    frame_id: str
+    image_hw: tuple[int, int]
+    intrinsics: np.ndarray
+    sensor2ego: np.ndarray | None = None
+
+
+@dataclass
+class Rig:
+    base_frame: str
+    cameras: dict[str, CameraCalibration]
+
+
+def check_intrinsics(K, height: int, width: int, frame_id: str = "") -> CameraCalibration:
+    """Validate a CameraInfo's K and size; raises ``BadInput('bad_camera_info')``."""
+    K = np.asarray(K, dtype=np.float64).reshape(3, 3)
+    where = f" (frame {frame_id!r})" if frame_id else ""
+    if height <= 0 or width <= 0:
+        raise BadInput("bad_camera_info", f"CameraInfo{where} has size {height}x{width}")
+    if not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0 or K[2, 2] != 1.0 \
+            or np.any(K[2, :2] != 0):
+        raise BadInput("bad_camera_info", f"CameraInfo{where} has an unusable K "
+                       f"(uncalibrated camera?): {K.ravel().tolist()}")
+    return CameraCalibration(frame_id=frame_id, image_hw=(int(height), int(width)), intrinsics=K)
+
+
+def load_rig(path: str | Path) -> Rig:
+    """Read a rig YAML file (format in config/rig_nuscenes.yaml). Raises ValueError if bad."""
+    with open(path) as f:
+        doc = yaml.safe_load(f) or {}
+    if "cameras" not in doc or not isinstance(doc["cameras"], dict) or not doc["cameras"]:
+        raise ValueError(f"{path}: no 'cameras' mapping")
+    cameras = {}
+    for name, entry in doc["cameras"].items():
+        try:
+            height, width = (int(v) for v in entry["image_size"])
+            calibration = check_intrinsics(entry["intrinsics"], height, width,
+                                           entry.get("frame_id", name))
+            extrinsics = entry["sensor2ego"]
+            T = make_transform(extrinsics["rotation"], extrinsics["translation"])
+        except (KeyError, TypeError, ValueError, BadInput) as error:
+            raise ValueError(f"{path}: camera {name}: {error}") from None
+        if not is_rigid(T):
+            raise ValueError(f"{path}: camera {name}: sensor2ego is not rigid")
+        calibration.sensor2ego = T
+        cameras[name] = calibration
+    return Rig(base_frame=str(doc.get("base_frame", "base_link")), cameras=cameras)
+
+
+def set_ego2img(input_intrinsics, sensor2ego, camera_poses, reference_pose) -> np.ndarray:
+    """ego->image matrices of one set, each camera at its own stamp.
+
+    input_intrinsics [N, 3, 3] (network input), sensor2ego [N, 4, 4] (T_ego_from_cam),
+    camera_poses [N, 4, 4] T_global_from_ego at each camera's stamp,
+    reference_pose [4, 4] T_global_from_ego at the reference stamp -> float64 [N, 4, 4].
+    """
+    reference_pose = np.asarray(reference_pose, dtype=np.float64)
+    out = []
+    for K, T_ego_from_cam, pose in zip(input_intrinsics, sensor2ego, camera_poses):
+        ego_t_from_ego_ref = invert_transform(pose) @ reference_pose
+        out.append(ego_to_image(K, T_ego_from_cam) @ ego_t_from_ego_ref)
+    return np.stack(out)

@@ -1,0 +1,148 @@
+"""Image decoding and validation (every bad input -> a specific BadInput), rig calibration."""
+import io
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from odg_ros.geometry import ego_to_image, invert_transform, make_transform
+from odg_ros.online.errors import BadInput
+from odg_ros.online.images import EncodedImage, decode, decode_compressed, decode_raw, \
+    to_network_input
+from odg_ros.online.rig import check_intrinsics, load_rig, set_ego2img
+from odg_ros.preprocess import adjust_intrinsics, resize_crop
+from odg_ros.resources import resource_path
+
+
+def rgb_image(h=90, w=160, seed=0):
+    return np.random.default_rng(seed).integers(0, 256, (h, w, 3), dtype=np.uint8)
+
+
+def encode(array, fmt):
+    buffer = io.BytesIO()
+    Image.fromarray(array).save(buffer, format=fmt)
+    return buffer.getvalue()
+
+
+def bad_kind(fn, *args):
+    with pytest.raises(BadInput) as error:
+        fn(*args)
+    return error.value.kind
+
+
+def test_png_round_trip_is_exact_and_jpeg_is_close():
+    image = rgb_image()
+    assert np.array_equal(decode_compressed(encode(image, "PNG"), "png"), image)
+    smooth = np.repeat(np.linspace(0, 255, 160, dtype=np.uint8)[None, :, None], 90, 0)
+    smooth = np.repeat(smooth, 3, 2)
+    decoded = decode_compressed(encode(smooth, "JPEG"), "bgr8; jpeg compressed bgr8")
+    assert decoded.shape == (90, 160, 3)
+    assert np.abs(decoded.astype(int) - smooth).mean() < 2
+
+
+def test_grey_and_rgba_pngs_become_rgb():
+    grey = rgb_image()[:, :, 0]
+    out = decode_compressed(encode(grey, "PNG"), "png")
+    assert out.shape == (90, 160, 3) and np.array_equal(out[:, :, 1], grey)
+    rgba = np.concatenate([rgb_image(), np.full((90, 160, 1), 7, np.uint8)], axis=2)
+    assert np.array_equal(decode_compressed(encode(rgba, "PNG"), "png"), rgba[:, :, :3])
+
+
+def test_corrupt_truncated_and_unsupported_compressed_images():
+    jpeg = encode(rgb_image(), "JPEG")
+    assert bad_kind(decode_compressed, jpeg[: len(jpeg) // 2], "jpeg") == "corrupt_image"
+    assert bad_kind(decode_compressed, b"", "jpeg") == "corrupt_image"
+    assert bad_kind(decode_compressed, b"\xff\xd8\xff" + b"\x00" * 100, "jpeg") == "corrupt_image"
+    assert bad_kind(decode_compressed, b"hello world", "jpeg") == "corrupt_image"
+    assert bad_kind(decode_compressed, encode(rgb_image(), "BMP"), "bmp") == "corrupt_image"
+    assert bad_kind(decode_compressed, jpeg, "16UC1; compressedDepth") == "unsupported_encoding"
+    sixteen = encode(np.zeros((8, 8), np.uint16) + 1000, "PNG")
+    assert bad_kind(decode_compressed, sixteen, "png") == "unsupported_encoding"
+
+
+@pytest.mark.parametrize("encoding", ["rgb8", "bgr8", "rgba8", "bgra8", "mono8"])
+def test_raw_encodings(encoding):
+    image = rgb_image(6, 5)
+    channels = {"rgb8": image, "bgr8": image[:, :, ::-1],
+                "rgba8": np.concatenate([image, np.zeros((6, 5, 1), np.uint8)], 2),
+                "bgra8": np.concatenate([image[:, :, ::-1], np.zeros((6, 5, 1), np.uint8)], 2),
+                "mono8": image[:, :, :1]}[encoding]
+    c = channels.shape[2]
+    step = 5 * c + 3                                       # padded rows
+    rows = np.zeros((6, step), np.uint8)
+    rows[:, :5 * c] = channels.reshape(6, -1)
+    out = decode(EncodedImage(False, encoding, rows.tobytes(), 6, 5, step))
+    expected = np.repeat(image[:, :, :1], 3, 2) if encoding == "mono8" else image
+    assert np.array_equal(out, expected)
+
+
+def test_raw_bad_inputs():
+    data = rgb_image(6, 5).tobytes()
+    assert bad_kind(decode_raw, data, "16UC1", 6, 5, 10) == "unsupported_encoding"
+    assert bad_kind(decode_raw, data, "yuv422", 6, 5, 10) == "unsupported_encoding"
+    assert bad_kind(decode_raw, data[:-1], "rgb8", 6, 5, 15) == "corrupt_image"
+    assert bad_kind(decode_raw, data, "rgb8", 6, 5, 14) == "corrupt_image"
+    assert bad_kind(decode_raw, data, "rgb8", 0, 5, 15) == "corrupt_image"
+
+
+def test_network_input_checks_size_and_adjusts_intrinsics():
+    image = rgb_image(90, 160)
+    K = np.array([[100.0, 0, 80], [0, 100, 45], [0, 0, 1]])
+    out, K2 = to_network_input(image, (90, 160), K, (32, 88))
+    assert np.array_equal(out, resize_crop(image, (32, 88)))
+    assert np.allclose(K2, adjust_intrinsics(K, (90, 160), (32, 88)))
+    assert bad_kind(to_network_input, image, (900, 1600), K, (32, 88)) == "wrong_image_size"
+
+
+def test_camera_info_checks():
+    K = [[100.0, 0, 80], [0, 100, 45], [0, 0, 1]]
+    assert check_intrinsics(K, 90, 160, "cam").image_hw == (90, 160)
+    assert bad_kind(check_intrinsics, np.zeros(9), 90, 160) == "bad_camera_info"
+    assert bad_kind(check_intrinsics, [[np.nan, 0, 1], [0, 1, 1], [0, 0, 1]], 90, 160) \
+        == "bad_camera_info"
+    assert bad_kind(check_intrinsics, K, 0, 160) == "bad_camera_info"
+
+
+def test_shipped_nuscenes_rig():
+    rig = load_rig(resource_path("config/rig_nuscenes.yaml"))
+    assert list(rig.cameras) == ["CAM_FRONT", "CAM_FRONT_RIGHT", "CAM_FRONT_LEFT", "CAM_BACK",
+                                 "CAM_BACK_LEFT", "CAM_BACK_RIGHT"]
+    headings = {}
+    for name, cam in rig.cameras.items():
+        assert cam.image_hw == (900, 1600)
+        optical_axis = cam.sensor2ego[:3, 2]               # camera z in base_link
+        headings[name] = np.degrees(np.arctan2(optical_axis[1], optical_axis[0]))
+        assert abs(optical_axis[2]) < 0.1                   # looking roughly horizontally
+        assert 1.4 < cam.sensor2ego[2, 3] < 1.7             # mounted on the roof
+    assert abs(headings["CAM_FRONT"]) < 2 and abs(abs(headings["CAM_BACK"]) - 180) < 2
+    assert 40 < headings["CAM_FRONT_LEFT"] < 70 and -70 < headings["CAM_FRONT_RIGHT"] < -40
+    assert 100 < headings["CAM_BACK_LEFT"] < 130 and -130 < headings["CAM_BACK_RIGHT"] < -100
+    # a point 10 m ahead projects near the centre column of CAM_FRONT
+    front = rig.cameras["CAM_FRONT"]
+    p = ego_to_image(front.intrinsics, front.sensor2ego) @ np.array([10.0, 0, 1.5, 1])
+    assert p[2] > 0 and abs(p[0] / p[2] - 800) < 60
+
+
+def test_bad_rig_files(tmp_path):
+    path = tmp_path / "rig.yaml"
+    path.write_text("cameras: {}\n")
+    with pytest.raises(ValueError, match="no 'cameras'"):
+        load_rig(path)
+    path.write_text("cameras:\n  A:\n    image_size: [9, 16]\n    intrinsics: [[0,0,0],[0,0,0],"
+                    "[0,0,1]]\n    sensor2ego: {translation: [0,0,0], rotation: [1,0,0,0]}\n")
+    with pytest.raises(ValueError, match="camera A"):
+        load_rig(path)
+
+
+def test_set_ego2img_compensates_motion_between_camera_stamps():
+    K = np.array([[50.0, 0, 40], [0, 50, 20], [0, 0, 1]])
+    ego_from_cam = make_transform(np.array([[0, 0, 1], [-1, 0, 0], [0, -1, 0]]), (1, 0, 1.5))
+    reference_pose = make_transform(np.eye(3), (100, 0, 0))
+    later_pose = make_transform(np.eye(3), (100.5, 0, 0))     # moved 0.5 m forward
+    point_ref = np.array([10.0, 1.0, 1.0, 1.0])                 # a static point, reference ego
+    ego2img = set_ego2img([K, K], [ego_from_cam, ego_from_cam], [reference_pose, later_pose],
+                          reference_pose)
+    point_later = invert_transform(later_pose) @ reference_pose @ point_ref
+    direct = ego_to_image(K, ego_from_cam)
+    assert np.allclose(ego2img[0] @ point_ref, direct @ point_ref)
+    assert np.allclose(ego2img[1] @ point_ref, direct @ point_later)
