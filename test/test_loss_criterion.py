@@ -1,0 +1,180 @@
+"""ODGCriterion: term names, the weighted total, ablation switches, empty batches, NaN."""
+import pytest
+import torch
+
+from odg_ros.config import ModelConfig
+from odg_ros.losses import LAMBDA_3D, ODGCriterion, encode_boxes
+
+try:
+    from odg_ros.network.outputs import LayerOutput, ODGOutput
+except ImportError:                                     # the lead's dataclasses not there yet
+    from types import SimpleNamespace as LayerOutput
+    from types import SimpleNamespace as ODGOutput
+
+B, N, H, W = 2, 2, 32, 64
+CFG = ModelConfig(name="tiny", num_static=6, num_dynamic=2, points_per_layer=(1, 2, 2, 2, 2, 3),
+                  image_size=(H, W), num_cams=N)
+K = torch.tensor([[50.0, 0, 32.0], [0, 50.0, 16.0], [0, 0, 1]])
+FRONT = torch.tensor([[0.0, -1, 0, 0], [0, 0, -1, 0], [1, 0, 0, 0], [0, 0, 0, 1]])
+BACK = torch.tensor([[0.0, 1, 0, 0], [0, 0, -1, 0], [-1, 0, 0, 0], [0, 0, 0, 1]])
+
+
+def make_output(cfg=CFG, boxes=True, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    Q, D = cfg.num_queries, cfg.num_dynamic
+    layers = []
+    for k in cfg.points_per_layer:
+        means = torch.randn(B, Q, k, 3, generator=g) * torch.tensor([8.0, 8.0, 1.0])
+        rot = torch.randn(B, Q, k, 4, generator=g)
+        layers.append(LayerOutput(
+            means=means.requires_grad_(True),
+            logits=torch.randn(B, Q, k, 17, generator=g, requires_grad=True),
+            scales=(torch.rand(B, Q, k, 3, generator=g) + 0.3).requires_grad_(True),
+            rotations=(rot / rot.norm(dim=-1, keepdim=True)).requires_grad_(True),
+            opacities=torch.rand(B, Q, k, generator=g).clamp(0.05, 0.95).requires_grad_(True),
+            boxes=torch.randn(B, D, 10, generator=g, requires_grad=True) if boxes else None,
+            box_logits=torch.randn(B, D, 10, generator=g, requires_grad=True) if boxes else None))
+    init = (torch.randn(B, Q, 1, 3, generator=g) * 8).requires_grad_(True)
+    return ODGOutput(init_means=init, layers=layers, num_dynamic=D)
+
+
+def make_batch(occupied=True, boxes=True, lidar=True):
+    sem = torch.full((B, 200, 200, 16), 17, dtype=torch.uint8)
+    if occupied:
+        sem[0, 110:120, 95:105, 2:4] = 4            # a car ahead (x 4..8 m)
+        sem[0, 100:140, 80:120, 0] = 11              # road ahead
+        sem[1, 80:90, 100:102, 3] = 8                # traffic cones behind
+    mask = torch.zeros_like(sem, dtype=torch.bool)
+    mask[:, 90:, :, :] = True
+    gt_boxes = [torch.tensor([[6.0, 0.0, 0.0, 2.0, 4.0, 1.6, 0.1, 1.0, 0.0]]),
+                torch.tensor([[-6.0, 0.4, 0.4, 0.4, 0.4, 0.8, 0.0, float("nan"), float("nan")],
+                              [-7.0, 0.4, 0.4, 0.4, 0.4, 0.8, 0.0, 0.0, 0.0]])]
+    gt_labels = [torch.tensor([0]), torch.tensor([9, 9])]
+    if not boxes:
+        gt_boxes = [torch.zeros(0, 9)] * B
+        gt_labels = [torch.zeros(0, dtype=torch.long)] * B
+    g = torch.Generator().manual_seed(5)
+
+    def lidar_points(n):
+        if not lidar:
+            return torch.zeros(0, 4)
+        uv = torch.rand(n, 2, generator=g) * torch.tensor([W - 1.0, H - 1.0]) + 0.5
+        return torch.cat([uv, torch.rand(n, 1, generator=g) * 20 + 2,
+                          torch.randint(0, 18, (n, 1), generator=g).float()], 1)
+
+    return {
+        "occ_semantics": sem, "occ_mask_camera": mask, "occ_mask_lidar": mask.clone(),
+        "gt_boxes": gt_boxes, "gt_labels": gt_labels,
+        "render_targets": [[lidar_points(40), lidar_points(7)] for _ in range(B)],
+        "cam_from_ego": torch.stack([FRONT, BACK]).expand(B, N, 4, 4).clone(),
+        "intrinsics": K.expand(B, N, 3, 3).clone(),
+    }
+
+
+def expected_names(boxes=True, render=True, layers=6):
+    names = {"loss", "occ_chamfer_l0"}
+    for l in range(1, layers + 1):
+        names |= {f"occ_chamfer_l{l}", f"occ_focal_l{l}"}
+        if boxes:
+            names |= {f"box_l1_l{l}", f"box_focal_l{l}"}
+        if render:
+            names |= {f"render_depth_l{l}", f"render_sem_l{l}"}
+    return names
+
+
+def recomputed_total(losses, layers=6):
+    lam = [0.05, 0.01, 0.01, 0.01, 0.01, 0.05]
+    total = losses["occ_chamfer_l0"]
+    for l in range(1, layers + 1):
+        total = total + losses[f"occ_chamfer_l{l}"] + losses[f"occ_focal_l{l}"]
+        if f"box_l1_l{l}" in losses:
+            total = total + LAMBDA_3D * (losses[f"box_l1_l{l}"] + losses[f"box_focal_l{l}"])
+        if f"render_depth_l{l}" in losses:
+            total = total + lam[l - 1] * (losses[f"render_depth_l{l}"] + losses[f"render_sem_l{l}"])
+    return total
+
+
+def all_output_tensors(out):
+    tensors = [out.init_means]
+    for layer in out.layers:
+        tensors += [layer.means, layer.logits, layer.scales, layer.rotations, layer.opacities]
+        if layer.boxes is not None:
+            tensors += [layer.boxes, layer.box_logits]
+    return tensors
+
+
+def test_full_criterion_terms_total_and_gradients():
+    crit = ODGCriterion(CFG, render_pixels_per_camera=16)
+    out = make_output()
+    losses = crit(out, make_batch())
+    assert set(losses) == expected_names()
+    assert all(v.dim() == 0 and torch.isfinite(v) for v in losses.values())
+    assert losses["loss"].item() == pytest.approx(recomputed_total(losses).item(), rel=1e-6)
+    losses["loss"].backward()
+    for t in all_output_tensors(out):
+        assert t.grad is not None and torch.isfinite(t.grad).all()
+    # the camera grids see the car and the cones, so some opacity receives render gradient
+    assert any(layer.opacities.grad.abs().sum() > 0 for layer in out.layers)
+    stats = crit.last_stats
+    assert stats["boxes_matched"] == 6 * 3 and stats["nonfinite_box_targets"] == 6 * 2
+    assert stats["render_pixels"] == 6 * B * (16 + 7)
+    assert stats["samples_without_occ_gt"] == 0
+
+
+def test_pixel_subsampling_is_seeded():
+    a = ODGCriterion(CFG, render_pixels_per_camera=8, seed=1)(make_output(), make_batch())
+    b = ODGCriterion(CFG, render_pixels_per_camera=8, seed=1)(make_output(), make_batch())
+    c = ODGCriterion(CFG, render_pixels_per_camera=8, seed=2)(make_output(), make_batch())
+    assert torch.equal(a["render_depth_l6"], b["render_depth_l6"])
+    assert not torch.equal(a["render_depth_l6"], c["render_depth_l6"])
+
+
+def test_ablation_switches():
+    single = CFG.replace(dual_queries=False)
+    losses = ODGCriterion(single)(make_output(single, boxes=False), make_batch())
+    assert set(losses) == expected_names(boxes=False)
+    losses = ODGCriterion(CFG, render=False)(make_output(), make_batch())
+    assert set(losses) == expected_names(render=False)
+    losses = ODGCriterion(single, render=False)(make_output(single, boxes=False), make_batch())
+    assert set(losses) == expected_names(boxes=False, render=False)
+    assert losses["loss"].item() == pytest.approx(recomputed_total(losses).item(), rel=1e-6)
+
+
+def test_missing_boxes_with_dual_queries_is_an_error():
+    with pytest.raises(ValueError, match="no boxes"):
+        ODGCriterion(CFG, render=False)(make_output(boxes=False), make_batch())
+
+
+def test_empty_batch_is_finite():
+    crit = ODGCriterion(CFG)
+    out = make_output()
+    losses = crit(out, make_batch(occupied=False, boxes=False, lidar=False))
+    assert all(torch.isfinite(v) for v in losses.values())
+    assert losses["occ_chamfer_l3"].item() == 0 and losses["box_l1_l3"].item() == 0
+    assert losses["render_depth_l3"].item() == 0 and losses["render_sem_l3"].item() == 0
+    assert crit.last_stats["samples_without_occ_gt"] == B
+    losses["loss"].backward()
+    assert torch.isfinite(out.layers[0].logits.grad).all()
+
+
+def test_nan_output_raises_naming_the_term():
+    out = make_output()
+    with torch.no_grad():
+        out.layers[2].logits[0, 0, 0, 0] = float("nan")
+    with pytest.raises(FloatingPointError, match="occ_focal_l3"):
+        ODGCriterion(CFG, render=False)(out, make_batch())
+
+
+def test_box_gt_encoding_consistency():
+    """A prediction equal to the encoded GT has zero L1 (the criterion uses the same code)."""
+    out = make_output()
+    batch = make_batch()
+    for layer in out.layers:
+        with torch.no_grad():
+            layer.boxes[0, 0] = encode_boxes(batch["gt_boxes"][0][0])
+            layer.boxes[0, 1] = 1000.0           # no competition for the match
+    losses = ODGCriterion(CFG, render=False)(out, {**batch, "gt_boxes": [batch["gt_boxes"][0],
+                                                                            torch.zeros(0, 9)],
+                                                    "gt_labels": [batch["gt_labels"][0],
+                                                                  torch.zeros(0, dtype=torch.long)]})
+    assert losses["box_l1_l1"].item() == pytest.approx(0.0, abs=1e-6)
