@@ -1,0 +1,7 @@
+"""Differentiable Gaussian splatting of depth and semantic maps (paper Eq. 6), pure PyTorch.
+
+    from odg_ros.render import render_gaussians, render_cameras, RenderResult
+"""
+from .splat import RenderResult, render_cameras, render_gaussians
+
+__all__ = ["RenderResult", "render_cameras", "render_gaussians"]

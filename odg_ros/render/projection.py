@@ -1,0 +1,163 @@
+"""3D Gaussians (ego frame) -> 2D screen-space splats per camera (EWA splatting).
+
+Conventions follow gsplat / the Inria 3DGS rasteriser:
+
+* camera frame is OpenCV (x right, y down, z forward); a point projects to
+  (fx x/z + cx, fy y/z + cy) and pixel (i, j) has its centre at (j + 0.5, i + 0.5);
+* a Gaussian is culled when its camera depth z <= near;
+* 2D covariance = J W Sigma W^T J^T + 0.3 px^2 on the diagonal (the anti-aliasing blur), where
+  J is the Jacobian of the projection at the mean, with x/z and y/z clamped to 1.3x the
+  field of view first (the mean itself is not clamped);
+* the depth d_i of a splat is the camera-space z of its mean.
+
+Numerical care beyond the reference code: Sigma = M M^T with M = R diag(s), so the 2x2
+covariance is A A^T with A = J W M (2x3) and its determinant |A_u x A_v|^2 (Lagrange's
+identity) can never come out negative by cancellation; the blurred determinant is then
+>= 0.09 px^4 without clamping (we still clamp, as gsplat does, to 1e-10).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+BLUR_PX2 = 0.3            # added to the 2D covariance diagonal (px^2)
+FOV_CLAMP_MARGIN = 0.3    # x/z clamped to the image extent + 0.3 * tan(fov / 2) (~1.3x fov)
+ALPHA_MIN = 1.0 / 255.0   # contributions below this alpha are skipped
+ALPHA_MAX = 0.99          # alpha is capped here (Inria); keeps log(1 - alpha) finite
+DET_MIN = 1e-10
+QUAT_NORM_MIN = 1e-12     # shorter quaternions have no usable direction -> identity
+
+
+def normalise_quaternions(rotations: torch.Tensor) -> torch.Tensor:
+    """[G, 4] (w, x, y, z), any length -> unit quaternions [G, 4].
+
+    A quaternion shorter than 1e-12 (zero, denormal) becomes the identity and gets a zero
+    gradient, instead of a NaN or a gradient of ~1/|q|.
+    """
+    with torch.no_grad():
+        tiny = torch.linalg.vector_norm(rotations, dim=-1, keepdim=True) <= QUAT_NORM_MIN
+    identity = torch.zeros_like(rotations)
+    identity[..., 0] = 1.0
+    safe = torch.where(tiny, identity, rotations)
+    return safe / torch.linalg.vector_norm(safe, dim=-1, keepdim=True)
+
+
+def quaternion_to_rotation(unit_quaternions: torch.Tensor) -> torch.Tensor:
+    """[G, 4] unit (w, x, y, z) -> [G, 3, 3] rotation matrices (act on column vectors)."""
+    w, x, y, z = unit_quaternions.unbind(-1)
+    rows = [
+        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+    ]
+    return torch.stack(rows, dim=-1).reshape(*unit_quaternions.shape[:-1], 3, 3)
+
+
+@dataclass
+class Splats:
+    """The visible (camera, Gaussian) splats, sorted by camera depth (stable: ties keep the
+    Gaussian order). S = number of splats.
+
+    camera [S] long, gaussian [S] long: which camera / input Gaussian each splat comes from.
+    mean2d [S, 2]: projected centre (u, v) in pixels.
+    cov_xx, cov_xy, cov_yy [S]: blurred 2D covariance (px^2); det [S] its determinant.
+    depth [S]: camera-space z of the mean (metres). opacity [S].
+    half_extent [S, 2] (no gradient): half-size (u, v) of the box outside of which the splat's
+        alpha is below 1/255, i.e. exactly where it can contribute (<= 3.33 sigma).
+    """
+
+    camera: torch.Tensor
+    gaussian: torch.Tensor
+    mean2d: torch.Tensor
+    cov_xx: torch.Tensor
+    cov_xy: torch.Tensor
+    cov_yy: torch.Tensor
+    det: torch.Tensor
+    depth: torch.Tensor
+    opacity: torch.Tensor
+    half_extent: torch.Tensor
+
+    def __len__(self) -> int:
+        return int(self.camera.shape[0])
+
+
+def splat_power(cov_xy: torch.Tensor, cov_yy: torch.Tensor, det: torch.Tensor,
+                delta_u: torch.Tensor, delta_v: torch.Tensor) -> torch.Tensor:
+    """0.5 * delta^T cov^-1 delta (the Gaussian's exponent), all arguments of one shape.
+
+    Written as a sum of two non-negative terms (completing the square in u), so it never
+    goes negative through cancellation for elongated splats (the reference code's
+    "power > 0" skip can then not fire spuriously); cov_yy >= 0.3 keeps it bounded.
+    """
+    shifted = delta_u - (cov_xy / cov_yy) * delta_v
+    return 0.5 * ((cov_yy / det) * shifted * shifted + delta_v * delta_v / cov_yy)
+
+
+def project_gaussians(means: torch.Tensor, scales: torch.Tensor, rotations: torch.Tensor,
+                      opacities: torch.Tensor, cam_from_ego: torch.Tensor,
+                      intrinsics: torch.Tensor, image_hw, near: float) -> Splats:
+    """Project G Gaussians into N cameras; keep the splats that can touch the image.
+
+    means [G, 3] (ego, m), scales [G, 3] (m), rotations [G, 4] (w, x, y, z), opacities [G],
+    cam_from_ego [N, 4, 4], intrinsics [N, 3, 3], image_hw (H, W). Returns Splats sorted by
+    depth. A splat is dropped when z <= near, opacity < 1/255 or its alpha >= 1/255 box
+    misses the image [0, W] x [0, H].
+    """
+    height, width = image_hw
+    rot = quaternion_to_rotation(normalise_quaternions(rotations))
+    factor = rot * scales[:, None, :]                                  # M = R diag(s), [G, 3, 3]
+
+    cam_rot = cam_from_ego[:, :3, :3]                                  # [N, 3, 3]
+    cam_t = cam_from_ego[:, :3, 3]                                     # [N, 3]
+    with torch.no_grad():
+        z_all = torch.einsum("nj,gj->ng", cam_rot[:, 2], means) + cam_t[:, None, 2]
+        candidate = (z_all > near) & (opacities >= ALPHA_MIN)[None, :]
+        camera, gaussian = candidate.nonzero(as_tuple=True)
+
+    r = cam_rot[camera]                                                # [S0, 3, 3]
+    p = torch.einsum("sij,sj->si", r, means[gaussian]) + cam_t[camera]
+    factor_cam = torch.einsum("sij,sjk->sik", r, factor[gaussian])     # W M, [S0, 3, 3]
+    x, y, z = p.unbind(-1)
+
+    k = intrinsics[camera]
+    fx, fy, cx, cy = k[:, 0, 0], k[:, 1, 1], k[:, 0, 2], k[:, 1, 2]
+    mean2d = torch.stack([fx * x / z + cx, fy * y / z + cy], dim=-1)
+
+    # Jacobian at the mean with x/z, y/z clamped to ~1.3x the field of view (gsplat): keeps
+    # splats far outside the image from getting absurd covariances.
+    margin_x = FOV_CLAMP_MARGIN * 0.5 * width / fx
+    margin_y = FOV_CLAMP_MARGIN * 0.5 * height / fy
+    xz = torch.maximum(torch.minimum(x / z, (width - cx) / fx + margin_x), -(cx / fx + margin_x))
+    yz = torch.maximum(torch.minimum(y / z, (height - cy) / fy + margin_y), -(cy / fy + margin_y))
+    # Rows of A = J W M: J_u = (fx/z) (1, 0, -x/z), J_v = (fy/z) (0, 1, -y/z).
+    a_u = (fx / z)[:, None] * (factor_cam[:, 0] - xz[:, None] * factor_cam[:, 2])
+    a_v = (fy / z)[:, None] * (factor_cam[:, 1] - yz[:, None] * factor_cam[:, 2])
+    cov_xx = (a_u * a_u).sum(-1)
+    cov_xy = (a_u * a_v).sum(-1)
+    cov_yy = (a_v * a_v).sum(-1)
+    det_unblurred = torch.linalg.cross(a_u, a_v).pow(2).sum(-1)       # >= 0 exactly
+    det = (det_unblurred + BLUR_PX2 * (cov_xx + cov_yy) + BLUR_PX2 * BLUR_PX2).clamp_min(DET_MIN)
+    cov_xx = cov_xx + BLUR_PX2
+    cov_yy = cov_yy + BLUR_PX2
+
+    opacity = opacities[gaussian]
+    with torch.no_grad():
+        # alpha >= 1/255  <=>  power <= log(255 opacity) =: r^2 / 2; the ellipse
+        # delta^T cov^-1 delta <= r^2 has half-widths r sqrt(cov_xx), r sqrt(cov_yy).
+        # A small margin: the exact alpha test of every candidate pair decides anyway.
+        r2 = 2.0 * torch.log(opacity * (1.0 / ALPHA_MIN)).clamp_min(0.0)
+        half_extent = torch.stack([(r2 * cov_xx).sqrt(), (r2 * cov_yy).sqrt()], dim=-1)
+        half_extent = half_extent * 1.001 + 0.01
+        lo = mean2d - half_extent
+        hi = mean2d + half_extent
+        visible = (hi[:, 0] >= 0) & (lo[:, 0] <= width) & (hi[:, 1] >= 0) & (lo[:, 1] <= height)
+        if not torch.isfinite(mean2d[visible]).all() or not torch.isfinite(det[visible]).all():
+            raise FloatingPointError("Gaussian projection overflowed (non-finite 2D mean or "
+                                     "covariance); scales or positions are out of range")
+        keep = visible.nonzero(as_tuple=True)[0]
+        keep = keep[torch.argsort(z[keep], stable=True)]
+    return Splats(camera=camera[keep], gaussian=gaussian[keep], mean2d=mean2d[keep],
+                  cov_xx=cov_xx[keep], cov_xy=cov_xy[keep], cov_yy=cov_yy[keep], det=det[keep],
+                  depth=z[keep], opacity=opacity[keep], half_extent=half_extent[keep])
+

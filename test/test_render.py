@@ -1,0 +1,425 @@
+"""Gaussian splatting renderer (odg_ros.render) against a brute-force float64 reference."""
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from odg_ros.render import RenderResult, render_cameras, render_gaussians
+from odg_ros.render import splat as splat_module
+from odg_ros.render.splat import _PairWeightedSum
+
+HW = (128, 352)
+K = np.array([[250.0, 0.0, 176.0], [0.0, 250.0, 64.0], [0.0, 0.0, 1.0]])
+NEAR = 0.05
+
+
+# ----------------------------------------------------------------------------- reference
+def reference_render(means, scales, rotations, opacities, features, cam_from_ego, K, pixels,
+                     hw, near=NEAR, dtype=np.float64):
+    """Textbook splatting, one pixel at a time over every Gaussian, NumPy float64 (or
+    np.longdouble where the textbook determinant a c - b^2 cancels badly).
+
+    Sigma = R S^2 R^T, 2D cov = J W Sigma W^T J^T + 0.3 I (J at the fov-clamped mean),
+    det clamped at 1e-10, conic = inverse; per pixel: all Gaussians with z > near sorted by z
+    (stable), power = 0.5 d^T conic d, skip power < 0 or alpha < 1/255, alpha capped at 0.99,
+    stop (exclusive) once T (1 - alpha) <= 1e-4. Returns depth [P], features [P, C], alpha [P].
+    """
+    means, scales, rotations, opacities, features, cam_from_ego, K, pixels = (
+        np.asarray(a, dtype=dtype) for a in
+        (means, scales, rotations, opacities, features, cam_from_ego, K, pixels))
+    height, width = hw
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    W_rot, W_t = cam_from_ego[:3, :3], cam_from_ego[:3, 3]
+    lim_x = ((width - cx) / fx + 0.3 * 0.5 * width / fx, cx / fx + 0.3 * 0.5 * width / fx)
+    lim_y = ((height - cy) / fy + 0.3 * 0.5 * height / fy, cy / fy + 0.3 * 0.5 * height / fy)
+    splats = []  # (z, index, u, v, conic, opacity)
+    for g in range(means.shape[0]):
+        q = rotations[g]
+        n = np.linalg.norm(q)
+        w, x, y, z = (1.0, 0.0, 0.0, 0.0) if n <= 1e-12 else q / n
+        R = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                      [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                      [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+        sigma = R @ np.diag(scales[g] ** 2) @ R.T
+        pc = W_rot @ means[g] + W_t
+        if pc[2] <= near:
+            continue
+        tx = np.clip(pc[0] / pc[2], -lim_x[1], lim_x[0])
+        ty = np.clip(pc[1] / pc[2], -lim_y[1], lim_y[0])
+        J = np.array([[fx / pc[2], 0, -fx * tx / pc[2]], [0, fy / pc[2], -fy * ty / pc[2]]])
+        cov = J @ W_rot @ sigma @ W_rot.T @ J.T + 0.3 * np.eye(2)
+        det = max(cov[0, 0] * cov[1, 1] - cov[0, 1] * cov[1, 0], 1e-10)
+        conic = (cov[1, 1] / det, -cov[0, 1] / det, cov[0, 0] / det)
+        u, v = fx * pc[0] / pc[2] + cx, fy * pc[1] / pc[2] + cy
+        splats.append((pc[2], g, u, v, conic, opacities[g]))
+    splats.sort(key=lambda s: (s[0], s[1]))
+    values = [np.concatenate([features[s[1]], [s[0], 1.0]]) for s in splats]
+    out = np.zeros((pixels.shape[0], features.shape[1] + 2), dtype=dtype)
+    for p, (pu, pv) in enumerate(pixels):
+        transmittance = 1.0
+        for s, value in zip(splats, values):
+            du, dv = s[2] - pu, s[3] - pv
+            a, b, c = s[4]
+            power = 0.5 * (a * du * du + c * dv * dv) + b * du * dv
+            if power < 0:
+                continue
+            alpha = min(0.99, s[5] * np.exp(-power))
+            if alpha < 1.0 / 255.0:
+                continue
+            next_t = transmittance * (1 - alpha)
+            if next_t <= 1e-4:
+                break
+            out[p] += transmittance * alpha * value
+            transmittance = next_t
+    out = out.astype(np.float64)
+    return out[:, -2], out[:, :-2], out[:, -1]
+
+
+# ----------------------------------------------------------------------------- helpers
+def look_transform(yaw, pitch, position):
+    """A rigid cam_from_ego: camera at `position` (ego), looking along ego yaw/pitch."""
+    forward = np.array([math.cos(pitch) * math.cos(yaw), math.cos(pitch) * math.sin(yaw),
+                        math.sin(pitch)])
+    right = np.cross(forward, [0.0, 0.0, 1.0])
+    right /= np.linalg.norm(right)
+    down = np.cross(forward, right)
+    ego_from_cam = np.eye(4)
+    ego_from_cam[:3, :3] = np.stack([right, down, forward], axis=1)
+    ego_from_cam[:3, 3] = position
+    return np.linalg.inv(ego_from_cam)
+
+
+def random_scene(seed, num_gaussians, num_pixels, dtype=torch.float64, num_classes=5):
+    """Gaussians scattered mostly in front of a randomly posed camera (some behind / aside)."""
+    rng = np.random.default_rng(seed)
+    cam_from_ego = look_transform(rng.uniform(-np.pi, np.pi), rng.uniform(-0.2, 0.2),
+                                  rng.uniform(-2, 2, 3))
+    ego_from_cam = np.linalg.inv(cam_from_ego)
+    cam_pts = np.stack([rng.uniform(-8, 8, num_gaussians), rng.uniform(-3, 3, num_gaussians),
+                        rng.uniform(-2, 20, num_gaussians)], axis=1)
+    means = cam_pts @ ego_from_cam[:3, :3].T + ego_from_cam[:3, 3]
+    scene = dict(
+        means=means,
+        scales=np.exp(rng.uniform(np.log(0.03), np.log(1.0), (num_gaussians, 3))),
+        rotations=rng.normal(size=(num_gaussians, 4)),
+        opacities=rng.uniform(0.0, 1.0, num_gaussians),
+        features=rng.uniform(0.0, 1.0, (num_gaussians, num_classes)),
+    )
+    tensors = {k: torch.tensor(v, dtype=dtype) for k, v in scene.items()}
+    pixels = torch.tensor(rng.uniform(0, 1, (num_pixels, 2)) * [HW[1], HW[0]], dtype=dtype)
+    return tensors, torch.tensor(cam_from_ego, dtype=dtype), torch.tensor(K, dtype=dtype), pixels
+
+
+def render(scene, cam_from_ego, intrinsics, pixels, **kw):
+    return render_gaussians(scene["means"], scene["scales"], scene["rotations"],
+                            scene["opacities"], scene["features"], cam_from_ego, intrinsics,
+                            pixels, HW, **kw)
+
+
+def reference(scene, cam_from_ego, intrinsics, pixels, dtype=np.float64):
+    return reference_render(*(scene[k].detach().numpy() for k in
+                              ("means", "scales", "rotations", "opacities", "features")),
+                            cam_from_ego.numpy(), intrinsics.numpy(), pixels.numpy(), HW,
+                            dtype=dtype)
+
+
+def assert_matches_reference(result, expected, atol=1e-9, rtol=1e-9):
+    depth, features, alpha = expected
+    np.testing.assert_allclose(result.depth.detach().numpy(), depth, atol=atol, rtol=rtol)
+    np.testing.assert_allclose(result.features.detach().numpy(), features, atol=atol, rtol=rtol)
+    np.testing.assert_allclose(result.alpha.detach().numpy(), alpha, atol=atol, rtol=rtol)
+
+
+def backward_grads(scene, cam_from_ego, intrinsics, pixels):
+    """Gradients of a loss over all outputs w.r.t. every Gaussian tensor (None if unused)."""
+    scene = {n: t.detach().clone().requires_grad_(True) for n, t in scene.items()}
+    result = render(scene, cam_from_ego, intrinsics, pixels)
+    loss = result.depth.sum() + result.features.square().sum() + result.alpha.sum()
+    grads = torch.autograd.grad(loss, list(scene.values()), allow_unused=True)
+    return dict(zip(scene.keys(), grads))
+
+
+def simple_scene(means_cam, scales, opacities=None, rotations=None, features=None):
+    """Gaussians given directly in the camera frame (camera = ego)."""
+    g = len(means_cam)
+    scene = dict(
+        means=torch.tensor(means_cam, dtype=torch.float64).reshape(g, 3),
+        scales=torch.tensor(scales, dtype=torch.float64).reshape(g, 3),
+        rotations=(torch.tensor(rotations, dtype=torch.float64).reshape(g, 4)
+                   if rotations is not None else torch.tensor([[1.0, 0, 0, 0]] * g,
+                                                              dtype=torch.float64).reshape(g, 4)),
+        opacities=(torch.tensor(opacities, dtype=torch.float64).reshape(g)
+                   if opacities is not None else torch.full((g,), 0.8, dtype=torch.float64)),
+        features=(torch.tensor(features, dtype=torch.float64).reshape(g, -1)
+                  if features is not None else torch.rand(g, 3, dtype=torch.float64)),
+    )
+    return scene, torch.eye(4, dtype=torch.float64), torch.tensor(K, dtype=torch.float64)
+
+
+def grid_pixels(step=8):
+    v, u = torch.meshgrid(torch.arange(0, HW[0], step) + 0.5, torch.arange(0, HW[1], step) + 0.5,
+                          indexing="ij")
+    return torch.stack([u.flatten(), v.flatten()], dim=-1).double()
+
+
+# ----------------------------------------------------------------------------- values
+@pytest.mark.parametrize("seed,num_gaussians,num_pixels",
+                         [(0, 1, 64), (1, 30, 200), (2, 200, 300), (3, 600, 150), (4, 5, 400)])
+def test_matches_bruteforce_reference(seed, num_gaussians, num_pixels):
+    scene, cam, k, pixels = random_scene(seed, num_gaussians, num_pixels)
+    assert_matches_reference(render(scene, cam, k, pixels), reference(scene, cam, k, pixels))
+
+
+def test_float32_close_to_float64_reference():
+    scene, cam, k, pixels = random_scene(7, 300, 300, dtype=torch.float32)
+    result = render(scene, cam, k, pixels)
+    expected = reference_render(*(scene[n].numpy() for n in scene), cam.numpy(), k.numpy(),
+                                pixels.numpy(), HW)
+    assert_matches_reference(result, expected, atol=2e-4, rtol=1e-4)
+
+
+def test_closed_form_single_gaussian():
+    # Isotropic Gaussian on the optical axis: sigma_px = f s / z, alpha = o exp(-r^2 / 2 var).
+    z, s, o = 10.0, 0.2, 0.7
+    scene, cam, k = simple_scene([[0.0, 0.0, z]], [[s, s, s]], opacities=[o])
+    pixels = torch.tensor([[176.0, 64.0], [180.0, 61.0], [190.0, 64.0]], dtype=torch.float64)
+    result = render(scene, cam, k, pixels)
+    var = (250.0 * s / z) ** 2 + 0.3
+    r2 = (pixels - torch.tensor([176.0, 64.0], dtype=torch.float64)).square().sum(-1)
+    alpha = o * torch.exp(-0.5 * r2 / var)
+    torch.testing.assert_close(result.alpha, alpha)
+    torch.testing.assert_close(result.depth, alpha * z)
+    torch.testing.assert_close(result.features, alpha[:, None] * scene["features"])
+
+
+def test_field_of_view_clamp_matches_reference():
+    # Large Gaussians centred outside the image at steep angles: the Jacobian clamp matters.
+    scene, cam, k = simple_scene([[12.0, 0.0, 2.0], [-9.0, 3.0, 1.5], [0.5, 6.0, 1.0]],
+                                 [[3.0, 1.0, 0.5], [2.0, 2.0, 2.0], [1.0, 4.0, 1.0]],
+                                 opacities=[0.9, 0.9, 0.9])
+    pixels = grid_pixels(4)
+    result = render(scene, cam, k, pixels)
+    assert (result.alpha > 0).any()
+    assert_matches_reference(result, reference(scene, cam, k, pixels))
+
+
+def test_tiles_and_chunks_do_not_change_result(monkeypatch):
+    scene, cam, k, pixels = random_scene(11, 300, 400)
+    base = render(scene, cam, k, pixels)
+    monkeypatch.setattr(splat_module, "CANDIDATE_CHUNK", 97)
+    monkeypatch.setattr(splat_module, "SUM_CHUNK", 13)
+    for tile_size in (1, 5, 16, 500):
+        other = render(scene, cam, k, pixels, tile_size=tile_size)
+        for a, b in zip(base, other):
+            torch.testing.assert_close(a, b, atol=1e-12, rtol=1e-12)
+
+
+def test_render_cameras_equals_single_renders():
+    scene, cam_a, k, pix_a = random_scene(5, 150, 100)
+    _, cam_b, _, pix_b = random_scene(6, 1, 80)
+    k_b = k.clone()
+    k_b[0, 0] = 180.0
+    results = render_cameras(scene["means"], scene["scales"], scene["rotations"],
+                             scene["opacities"], scene["features"], torch.stack([cam_a, cam_b]),
+                             torch.stack([k, k_b]), [pix_a, pix_b], HW)
+    assert len(results) == 2 and isinstance(results[0], RenderResult)
+    for result, cam, kk, pix in zip(results, (cam_a, cam_b), (k, k_b), (pix_a, pix_b)):
+        single = render(scene, cam, kk, pix)
+        for a, b in zip(result, single):
+            torch.testing.assert_close(a, b, atol=1e-12, rtol=1e-12)
+
+
+# ----------------------------------------------------------------------------- gradients
+def test_gradcheck_tiny_scene():
+    # 3 overlapping Gaussians at 4 pixels, away from every cut-off (alpha in ~[0.1, 0.8],
+    # T far above 1e-4, centres inside the fov clamp, distinct depths).
+    scene, cam, k = simple_scene([[0.1, 0.0, 4.0], [0.2, 0.1, 5.0], [-0.1, 0.05, 6.0]],
+                                 [[0.5, 0.3, 0.4], [0.4, 0.6, 0.3], [0.6, 0.5, 0.5]],
+                                 opacities=[0.5, 0.6, 0.7],
+                                 rotations=[[0.9, 0.1, -0.2, 0.3], [1.0, 0.3, 0.2, -0.1],
+                                            [0.7, -0.2, 0.4, 0.1]])
+    pixels = torch.tensor([[180.0, 60.0], [185.5, 70.5], [170.0, 66.0], [190.0, 58.0]],
+                          dtype=torch.float64)
+    names = ("means", "scales", "rotations", "opacities", "features")
+    inputs = tuple(scene[n].clone().requires_grad_(True) for n in names)
+
+    def fn(*args):
+        r = render_gaussians(*args, cam, k, pixels, HW)
+        return r.depth, r.features, r.alpha
+
+    out = fn(*inputs)
+    per_pixel_contributions = out[2]
+    assert (per_pixel_contributions > 0.3).all()
+    assert torch.autograd.gradcheck(fn, inputs, eps=1e-6, atol=1e-6, rtol=1e-5)
+
+
+def test_gradcheck_pair_weighted_sum():
+    weight = torch.rand(9, dtype=torch.float64, requires_grad=True)
+    values = torch.rand(4, 3, dtype=torch.float64, requires_grad=True)
+    pixel = torch.tensor([0, 0, 1, 2, 2, 2, 4, 4, 4])
+    splat = torch.tensor([0, 1, 3, 0, 2, 3, 1, 2, 3])
+    assert torch.autograd.gradcheck(
+        lambda w, v: _PairWeightedSum.apply(w, v, pixel, splat, 5), (weight, values))
+
+
+def test_gradients_finite_and_nonzero_on_random_scene():
+    scene, cam, k, pixels = random_scene(8, 400, 300, dtype=torch.float32)
+    for t in scene.values():
+        t.requires_grad_(True)
+    grads = backward_grads(scene, cam, k, pixels)
+    for name, grad in grads.items():
+        assert grad is not None and torch.isfinite(grad).all(), name
+        assert grad.abs().sum() > 0, name
+
+
+# ----------------------------------------------------------------------------- hard cases
+def test_behind_camera_and_on_near_plane_are_culled():
+    scene, cam, k = simple_scene([[0.0, 0.0, -5.0], [0.0, 0.0, NEAR], [0.0, 0.0, 0.0]],
+                                 [[1.0, 1.0, 1.0]] * 3, opacities=[1.0, 1.0, 1.0])
+    pixels = grid_pixels(16)
+    result = render(scene, cam, k, pixels)
+    assert torch.equal(result.alpha, torch.zeros_like(result.alpha))
+    assert torch.equal(result.depth, torch.zeros_like(result.depth))
+    grads = backward_grads(scene, cam, k, pixels)
+    assert all(torch.isfinite(g).all() for g in grads.values() if g is not None)
+
+    # Just past the near plane: a huge splat, still finite and matching the reference.
+    scene, cam, k = simple_scene([[0.0, 0.0, NEAR * 1.001]], [[0.3, 0.3, 0.3]])
+    result = render(scene, cam, k, pixels)
+    assert (result.alpha > 0.5).all()
+    assert_matches_reference(result, reference(scene, cam, k, pixels))
+    grads = backward_grads(scene, cam, k, pixels)
+    assert all(torch.isfinite(g).all() for g in grads.values())
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_extreme_and_degenerate_scales(dtype):
+    scene, cam, k = simple_scene(
+        [[0.0, 0.0, 10.0], [1.0, 0.0, 8.0], [-1.0, 0.5, 9.0], [0.5, -0.5, 7.0], [0.0, 0.0, 0.5]],
+        [[1e3, 1e3, 1e3], [1e-6, 1e-6, 1e-6], [0.5, 0.0, 0.5], [1e-7, 0.8, 1e-7],
+         [1e3, 1e-6, 0.0]],
+        rotations=[[1, 0, 0, 0], [0.9, 0.1, 0.2, 0.3], [0.5, 0.5, 0.5, 0.5], [1, 2, 3, 4],
+                   [0.3, -0.2, 0.9, 0.1]],
+        opacities=[0.3, 0.9, 0.9, 0.9, 0.5])
+    scene = {n: t.to(dtype) for n, t in scene.items()}
+    pixels = torch.cat([grid_pixels(8), torch.tensor([[176.0, 64.0], [176.5, 64.5]],
+                                                     dtype=torch.float64)]).to(dtype)
+    result = render(scene, cam.to(dtype), k.to(dtype), pixels)
+    for value in result:
+        assert torch.isfinite(value).all()
+    # 1e3 m splats have ~1e11 px^2 covariances: the textbook a c - b^2 loses ~1e-5 relative
+    # in float64 (ours uses |A_u x A_v|^2 and does not), so the reference runs in long double.
+    expected = reference(scene, cam.double(), k.double(), pixels.double(), dtype=np.longdouble)
+    tol = 1e-8 if dtype == torch.float64 else 1e-3
+    assert_matches_reference(result, expected, atol=tol, rtol=tol)
+    grads = backward_grads(scene, cam.to(dtype), k.to(dtype), pixels)
+    for name, grad in grads.items():
+        assert torch.isfinite(grad).all(), name
+
+
+def test_zero_and_full_opacity():
+    scene, cam, k = simple_scene([[0.0, 0.0, 5.0], [0.0, 0.0, 10.0]], [[0.2, 0.2, 0.2]] * 2,
+                                 opacities=[0.0, 1.0])
+    pixels = torch.tensor([[176.0, 64.0]], dtype=torch.float64)   # exactly at both centres
+    result = render(scene, cam, k, pixels)
+    # Zero opacity contributes nothing; opacity 1 is capped at alpha 0.99.
+    torch.testing.assert_close(result.alpha, torch.tensor([0.99], dtype=torch.float64))
+    torch.testing.assert_close(result.depth, torch.tensor([9.9], dtype=torch.float64))
+    grads = backward_grads(scene, cam, k, pixels)
+    assert all(torch.isfinite(g).all() for g in grads.values())
+
+
+def test_zero_and_denormal_quaternions_act_as_identity():
+    means = [[0.0, 0.0, 6.0], [0.5, 0.2, 7.0], [-0.4, 0.1, 8.0]]
+    scales = [[0.5, 0.1, 0.3]] * 3
+    identity, cam, k = simple_scene(means, scales, features=[[1.0], [2.0], [3.0]],
+                                    rotations=[[1.0, 0, 0, 0]] * 3)
+    odd = dict(identity)
+    odd["rotations"] = torch.tensor([[0.0, 0, 0, 0], [5e-324, 0, 0, 0], [0, 1e-310, 0, 0]],
+                                    dtype=torch.float64)
+    pixels = grid_pixels(8)
+    a, b = render(identity, cam, k, pixels), render(odd, cam, k, pixels)
+    for x, y in zip(a, b):
+        torch.testing.assert_close(x, y)
+    grads = backward_grads(odd, cam, k, pixels)
+    assert all(torch.isfinite(g).all() for g in grads.values())
+    for dtype in (torch.float32,):
+        tiny = {n: t.detach().to(dtype) for n, t in odd.items()}
+        tiny["rotations"] = torch.tensor([[1e-40, 0, 0, 0], [0, 0, 0, 0], [0, 0, 1e-39, 0]],
+                                         dtype=dtype)
+        grads = backward_grads(tiny, cam.to(dtype), k.to(dtype), pixels.to(dtype))
+        assert all(torch.isfinite(g).all() for g in grads.values())
+
+
+def test_coincident_means_composite_in_index_order():
+    scene, cam, k = simple_scene([[0.2, 0.1, 5.0]] * 3, [[0.3, 0.3, 0.3]] * 3,
+                                 opacities=[0.5, 0.5, 0.5], features=[[1.0], [2.0], [3.0]])
+    pixels = grid_pixels(4)
+    result = render(scene, cam, k, pixels)
+    assert_matches_reference(result, reference(scene, cam, k, pixels))
+    centre = render(scene, cam, k, torch.tensor([[186.0, 69.0]], dtype=torch.float64))
+    # 0.5 * 1 + 0.25 * 2 + 0.125 * 3 at the common centre.
+    torch.testing.assert_close(centre.features, torch.tensor([[1.375]], dtype=torch.float64))
+    grads = backward_grads(scene, cam, k, pixels)
+    assert all(torch.isfinite(g).all() for g in grads.values())
+
+
+def test_thousands_of_gaussians_in_one_pixel_stop_early():
+    n = 3000
+    z = torch.linspace(2.0, 60.0, n, dtype=torch.float64)
+    means = torch.stack([torch.zeros(n, dtype=torch.float64), torch.zeros(n, dtype=torch.float64),
+                         z], dim=-1)
+    scene, cam, k = simple_scene(means.tolist(), [[0.5, 0.5, 0.5]] * n,
+                                 opacities=[0.6] * n)
+    pixels = torch.tensor([[176.5, 64.5], [176.0, 64.0], [300.0, 100.0]], dtype=torch.float64)
+    result = render(scene, cam, k, pixels)
+    assert_matches_reference(result, reference(scene, cam, k, pixels))
+    # Stopped exclusively before T reached 1e-4.
+    assert (result.alpha[:2] > 1 - 1e-3).all() and (result.alpha[:2] < 1 - 1e-4).all()
+    grads = backward_grads(scene, cam, k, pixels)
+    assert all(torch.isfinite(g).all() for g in grads.values())
+    # Gaussians far behind the stopping point get no gradient.
+    assert grads["features"][n // 2:].abs().sum() == 0
+    assert grads["features"][0].abs().sum() > 0
+
+
+def test_no_gaussian_in_view_gives_zeros_and_a_graph():
+    scene, cam, k = simple_scene([[0.0, 0.0, -3.0], [100.0, 0.0, 1.0]], [[0.5, 0.5, 0.5]] * 2)
+    pixels = grid_pixels(16)
+    result = render(scene, cam, k, pixels)
+    assert torch.equal(result.depth, torch.zeros(len(pixels), dtype=torch.float64))
+    assert torch.equal(result.alpha, torch.zeros(len(pixels), dtype=torch.float64))
+    assert torch.equal(result.features, torch.zeros(len(pixels), 3, dtype=torch.float64))
+    grads = backward_grads(scene, cam, k, pixels)
+    assert grads["features"] is not None and grads["features"].abs().sum() == 0
+
+
+def test_empty_inputs():
+    scene, cam, k = simple_scene([[0.0, 0.0, 5.0]], [[0.5, 0.5, 0.5]])
+    none = {n: t[:0] for n, t in scene.items()}
+    result = render(none, cam, k, grid_pixels(32))
+    assert result.features.shape == (len(grid_pixels(32)), 3)
+    assert not result.alpha.any() and not result.depth.any()
+    result = render(scene, cam, k, torch.zeros(0, 2, dtype=torch.float64))
+    assert result.depth.shape == (0,) and result.features.shape == (0, 3)
+    assert result.alpha.shape == (0,)
+    results = render_cameras(scene["means"], scene["scales"], scene["rotations"],
+                             scene["opacities"], scene["features"], cam[None][:0], k[None][:0], [], HW)
+    assert results == []
+
+
+def test_bad_input_raises_clear_errors():
+    scene, cam, k = simple_scene([[0.0, 0.0, 5.0]], [[0.5, 0.5, 0.5]])
+    pixels = torch.tensor([[10.0, 10.0]], dtype=torch.float64)
+    bad = dict(scene, means=torch.tensor([[0.0, float("nan"), 5.0]], dtype=torch.float64))
+    with pytest.raises(ValueError, match="means contains NaN"):
+        render(bad, cam, k, pixels)
+    with pytest.raises(ValueError, match="inside"):
+        render(scene, cam, k, torch.tensor([[400.0, 10.0]], dtype=torch.float64))
+    with pytest.raises(ValueError, match="scales must be"):
+        render(dict(scene, scales=scene["scales"][:, :2]), cam, k, pixels)
+    with pytest.raises(ValueError, match="rigid"):
+        render(scene, cam * 2, k, pixels)
+    with pytest.raises(ValueError, match="float64"):
+        render(dict(scene, opacities=scene["opacities"].float()), cam, k, pixels)
