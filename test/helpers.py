@@ -1,0 +1,12 @@
+"""Small shared test utilities."""
+from odg_ros.config import load_preset
+
+
+def tiny_config(**overrides):
+    """A few-second model: every part of ODG, tiny sizes."""
+    values = dict(name="tiny", backbone="resnet18", image_size=(64, 176), num_frames=3,
+                  embed_dims=64, fpn_channels=64, ffn_dims=128, num_heads=4, num_static=20,
+                  num_dynamic=6, points_per_layer=(1, 2, 2, 4, 4, 8), num_groups=4,
+                  sampling_points=2, mixing_out_points=8)
+    values.update(overrides)
+    return load_preset("odg_cpu", **values)

@@ -1,0 +1,92 @@
+"""ResNet layout: torchvision-compatible state_dict keys, frozen stage 1, BN in eval."""
+import torch
+
+from odg_ros.network.backbone import ResNet, load_torchvision_state_dict
+
+# Parameter counts of torchvision's resnet18/34/50 minus their 1000-way fc layer.
+TORCHVISION_PARAMS_WITHOUT_FC = {"resnet18": 11_689_512 - 513_000,
+                                 "resnet34": 21_797_672 - 513_000,
+                                 "resnet50": 25_557_032 - 2_049_000}
+
+
+def torchvision_layout(name):
+    """The state_dict key -> shape of torchvision's ResNet, enumerated from its structure."""
+    bottleneck = name == "resnet50"
+    depths = {"resnet18": (2, 2, 2, 2), "resnet34": (3, 4, 6, 3), "resnet50": (3, 4, 6, 3)}[name]
+    keys = {}
+
+    def bn(prefix, ch):
+        for k in ("weight", "bias", "running_mean", "running_var"):
+            keys[f"{prefix}.{k}"] = (ch,)
+        keys[f"{prefix}.num_batches_tracked"] = ()
+
+    keys["conv1.weight"] = (64, 3, 7, 7)
+    bn("bn1", 64)
+    in_ch = 64
+    for i, (width, depth) in enumerate(zip((64, 128, 256, 512), depths)):
+        out_ch = width * (4 if bottleneck else 1)
+        for j in range(depth):
+            p = f"layer{i + 1}.{j}"
+            if bottleneck:
+                keys[f"{p}.conv1.weight"] = (width, in_ch, 1, 1)
+                keys[f"{p}.conv2.weight"] = (width, width, 3, 3)
+                keys[f"{p}.conv3.weight"] = (out_ch, width, 1, 1)
+                bn(f"{p}.bn1", width), bn(f"{p}.bn2", width), bn(f"{p}.bn3", out_ch)
+            else:
+                keys[f"{p}.conv1.weight"] = (width, in_ch, 3, 3)
+                keys[f"{p}.conv2.weight"] = (width, width, 3, 3)
+                bn(f"{p}.bn1", width), bn(f"{p}.bn2", width)
+            if j == 0 and in_ch != out_ch:
+                keys[f"{p}.downsample.0.weight"] = (out_ch, in_ch, 1, 1)
+                bn(f"{p}.downsample.1", out_ch)
+            in_ch = out_ch
+    keys["fc.weight"] = (1000, in_ch)
+    keys["fc.bias"] = (1000,)
+    return keys
+
+
+def test_parameter_counts_match_torchvision():
+    for name, expected in TORCHVISION_PARAMS_WITHOUT_FC.items():
+        assert sum(p.numel() for p in ResNet(name).parameters()) == expected, name
+
+
+def test_loads_a_torchvision_layout_checkpoint_from_file(tmp_path):
+    for name in ("resnet18", "resnet50"):
+        layout = torchvision_layout(name)
+        g = torch.Generator().manual_seed(1)
+        state = {k: (torch.randn(s, generator=g) if s else torch.tensor(7))
+                 for k, s in layout.items()}
+        path = tmp_path / f"{name}.pth"
+        torch.save(state, path)
+        model = ResNet(name)
+        ignored = load_torchvision_state_dict(model, path)
+        assert sorted(ignored) == ["fc.bias", "fc.weight"]
+        own = model.state_dict()
+        assert set(own) == set(layout) - {"fc.weight", "fc.bias"}
+        for k in own:
+            assert torch.equal(own[k], state[k]), k
+
+
+def test_wrong_checkpoint_is_rejected():
+    state = {k: torch.zeros(s) for k, s in torchvision_layout("resnet18").items()}
+    try:
+        load_torchvision_state_dict(ResNet("resnet50"), state)
+    except (KeyError, ValueError):
+        return
+    raise AssertionError("a resnet18 checkpoint loaded into a resnet50")
+
+
+def test_stage_one_frozen_and_batchnorm_in_eval():
+    model = ResNet("resnet18", frozen_stages=1).train()
+    assert not any(p.requires_grad for p in model.conv1.parameters())
+    assert not any(p.requires_grad for p in model.layer1.parameters())
+    assert all(p.requires_grad for p in model.layer2.parameters())
+    assert all(not m.training for m in model.modules() if isinstance(m, torch.nn.BatchNorm2d))
+    before = model.bn1.running_mean.clone()
+    model(torch.randn(2, 3, 64, 64) * 5 + 3)
+    assert torch.equal(before, model.bn1.running_mean)
+
+
+def test_feature_strides():
+    feats = ResNet("resnet18")(torch.randn(1, 3, 64, 128))
+    assert [tuple(f.shape[-2:]) for f in feats] == [(16, 32), (8, 16), (4, 8), (2, 4)]
