@@ -1,0 +1,228 @@
+"""The online pipeline without ROS: messages in (as plain values), predictions out.
+
+The node (odg_ros/ros/node.py) only converts messages and publishes; everything it decides
+lives here so it is unit-tested without rclpy::
+
+    on_image ─> CameraSetSync ─> LatestMailbox ─> (worker) process(): CameraInfo check,
+    on_camera_info (K, size)                        poses at every camera stamp, extrinsics,
+    on_pose ─> PoseBuffer                           decode + resize, ego2img,
+                                                    OnlinePredictor.step ─> OnlineResult
+
+Every unusable input raises ``BadInput`` after it has been counted; the caller logs it
+(throttled) and carries on with the next message or set.
+"""
+from __future__ import annotations
+
+import os
+import threading
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from typing import Any, Callable, Sequence
+
+import numpy as np
+
+from ..geometry import is_rigid
+from .diagnostics import PipelineStats
+from .errors import BAD_INPUT_KINDS, BadInput
+from .images import EncodedImage, decode, to_network_input
+from .mailbox import LatestMailbox
+from .poses import PoseBuffer
+from .predictor import OnlinePredictor
+from .rig import CameraCalibration, check_intrinsics, set_ego2img
+from .sync import CameraSet, CameraSetSync
+
+
+@dataclass
+class PipelineSettings:
+    """slop: max stamp spread of one set (s); max_future: how far an image stamp may be
+    ahead of the node clock (s); pose_max_extrapolation: beyond the pose buffer (s);
+    time_jump: a stamp this much older than the newest one means the source restarted (s)."""
+
+    camera_names: Sequence[str]
+    slop: float = 0.05
+    max_future: float = 0.5
+    pose_max_extrapolation: float = 0.05
+    time_jump: float = 1.0
+
+
+@dataclass
+class OnlineResult:
+    """stamp: reference stamp (s); header: the opaque header object given with the
+    reference camera's image; grid/confidence uint8 [X, Y, Z]; boxes: list of dicts;
+    timings: seconds per stage; num_frames: frames the decoder used."""
+
+    stamp: float
+    header: Any
+    grid: np.ndarray
+    confidence: np.ndarray
+    boxes: list[dict]
+    timings: dict[str, float]
+    num_frames: int
+
+
+ExtrinsicsLookup = Callable[[str, str, float], np.ndarray]   # (camera, frame_id, stamp) -> 4x4
+PoseLookup = Callable[[float], np.ndarray]                  # stamp -> T_global_from_ego
+
+
+class OnlinePipeline:
+    """Thread-safe between the input callbacks and one worker calling ``next_set``/``process``.
+
+    extrinsics: T_ego_from_cam per (camera name, CameraInfo frame id, stamp), e.g. from a rig
+    file or TF; it raises BadInput('missing_extrinsics') when it has none.
+    pose_lookup: T_global_from_ego at a stamp (e.g. TF); None = the internal PoseBuffer fed by
+    ``on_pose`` (odometry).
+    """
+
+    def __init__(self, predictor: OnlinePredictor, settings: PipelineSettings,
+                 extrinsics: ExtrinsicsLookup, pose_lookup: PoseLookup | None = None,
+                 stats: PipelineStats | None = None):
+        self.predictor = predictor
+        self.settings = settings
+        self.camera_names = tuple(settings.camera_names)
+        if len(self.camera_names) != predictor.cfg.num_cams:
+            raise ValueError(f"{len(self.camera_names)} cameras configured, the model takes "
+                             f"{predictor.cfg.num_cams}")
+        self.input_hw = tuple(predictor.cfg.image_size)
+        self.extrinsics = extrinsics
+        self.poses = PoseBuffer(max_extrapolation=settings.pose_max_extrapolation,
+                                time_jump=settings.time_jump)
+        self.pose_lookup = pose_lookup if pose_lookup is not None else self._buffer_lookup
+        self.sync = CameraSetSync(self.camera_names, settings.slop, time_jump=settings.time_jump)
+        self.mailbox = LatestMailbox()
+        self.stats = stats if stats is not None else PipelineStats()
+        self.bad_inputs = {kind: 0 for kind in BAD_INPUT_KINDS}
+        self._camera_info: dict[str, CameraCalibration] = {}
+        self._input_lock = threading.Lock()     # sync + camera info
+        self._pose_lock = threading.Lock()
+        self._count_lock = threading.Lock()
+        self._decoder_pool = ThreadPoolExecutor(max_workers=max(1, min(len(self.camera_names),
+                                                                       os.cpu_count() or 1)))
+
+    # ----------------------------------------------------------------- inputs (callbacks)
+    def _bad(self, error: BadInput) -> BadInput:
+        with self._count_lock:
+            self.bad_inputs[error.kind] += 1
+        return error
+
+    def on_image(self, camera: str, stamp: float, image: EncodedImage, now: float,
+                 header: Any = None) -> bool:
+        """Feed one camera message (not decoded yet). ``now``: node clock (s), 0 if not
+        running yet. Returns True if it completed a set (now waiting for the worker)."""
+        if camera not in self.camera_names:
+            raise self._bad(BadInput("unknown_camera", f"camera {camera!r} is not configured"))
+        if not np.isfinite(stamp) or (now > 0 and stamp > now + self.settings.max_future):
+            raise self._bad(BadInput("future_stamp", f"{camera} stamp {stamp:.3f} is "
+                                     f"{stamp - now:.3f} s ahead of the clock ({now:.3f})"))
+        with self._input_lock:
+            complete = self.sync.add(camera, stamp, (image, header))
+        for camera_set in complete:
+            self.mailbox.put(camera_set)
+        return bool(complete)
+
+    def on_camera_info(self, camera: str, K, height: int, width: int, frame_id: str) -> None:
+        """Store a camera's intrinsics and image size (the last valid CameraInfo wins)."""
+        if camera not in self.camera_names:
+            raise self._bad(BadInput("unknown_camera", f"camera {camera!r} is not configured"))
+        try:
+            calibration = check_intrinsics(K, height, width, frame_id)
+        except BadInput as error:
+            raise self._bad(error) from None
+        with self._input_lock:
+            self._camera_info[camera] = calibration
+
+    def on_pose(self, stamp: float, T_global_from_ego) -> None:
+        """Odometry: one T_global_from_ego sample."""
+        try:
+            with self._pose_lock:
+                self.poses.add(stamp, T_global_from_ego)
+        except BadInput as error:
+            raise self._bad(error) from None
+
+    def _buffer_lookup(self, stamp: float) -> np.ndarray:
+        with self._pose_lock:
+            return self.poses.lookup(stamp)
+
+    # ------------------------------------------------------------------------- worker
+    def next_set(self, timeout: float | None = None) -> CameraSet | None:
+        return self.mailbox.get(timeout)
+
+    def process(self, camera_set: CameraSet) -> OnlineResult:
+        """Run one complete set through the model. Raises (counted) BadInput to skip it."""
+        try:
+            return self._process(camera_set)
+        except BadInput as error:
+            raise self._bad(error) from None
+
+    def _process(self, camera_set: CameraSet) -> OnlineResult:
+        names = self.camera_names
+        with self._input_lock:
+            infos = {c: self._camera_info.get(c) for c in names}
+        missing = [c for c in names if infos[c] is None]
+        if missing:
+            raise BadInput("missing_camera_info", f"no valid CameraInfo yet for {missing}")
+
+        # Cheap checks before the expensive decoding.
+        reference = camera_set.reference_stamp
+        reference_pose = self._checked_pose(reference)
+        camera_poses = [self._checked_pose(camera_set.stamps[c]) for c in names]
+        sensor2ego = []
+        for c in names:
+            T = self.extrinsics(c, infos[c].frame_id, camera_set.stamps[c])
+            if not is_rigid(T):
+                raise BadInput("missing_extrinsics", f"extrinsics of {c} are not rigid")
+            sensor2ego.append(T)
+
+        t0 = time.perf_counter()
+
+        def prepare(camera):
+            image, _ = camera_set.payloads[camera]
+            try:
+                rgb = decode(image)
+                return to_network_input(rgb, infos[camera].image_hw, infos[camera].intrinsics,
+                                        self.input_hw)
+            except BadInput as error:
+                raise BadInput(error.kind, f"{camera}: {error.message}") from None
+
+        prepared = list(self._decoder_pool.map(prepare, names))
+        images = np.stack([p[0] for p in prepared])
+        intrinsics = np.stack([p[1] for p in prepared])
+        ego2img = set_ego2img(intrinsics, np.stack(sensor2ego), np.stack(camera_poses),
+                              reference_pose)
+        decode_seconds = time.perf_counter() - t0
+
+        prediction = self.predictor.step(images, ego2img, reference_pose, reference)
+        timings = dict(prediction.timings)
+        timings["decode_images"] = timings.get("decode_images", 0.0) + decode_seconds
+        return OnlineResult(stamp=reference,
+                            header=camera_set.payloads[camera_set.reference_camera][1],
+                            grid=prediction.grid, confidence=prediction.confidence,
+                            boxes=prediction.boxes, timings=timings,
+                            num_frames=prediction.num_frames)
+
+    def _checked_pose(self, stamp: float) -> np.ndarray:
+        T = self.pose_lookup(stamp)
+        if not is_rigid(T):
+            raise BadInput("bad_pose", f"pose at t={stamp:.3f} is not a finite rigid transform")
+        return T
+
+    # ---------------------------------------------------------------------- reporting
+    def counters(self) -> dict[str, int]:
+        """Every skip/drop counter (bad inputs by kind, sync, mailbox, resets)."""
+        with self._count_lock:
+            out = dict(self.bad_inputs)
+        with self._input_lock:
+            sync = dict(self.sync.counters)
+        out["dropped_incomplete_sets"] = sync["dropped_incomplete"]
+        out["late_messages"] = sync["late_messages"]
+        out["duplicate_messages"] = sync["duplicate_messages"]
+        out["input_time_jumps"] = sync["time_jumps"]
+        out["stale_sets_dropped"] = self.mailbox.dropped
+        history_resets = self.predictor.history.resets
+        out["history_resets_time_backwards"] = history_resets["time_backwards"]
+        out["history_resets_gap"] = history_resets["gap"]
+        return out
+
+    def close(self) -> None:
+        self.mailbox.close()
+        self._decoder_pool.shutdown(wait=False, cancel_futures=True)

@@ -1,0 +1,218 @@
+"""The whole ROS-free online pipeline: messages in, prediction out; every bad input is
+counted, skipped, and the pipeline goes on with the next set."""
+import io
+
+import numpy as np
+import pytest
+import torch
+from helpers import tiny_config
+from PIL import Image
+
+from odg_ros.network import ODG
+from odg_ros.online.errors import BadInput
+from odg_ros.online.images import EncodedImage
+from odg_ros.online.pipeline import OnlinePipeline, PipelineSettings
+from odg_ros.online.predictor import OnlinePredictor
+from odg_ros.online.rig import load_rig, set_ego2img
+from odg_ros.preprocess import adjust_intrinsics, resize_crop
+from odg_ros.geometry import make_transform
+from odg_ros.resources import resource_path
+
+RIG = load_rig(resource_path("config/rig_nuscenes.yaml"))
+CAMS = tuple(RIG.cameras)
+HW = (144, 256)                                   # camera images (nuScenes / 6.25)
+OFFSETS = (0.0, 0.008, 0.017, 0.025, 0.033, 0.042)
+
+
+def scaled_K(name):
+    return adjust_intrinsics(RIG.cameras[name].intrinsics, (900, 1600), HW)
+
+
+def png(array):
+    buffer = io.BytesIO()
+    Image.fromarray(array).save(buffer, format="PNG")
+    return buffer.getvalue()
+
+
+def pose_at(t):
+    """The car drives along x at 5 m/s, turning slowly."""
+    yaw = 0.02 * t
+    return make_transform([np.cos(yaw / 2), 0, 0, np.sin(yaw / 2)], (5.0 * t, 0.1 * t, 0.0))
+
+
+@pytest.fixture(scope="module")
+def model_and_cfg():
+    cfg = tiny_config(score_threshold=0.0, box_score_threshold=0.0)
+    torch.manual_seed(0)
+    return ODG(cfg).eval(), cfg
+
+
+def make_pipeline(model_and_cfg, **settings):
+    model, cfg = model_and_cfg
+    predictor = OnlinePredictor(model, cfg, "cpu", max_gap=1.0)
+
+    def extrinsics(camera, frame_id, stamp):
+        if camera not in RIG.cameras:
+            raise BadInput("missing_extrinsics", camera)
+        return RIG.cameras[camera].sensor2ego
+
+    pipeline = OnlinePipeline(predictor, PipelineSettings(CAMS, **settings), extrinsics)
+    return pipeline
+
+
+def feed_calibration_and_poses(pipeline, t0=10.0, t1=12.0):
+    for name in CAMS:
+        pipeline.on_camera_info(name, scaled_K(name), *HW, frame_id=name)
+    for t in np.arange(t0, t1, 0.02):                 # 50 Hz odometry
+        pipeline.on_pose(float(t), pose_at(float(t)))
+
+
+def set_images(seed):
+    rng = np.random.default_rng(seed)
+    return [rng.integers(0, 256, (*HW, 3), dtype=np.uint8) for _ in CAMS]
+
+
+def feed_set(pipeline, start, images, now=None, encode=png):
+    completed = False
+    for name, offset, image in zip(CAMS, OFFSETS, images):
+        completed |= pipeline.on_image(name, start + offset, EncodedImage(True, "png",
+                                                                          encode(image)),
+                                       now=start + 0.1 if now is None else now,
+                                       header=("stamp", start + offset))
+    return completed
+
+
+def run_one(pipeline):
+    camera_set = pipeline.next_set(timeout=0.1)
+    assert camera_set is not None
+    return pipeline.process(camera_set)
+
+
+def test_pipeline_output_equals_the_predictor_on_the_same_arrays(model_and_cfg):
+    model, cfg = model_and_cfg
+    pipeline = make_pipeline(model_and_cfg)
+    feed_calibration_and_poses(pipeline)
+    reference = OnlinePredictor(model, cfg, "cpu", max_gap=1.0)
+    for k in range(2):
+        start = 10.5 + k / 12
+        images = set_images(k)
+        assert feed_set(pipeline, start, images)
+        result = run_one(pipeline)
+        # the same set prepared by hand: resize/crop, intrinsics, each camera at its stamp
+        stamps = [start + o for o in OFFSETS]
+        ego2img = set_ego2img(
+            [adjust_intrinsics(scaled_K(c), HW, cfg.image_size) for c in CAMS],
+            [RIG.cameras[c].sensor2ego for c in CAMS], [pose_at(t) for t in stamps],
+            pose_at(start))
+        expected = reference.step(np.stack([resize_crop(i, cfg.image_size) for i in images]),
+                                  ego2img, pose_at(start), start)
+        assert result.stamp == start and result.header == ("stamp", start)
+        assert result.num_frames == k + 1
+        assert (result.grid != 17).sum() > 50
+        assert np.array_equal(result.grid, expected.grid)
+        assert set(result.timings) == {"decode_images", "backbone", "decoder", "postprocess"}
+    assert sum(pipeline.bad_inputs.values()) == 0
+
+
+def expect_skip(pipeline, kind):
+    camera_set = pipeline.next_set(timeout=0.1)
+    assert camera_set is not None
+    with pytest.raises(BadInput) as error:
+        pipeline.process(camera_set)
+    assert error.value.kind == kind
+    assert pipeline.bad_inputs[kind] >= 1
+
+
+def test_every_bad_input_is_counted_and_the_pipeline_goes_on(model_and_cfg):
+    pipeline = make_pipeline(model_and_cfg)
+    t = 10.0
+    good = set_images(0)
+
+    # no CameraInfo yet
+    for t_pose in np.arange(9.0, 14.0, 0.02):
+        pipeline.on_pose(float(t_pose), pose_at(float(t_pose)))
+    feed_set(pipeline, t, good)
+    expect_skip(pipeline, "missing_camera_info")
+
+    # a CameraInfo with K all zero (uncalibrated) is rejected, the good one kept
+    with pytest.raises(BadInput) as error:
+        pipeline.on_camera_info("CAM_FRONT", np.zeros(9), *HW, frame_id="CAM_FRONT")
+    assert error.value.kind == "bad_camera_info"
+    for name in CAMS:
+        pipeline.on_camera_info(name, scaled_K(name), *HW, frame_id=name)
+
+    # a truncated PNG in one camera
+    t += 0.25
+    broken = lambda image: png(image)[:200]                          # noqa: E731
+    for name, offset, image in zip(CAMS, OFFSETS, good):
+        encode = broken if name == "CAM_BACK" else png
+        pipeline.on_image(name, t + offset, EncodedImage(True, "png", encode(image)), now=t)
+    expect_skip(pipeline, "corrupt_image")
+
+    # a wrong image size
+    t += 0.25
+    small = [i[:100] for i in good]
+    feed_set(pipeline, t, small)
+    expect_skip(pipeline, "wrong_image_size")
+
+    # an unsupported raw encoding
+    t += 0.25
+    for name, offset, image in zip(CAMS, OFFSETS, good):
+        pipeline.on_image(name, t + offset, EncodedImage(False, "yuv422", image.tobytes(),
+                                                         *HW, HW[1] * 2), now=t)
+    expect_skip(pipeline, "unsupported_encoding")
+
+    # NaN and non-orthonormal poses are rejected at the door
+    for bad in (np.full((4, 4), np.nan), np.diag([1.0, 2.0, 1.0, 1.0])):
+        with pytest.raises(BadInput) as error:
+            pipeline.on_pose(t, bad)
+        assert error.value.kind == "bad_pose"
+
+    # images far beyond the last pose: pose miss
+    feed_set(pipeline, 20.0, good, now=20.1)
+    expect_skip(pipeline, "pose_miss")
+
+    # a stamp from the future (clock at 5 s, image at 20.5 s): dropped before sync
+    with pytest.raises(BadInput) as error:
+        pipeline.on_image("CAM_FRONT", 20.5, EncodedImage(True, "png", png(good[0])), now=5.0)
+    assert error.value.kind == "future_stamp"
+    # a camera that is not configured
+    with pytest.raises(BadInput) as error:
+        pipeline.on_image("CAM_SIDE", 20.5, EncodedImage(True, "png", png(good[0])), now=21.0)
+    assert error.value.kind == "unknown_camera"
+
+    # and then a good set goes through (the bag looped back in time: sync restarts)
+    feed_set(pipeline, 11.5, good, now=11.6)
+    result = run_one(pipeline)
+    assert result.stamp == 11.5 and (result.grid != 17).sum() > 50
+
+    counters = pipeline.counters()
+    for kind in ("missing_camera_info", "bad_camera_info", "corrupt_image", "wrong_image_size",
+                 "unsupported_encoding", "bad_pose", "pose_miss", "future_stamp",
+                 "unknown_camera"):
+        assert counters[kind] >= 1, kind
+    assert counters["bad_pose"] == 2
+    assert counters["input_time_jumps"] == 1
+
+
+def test_missing_extrinsics_is_a_skip(model_and_cfg):
+    pipeline = make_pipeline(model_and_cfg)
+
+    def no_tf(camera, frame_id, stamp):
+        raise BadInput("missing_extrinsics", f"no transform base_link -> {frame_id}")
+
+    pipeline.extrinsics = no_tf
+    feed_calibration_and_poses(pipeline)
+    feed_set(pipeline, 10.5, set_images(0))
+    expect_skip(pipeline, "missing_extrinsics")
+
+
+def test_slow_worker_drops_stale_sets(model_and_cfg):
+    pipeline = make_pipeline(model_and_cfg)
+    feed_calibration_and_poses(pipeline)
+    for k in range(5):                                 # five sets arrive, nobody processes
+        feed_set(pipeline, 10.2 + k / 12, set_images(k))
+    result = run_one(pipeline)                          # the worker wakes up: the newest set
+    assert result.stamp == pytest.approx(10.2 + 4 / 12)
+    assert pipeline.counters()["stale_sets_dropped"] == 4
+    assert pipeline.next_set(timeout=0.01) is None
