@@ -1,0 +1,131 @@
+"""Prediction arrays -> the field values of the output messages (no ROS types here).
+
+Large arrays become ``bytes`` (``ndarray.tobytes()``), never Python lists: assigning bytes
+to a uint8[] / int8[] message field is a memcpy, a list is ~100x slower (DESIGN.md sec. 7).
+The node copies these values into odg_ros_msgs / sensor_msgs / nav_msgs messages.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from ..classes import BOX_CLASSES, FREE_LABEL, OCC_CLASSES, OCC_COLORS
+
+# sensor_msgs/PointField datatypes
+POINTFIELD_UINT8 = 2
+POINTFIELD_FLOAT32 = 7
+
+# One PointCloud2 point: x, y, z float32 + label uint8, padded to 16 bytes (aligned rows).
+CLOUD_DTYPE = np.dtype({"names": ["x", "y", "z", "label"],
+                        "formats": ["<f4", "<f4", "<f4", "u1"],
+                        "offsets": [0, 4, 8, 12], "itemsize": 16})
+
+# Labels that do not block a planner in the BEV map: free space and the drivable road.
+# Every other class (objects, but also sidewalk, terrain, other_flat) in the height band
+# marks the cell occupied: a planner must not drive there.
+BEV_PASSABLE = (FREE_LABEL, OCC_CLASSES.index("driveable_surface"))
+
+
+def voxel_centres(indices: np.ndarray, pc_range, voxel_size: float) -> np.ndarray:
+    """int [M, 3] voxel indices -> float32 [M, 3] centres (metres, grid frame)."""
+    return ((indices + 0.5) * voxel_size + np.asarray(pc_range[:3])).astype(np.float32)
+
+
+def voxel_grid_fields(grid: np.ndarray, confidence: np.ndarray | None, pc_range,
+                      voxel_size: float) -> dict:
+    """odg_ros_msgs/SemanticVoxelGrid fields (all but the header).
+
+    grid uint8 [X, Y, Z] (17 = free); confidence uint8 [X, Y, Z] or None.
+    """
+    if grid.dtype != np.uint8 or grid.ndim != 3:
+        raise ValueError(f"grid must be uint8 [X, Y, Z], got {grid.dtype} {grid.shape}")
+    if confidence is not None and confidence.shape != grid.shape:
+        raise ValueError(f"confidence {confidence.shape} != grid {grid.shape}")
+    X, Y, Z = grid.shape
+    return {
+        "origin_position": tuple(float(v) for v in pc_range[:3]),   # minimum corner
+        "resolution": float(voxel_size),
+        "size_x": X, "size_y": Y, "size_z": Z,
+        "memory_order": "xyz_c",
+        "free_label": FREE_LABEL,
+        "unknown_label": 255,
+        "labels": np.ascontiguousarray(grid).tobytes(),
+        "confidence": b"" if confidence is None else
+        np.ascontiguousarray(confidence, dtype=np.uint8).tobytes(),
+        "observed": b"",
+        "class_names": list(OCC_CLASSES),
+    }
+
+
+def cloud_fields(grid: np.ndarray, pc_range, voxel_size: float) -> dict:
+    """sensor_msgs/PointCloud2 fields (all but the header) of the occupied voxel centres.
+
+    'fields' is a list of (name, offset, datatype, count) for sensor_msgs/PointField.
+    """
+    indices = np.argwhere(grid != FREE_LABEL)                       # [M, 3], C order
+    points = np.zeros(len(indices), dtype=CLOUD_DTYPE)
+    if len(indices):
+        centres = voxel_centres(indices, pc_range, voxel_size)
+        points["x"], points["y"], points["z"] = centres[:, 0], centres[:, 1], centres[:, 2]
+        points["label"] = grid[indices[:, 0], indices[:, 1], indices[:, 2]]
+    return {
+        "height": 1, "width": len(points),
+        "fields": [("x", 0, POINTFIELD_FLOAT32, 1), ("y", 4, POINTFIELD_FLOAT32, 1),
+                   ("z", 8, POINTFIELD_FLOAT32, 1), ("label", 12, POINTFIELD_UINT8, 1)],
+        "is_bigendian": False,
+        "point_step": CLOUD_DTYPE.itemsize,
+        "row_step": CLOUD_DTYPE.itemsize * len(points),
+        "data": points.tobytes(),
+        "is_dense": True,
+    }
+
+
+def bev_fields(grid: np.ndarray, pc_range, voxel_size: float, min_z: float,
+               max_z: float) -> dict:
+    """nav_msgs/OccupancyGrid fields (info + data) of a 2D obstacle map for planners.
+
+    A cell (x, y) is occupied (100) if any voxel of its column whose centre height lies in
+    [min_z, max_z] (metres, grid frame) has a label other than free or driveable_surface;
+    otherwise free (0). The model predicts every voxel, so no cell is unknown (-1).
+    OccupancyGrid is row-major with x along a row: data[y * width + x].
+    """
+    X, Y, Z = grid.shape
+    z_centres = (np.arange(Z) + 0.5) * voxel_size + pc_range[2]
+    band = (z_centres >= min_z) & (z_centres <= max_z)
+    blocked = ~np.isin(grid[:, :, band], BEV_PASSABLE)               # [X, Y, Zb]
+    occupied = blocked.any(axis=2).T                                 # [Y, X]
+    data = np.where(occupied, 100, 0).astype(np.int8)
+    return {
+        "resolution": float(voxel_size), "width": X, "height": Y,
+        "origin_position": (float(pc_range[0]), float(pc_range[1]), 0.0),
+        "data": data.tobytes(),
+    }
+
+
+def yaw_quaternion(yaw: float) -> tuple[float, float, float, float]:
+    """(w, x, y, z) of a rotation by ``yaw`` about z."""
+    return (math.cos(yaw / 2.0), 0.0, 0.0, math.sin(yaw / 2.0))
+
+
+def object_fields(box: dict) -> dict:
+    """odg_ros_msgs/DynamicObject fields from one network.postprocess.box_list entry.
+
+    box_list sizes are (w, l, h) with l along the heading; the message wants
+    size.x = length, size.y = width, size.z = height.
+    """
+    w, l, h = (float(v) for v in box["size"])
+    return {
+        "class_id": int(box["label"]), "class_name": str(box["class_name"]),
+        "score": float(box["score"]),
+        "position": tuple(float(v) for v in box["center"]),
+        "orientation": yaw_quaternion(float(box["yaw"])),
+        "size": (l, w, h),
+        "velocity": (float(box["velocity"][0]), float(box["velocity"][1]), 0.0),
+    }
+
+
+def box_color(label: int) -> tuple[float, float, float]:
+    """RGB in [0, 1] of a box class (the colour of the same occupancy class)."""
+    occ_label = OCC_CLASSES.index(BOX_CLASSES[label])
+    return tuple(c / 255.0 for c in OCC_COLORS[occ_label])
