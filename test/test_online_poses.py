@@ -5,7 +5,7 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from odg_ros.geometry import invert_transform, make_transform, yaw_of
 from odg_ros.online.errors import BadInput
-from odg_ros.online.poses import PoseBuffer, interpolate_pose, slerp
+from odg_ros.online.poses import PoseBuffer, interpolate_pose, pose_from_xyz_xyzw, slerp
 from odg_ros.online.transforms import TransformBuffer
 
 
@@ -133,3 +133,14 @@ def test_transform_buffer_chains_static_and_dynamic_edges():
     with pytest.raises(BadInput) as error:
         tf.add("odom", "base_link", 1.2, np.diag([2.0, 1, 1, 1]))
     assert error.value.kind == "bad_pose"
+
+
+def test_pose_from_ros_fields():
+    r = Rotation.from_euler("z", 30, degrees=True)
+    T = pose_from_xyz_xyzw([1, 2, 3], r.as_quat())           # scipy is (x, y, z, w) too
+    assert np.allclose(T[:3, :3], r.as_matrix()) and np.allclose(T[:3, 3], [1, 2, 3])
+    for translation, quaternion in [([np.nan, 0, 0], [0, 0, 0, 1]), ([0, 0, 0], [0, 0, 0, 0]),
+                                    ([0, 0, 0], [0, 0, 0, 2.0]), ([0, 0, 0], [0, 0, np.inf, 1])]:
+        with pytest.raises(BadInput) as error:
+            pose_from_xyz_xyzw(translation, quaternion)
+        assert error.value.kind == "bad_pose"

@@ -45,6 +45,24 @@ def interpolate_pose(t0: float, T0, t1: float, T1, t: float) -> np.ndarray:
     return make_transform(q, translation)
 
 
+def pose_from_xyz_xyzw(translation, quaternion_xyzw) -> np.ndarray:
+    """4x4 from a ROS position and a ROS quaternion (x, y, z, w order).
+
+    Raises ``BadInput('bad_pose')`` for non-finite values or a quaternion whose norm is not 1
+    (within 1e-3): silently normalising a corrupted quaternion would hide the error.
+    """
+    t = np.asarray(translation, dtype=np.float64)
+    q = np.asarray(quaternion_xyzw, dtype=np.float64)
+    if t.shape != (3,) or q.shape != (4,) or not (np.all(np.isfinite(t))
+                                                   and np.all(np.isfinite(q))):
+        raise BadInput("bad_pose", f"non-finite pose: translation {t}, quaternion {q}")
+    norm = float(np.linalg.norm(q))
+    if abs(norm - 1.0) > 1e-3:
+        raise BadInput("bad_pose", f"quaternion {q.tolist()} has norm {norm:.4f}, not 1")
+    x, y, z, w = q
+    return make_transform(np.array([w, x, y, z]), t)
+
+
 class PoseBuffer:
     """Time-sorted, bounded buffer of ego poses. Not thread-safe; the pipeline locks it."""
 

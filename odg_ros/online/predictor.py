@@ -41,11 +41,17 @@ class OnlinePredictor:
     """Not thread-safe: one worker thread calls ``step``."""
 
     def __init__(self, model: torch.nn.Module, cfg: ModelConfig, device: str | torch.device,
-                 max_gap: float = 1.0, keep_output: bool = False):
+                 max_gap: float = 1.0, num_frames: int | None = None,
+                 keep_output: bool = False):
+        """num_frames: history length k (current set included), at most cfg.num_frames
+        (None = cfg.num_frames); max_gap: seconds between sets that restart the history."""
+        k = cfg.num_frames if num_frames is None else int(num_frames)
+        if not 1 <= k <= cfg.num_frames:
+            raise ValueError(f"history of {k} frames; the model takes 1..{cfg.num_frames}")
         self.model = model.eval()
         self.cfg = cfg
         self.device = torch.device(device)
-        self.history = FrameHistory(cfg.num_frames, max_gap)
+        self.history = FrameHistory(k, max_gap)
         self.keep_output = keep_output   # tests compare the raw network output
 
     def reset(self) -> None:
