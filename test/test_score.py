@@ -182,7 +182,10 @@ def test_waymo_layout(tmp_path, capsys):
 def test_table_output(tmp_path, capsys):
     infos_path, gts = write_split(tmp_path, np.random.default_rng(6))
     write_preds(tmp_path / "pred", {t: g for t, (g, _) in gts.items()})
-    assert main(["score", "--pred", str(tmp_path / "pred"), "--data", str(infos_path)]) == 0
+    png = tmp_path / "scores.png"
+    assert main(["score", "--pred", str(tmp_path / "pred"), "--data", str(infos_path),
+                 "--png", str(png)]) == 0
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     out = capsys.readouterr().out
     assert "driveable_surface" in out and "RayIoU@4" in out and "MEAN" in out
     assert "geometry IoU" in out and "samples: 5" in out

@@ -1,6 +1,6 @@
 """``odg score``: mIoU, geometry IoU and RayIoU of saved predictions against the Occ3D GT.
 
-    odg score --pred DIR --data INFOS.pkl [--occ-root DIR] [--json]
+    odg score --pred DIR --data INFOS.pkl [--occ-root DIR] [--json] [--png FILE]
 
 DIR holds ``<sample_token>.npz`` (key ``semantics``, uint8 200x200x16, labels 0..C with C =
 free) for every keyframe of the infos that has GT (``occ_path`` not empty); a missing one is an
@@ -19,7 +19,7 @@ from tqdm import tqdm
 from ..data.occ_io import load_occ
 from ..metrics.rayiou import LidarOrigins
 from ..metrics.score import (OccScore, format_table, load_infos, load_prediction,
-                             resolve_occ_root)
+                             plot_per_class, resolve_occ_root)
 
 
 def add_arguments(parser) -> None:
@@ -29,6 +29,8 @@ def add_arguments(parser) -> None:
     parser.add_argument("--occ-root", type=Path, default=None,
                         help="GT root the infos' occ_path are relative to (default: the infos' "
                              "occ_root, else <dataroot>/gts)")
+    parser.add_argument("--png", type=Path, default=None,
+                        help="also write a per-class bar chart (IoU, RayIoU) to this PNG")
     parser.add_argument("--json", action="store_true",
                         help="print the scores as JSON (percent, NaN as null) instead of a table")
 
@@ -39,6 +41,9 @@ def run(args) -> int:
     except (FileNotFoundError, ValueError, KeyError) as err:
         print(f"odg score: error: {err}", file=sys.stderr)
         return 1
+    if args.png is not None:
+        plot_per_class(result, args.png)
+        print(f"per-class chart: {args.png}", file=sys.stderr)
     if args.json:
         print(json.dumps(result, indent=2, allow_nan=False))
     else:

@@ -137,6 +137,48 @@ def format_table(result: dict) -> str:
     return "\n".join(lines)
 
 
+def plot_per_class(result: dict, path) -> None:
+    """Bar chart PNG of an ``OccScore.result()``: per-class IoU and RayIoU ("n/a" marks classes
+    absent from the split), the means in the title."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    names = list(result["per_class"])
+    series = [("IoU", "voxel IoU (camera mask)")]
+    if "RayIoU" in result:
+        series.append(("RayIoU", "RayIoU (mean of 1/2/4 m)"))
+    x = np.arange(len(names))
+    width = 0.8 / len(series)
+    fig, ax = plt.subplots(figsize=(max(8.0, 0.55 * len(names)), 4.5))
+    for k, (key, label) in enumerate(series):
+        values = [result["per_class"][n].get(key) for n in names]
+        ax.bar(x + (k - (len(series) - 1) / 2) * width,
+               [np.nan if v is None else v for v in values], width, label=label)
+    title = [f"mIoU {_fmt(result['mIoU'])}"]
+    if "RayIoU" in result:
+        title.append(f"RayIoU {_fmt(result['RayIoU'])}")
+    title.append(f"geometry IoU {_fmt(result['IoU_geometry'])}")
+    title.append(f"{result['samples']} samples")
+    ax.set_title(" | ".join(title))
+    ax.set_xticks(x, names, rotation=45, ha="right")
+    ax.set_ylabel("%")
+    for i, n in enumerate(names):
+        if all(result["per_class"][n].get(key) is None for key, _ in series):
+            ax.text(i, 1, "n/a", ha="center", va="bottom", fontsize=8, color="grey")
+    ax.set_ylim(0, 115)
+    ax.set_yticks(range(0, 101, 20))
+    ax.grid(axis="y", alpha=0.3)
+    ax.legend(loc="upper center", ncol=len(series), frameon=False)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def _fmt(value) -> str:
+    return "-" if value is None else f"{value:.2f}"
+
+
 def _pct(value) -> float | None:
     value = float(value)
     return None if math.isnan(value) else 100.0 * value
