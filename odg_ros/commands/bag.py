@@ -1,0 +1,53 @@
+"""``odg bag``: write rosbag2 MCAP bags in the nuScenes ROS 2 layout (no ROS install needed).
+
+    odg bag synth --world DIR --out BAG              the synthetic world written by ``odg synth``
+    odg bag nuscenes --dataroot DIR --out BAG [--version v1.0-mini] [--scene scene-0061]
+
+One scene gives one bag at BAG. With several scenes selected (several --scene, or none given
+and the dataroot has several), each goes to BAG/<scene name>. Topics: see
+odg_ros/ros/bag_layout.py.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    sub = parser.add_subparsers(dest="source", required=True, metavar="{synth,nuscenes}")
+    synth = sub.add_parser("synth", help="bag the synthetic world of `odg synth`")
+    synth.add_argument("--world", required=True, type=Path, help="the world folder (a dataroot)")
+    nusc = sub.add_parser("nuscenes", help="bag scenes of a nuScenes dataroot")
+    nusc.add_argument("--dataroot", required=True, type=Path)
+    for p in (synth, nusc):
+        p.add_argument("--out", required=True, type=Path, help="bag folder to create")
+        p.add_argument("--version", default=None,
+                       help="table folder, e.g. v1.0-mini (default: the only one there)")
+        p.add_argument("--scene", action="append", default=None,
+                       help="scene name; repeat for several (default: all scenes)")
+        p.add_argument("--no-lidar", action="store_true", help="leave out /LIDAR_TOP")
+        p.add_argument("--force", action="store_true", help="replace existing bags")
+
+
+def run(args) -> int:
+    from odg_ros.ros.bag import write_scene_bag
+    from odg_ros.ros.nuscenes_source import NuScenesTables
+
+    dataroot = args.world if args.source == "synth" else args.dataroot
+    try:
+        tables = NuScenesTables(dataroot, args.version)
+        scenes = args.scene or tables.scene_names()
+        if not scenes:
+            raise ValueError(f"{dataroot}: no scenes")
+        outs = ([args.out] if len(scenes) == 1
+                else [args.out / scene for scene in scenes])
+        for scene, out in zip(scenes, outs):
+            records = tables.scene_records(scene, with_lidar=not args.no_lidar)
+            summary = write_scene_bag(records, out, force=args.force)
+            print(f"{scene} -> {summary}")
+    except (FileNotFoundError, FileExistsError, KeyError, ValueError) as error:
+        message = error.args[0] if isinstance(error, KeyError) and error.args else error
+        print(f"odg bag: {message}", file=sys.stderr)
+        return 1
+    return 0

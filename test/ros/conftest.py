@@ -1,0 +1,43 @@
+"""Set-up for the ROS tests: loopback-only DDS for this process and every child it starts,
+a ROS domain of its own per test session, and rclpy fixtures that skip (with the reason) when
+rclpy cannot be imported. Tests that need no rclpy (bag writing/reading) run regardless."""
+from __future__ import annotations
+
+import os
+import sys
+
+import pytest
+
+from odg_ros.ros.dds import use_localhost_dds
+
+# Before any rclpy.init in this process; children inherit os.environ.
+use_localhost_dds()
+# Parallel test sessions on one machine must not hear each other: a domain per session
+# (0..101 are the domains every RMW supports; 0 is the usual default, keep clear of it).
+os.environ["ROS_DOMAIN_ID"] = str(1 + os.getpid() % 100)
+
+sys.path.insert(0, os.path.dirname(__file__))  # tiny_nuscenes
+
+try:
+    import rclpy  # noqa: F401
+    RCLPY_ERROR = None
+except Exception as error:  # ImportError, or a missing shared library of the ROS wheels
+    RCLPY_ERROR = f"{type(error).__name__}: {error}"
+
+
+@pytest.fixture
+def rclpy_module():
+    """rclpy, or skip: the ROS 2 Python wheels (make setup) are not usable here."""
+    if RCLPY_ERROR is not None:
+        pytest.skip(f"rclpy is not importable ({RCLPY_ERROR}); run `make setup`")
+    import rclpy
+    return rclpy
+
+
+@pytest.fixture
+def ros_context(rclpy_module):
+    """A fresh rclpy context for one test, shut down afterwards."""
+    context = rclpy_module.Context()
+    rclpy_module.init(context=context)
+    yield context
+    context.try_shutdown()
