@@ -440,3 +440,13 @@ def test_jpeg_draft_decode_keeps_geometry(tmp_path):
         assert abs(x - (203 * 0.275 - 0.5)) < 0.1
         assert abs(y - (252 * 0.275 - 35 - 0.5)) < 0.1
     assert np.abs(fast - full).mean() < 3
+
+
+def test_occ_root_resolution(tmp_path):
+    world = build_world(tmp_path, with_lidar=False)
+    (tmp_path / "gts").rename(tmp_path / "occ3d")
+    with pytest.raises(FileNotFoundError):
+        OccDataset(world, cfg())[0]
+    assert OccDataset(world, cfg(), occ_root=tmp_path / "occ3d")[0]["has_occ"]
+    world["occ_root"] = "occ3d"                     # relative to dataroot, as odg score reads it
+    assert OccDataset(world, cfg())[0]["has_occ"]

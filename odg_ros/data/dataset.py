@@ -24,7 +24,8 @@ so the ego motion inside a set (up to ~0.6 m at 15 m/s) is not an error source. 
 between the reference stamps. Static points therefore project exactly; dynamic points are off
 by their own motion over the few ms between a camera's stamp and the frame's reference stamp.
 
-Occupancy GT: ``occ_root / occ_path`` (default ``occ_root``: ``<dataroot>/gts``, where the
+Occupancy GT: ``occ_root / occ_path``; ``occ_root`` defaults as in ``odg score``: the infos'
+optional ``occ_root`` (relative to ``dataroot``), else ``<dataroot>/gts`` (where the
 Occ3D-nuScenes release unpacks). ``occ_path == ""`` means no GT: all-free semantics, False
 masks and ``has_occ = False`` in the sample (an extra key next to the contract's). A non-empty
 ``occ_path`` whose file is missing is an error (a wrong ``occ_root`` must not train on "all free").
@@ -132,7 +133,7 @@ class OccDataset(torch.utils.data.Dataset):
     infos_path_or_dict  path of an infos pickle, or the loaded dict
     cfg                 ModelConfig: image_size, num_frames, num_cams, grid are used
     occ_root            folder the keyframes' ``occ_path`` are relative to
-                        (default ``<dataroot>/gts``)
+                        (default: infos' ``occ_root`` under dataroot, else ``<dataroot>/gts``)
     train               random history interval (module docstring); no other change
     dataroot            overrides the infos' ``dataroot`` (data moved to another disk)
     """
@@ -148,7 +149,10 @@ class OccDataset(torch.utils.data.Dataset):
         self.dataset = infos["dataset"]
         self.infos = infos["infos"]
         self.dataroot = Path(dataroot if dataroot is not None else infos["dataroot"])
-        self.occ_root = Path(occ_root) if occ_root is not None else self.dataroot / "gts"
+        if occ_root is not None:
+            self.occ_root = Path(occ_root)
+        else:  # the rule of metrics/score.resolve_occ_root, so training and scoring agree
+            self.occ_root = self.dataroot / (infos.get("occ_root") or "gts")
         self.image_size = tuple(cfg.image_size)
         self.grid_shape = tuple(cfg.grid_shape)
         cams = self.infos[0]["cams"]
