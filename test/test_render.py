@@ -90,8 +90,10 @@ def look_transform(yaw, pitch, position):
     return np.linalg.inv(ego_from_cam)
 
 
-def random_scene(seed, num_gaussians, num_pixels, dtype=torch.float64, num_classes=5):
-    """Gaussians scattered mostly in front of a randomly posed camera (some behind / aside)."""
+def random_scene(seed, num_gaussians, num_pixels, dtype=torch.float64, num_classes=5,
+                 dense=False):
+    """Gaussians scattered mostly in front of a randomly posed camera (some behind / aside).
+    dense: larger, more opaque Gaussians, so that most pixels hit the 1e-4 early stop."""
     rng = np.random.default_rng(seed)
     cam_from_ego = look_transform(rng.uniform(-np.pi, np.pi), rng.uniform(-0.2, 0.2),
                                   rng.uniform(-2, 2, 3))
@@ -101,9 +103,10 @@ def random_scene(seed, num_gaussians, num_pixels, dtype=torch.float64, num_class
     means = cam_pts @ ego_from_cam[:3, :3].T + ego_from_cam[:3, 3]
     scene = dict(
         means=means,
-        scales=np.exp(rng.uniform(np.log(0.03), np.log(1.0), (num_gaussians, 3))),
+        scales=np.exp(rng.uniform(np.log(0.03), np.log(1.0), (num_gaussians, 3))) * (
+            3.0 if dense else 1.0),
         rotations=rng.normal(size=(num_gaussians, 4)),
-        opacities=rng.uniform(0.0, 1.0, num_gaussians),
+        opacities=rng.uniform(0.5 if dense else 0.0, 1.0, num_gaussians),
         features=rng.uniform(0.0, 1.0, (num_gaussians, num_classes)),
     )
     tensors = {k: torch.tensor(v, dtype=dtype) for k, v in scene.items()}
@@ -164,11 +167,15 @@ def grid_pixels(step=8):
 
 
 # ----------------------------------------------------------------------------- values
-@pytest.mark.parametrize("seed,num_gaussians,num_pixels",
-                         [(0, 1, 64), (1, 30, 200), (2, 200, 300), (3, 600, 150), (4, 5, 400)])
-def test_matches_bruteforce_reference(seed, num_gaussians, num_pixels):
-    scene, cam, k, pixels = random_scene(seed, num_gaussians, num_pixels)
-    assert_matches_reference(render(scene, cam, k, pixels), reference(scene, cam, k, pixels))
+@pytest.mark.parametrize("seed,num_gaussians,num_pixels,dense",
+                         [(0, 1, 64, False), (1, 30, 200, False), (2, 200, 300, False),
+                          (3, 600, 150, False), (4, 5, 400, False), (9, 500, 200, True)])
+def test_matches_bruteforce_reference(seed, num_gaussians, num_pixels, dense):
+    scene, cam, k, pixels = random_scene(seed, num_gaussians, num_pixels, dense=dense)
+    result = render(scene, cam, k, pixels)
+    assert_matches_reference(result, reference(scene, cam, k, pixels))
+    if dense:  # the early stop is exercised
+        assert (result.alpha > 1 - 1e-3).float().mean() > 0.5
 
 
 def test_float32_close_to_float64_reference():
@@ -204,12 +211,13 @@ def test_field_of_view_clamp_matches_reference():
     assert_matches_reference(result, reference(scene, cam, k, pixels))
 
 
-def test_tiles_and_chunks_do_not_change_result(monkeypatch):
-    scene, cam, k, pixels = random_scene(11, 300, 400)
+@pytest.mark.parametrize("dense", [False, True])
+def test_tiles_and_depth_batches_do_not_change_result(monkeypatch, dense):
+    scene, cam, k, pixels = random_scene(11, 300, 400, dense=dense)
     base = render(scene, cam, k, pixels)
-    monkeypatch.setattr(splat_module, "CANDIDATE_CHUNK", 97)
-    monkeypatch.setattr(splat_module, "SUM_CHUNK", 13)
-    for tile_size in (1, 5, 16, 500):
+    for chunk, tile_size in ((97, 1), (500, 5), (10**9, 500)):
+        monkeypatch.setattr(splat_module, "CANDIDATE_CHUNK", chunk)
+        monkeypatch.setattr(splat_module, "SUM_CHUNK", 13)
         other = render(scene, cam, k, pixels, tile_size=tile_size)
         for a, b in zip(base, other):
             torch.testing.assert_close(a, b, atol=1e-12, rtol=1e-12)
@@ -363,6 +371,21 @@ def test_coincident_means_composite_in_index_order():
     torch.testing.assert_close(centre.features, torch.tensor([[1.375]], dtype=torch.float64))
     grads = backward_grads(scene, cam, k, pixels)
     assert all(torch.isfinite(g).all() for g in grads.values())
+
+
+def test_early_stop_is_exclusive():
+    # alpha = o exactly at the common centre; (1 - o)^4 = 0.9e-4 <= 1e-4, so the 4th Gaussian
+    # is excluded and compositing stops with T = (1 - o)^3.
+    o = 1.0 - 0.9e-4 ** 0.25
+    z = [4.0, 5.0, 6.0, 7.0, 8.0]
+    scene, cam, k = simple_scene([[0.0, 0.0, d] for d in z], [[0.3, 0.3, 0.3]] * 5,
+                                 opacities=[o] * 5)
+    result = render(scene, cam, k, torch.tensor([[176.0, 64.0]], dtype=torch.float64))
+    weights = [o * (1 - o) ** i for i in range(3)]
+    torch.testing.assert_close(result.alpha, torch.tensor([1 - (1 - o) ** 3],
+                                                          dtype=torch.float64))
+    torch.testing.assert_close(result.depth, torch.tensor([sum(w * d for w, d in zip(weights, z))],
+                                                          dtype=torch.float64))
 
 
 def test_thousands_of_gaussians_in_one_pixel_stop_early():

@@ -37,7 +37,7 @@ from .projection import ALPHA_MAX, ALPHA_MIN, Splats, project_gaussians, splat_p
 
 TRANSMITTANCE_MIN = 1e-4         # a pixel is done once T would reach this (exclusive)
 TILE_SIZE = 16                   # pixel tile edge for culling (as gsplat)
-CANDIDATE_CHUNK = 4_000_000      # candidate (splat, pixel) pairs tested at once
+CANDIDATE_CHUNK = 1_000_000      # candidate (splat, pixel) pairs per depth batch
 SUM_CHUNK = 1_000_000            # pairs per step of the weighted feature sum
 
 
@@ -95,9 +95,8 @@ def render_cameras(means: torch.Tensor, scales: torch.Tensor, rotations: torch.T
 
     splats = project_gaussians(means, scales, rotations, opacities, cam_from_ego.to(means.dtype),
                                intrinsics.to(means.dtype), (height, width), near)
-    pair_splat, pair_pixel = _contributing_pairs(splats, pixel_uv, pixel_camera, num_cameras,
+    weights, pair_pixel, pair_splat = _composite(splats, pixel_uv, pixel_camera, num_cameras,
                                                  (height, width), tile_size)
-    weights = _compositing_weights(splats, pixel_uv, pair_splat, pair_pixel, pixel_uv.shape[0])
 
     # One weighted sum gives features, depth and accumulated alpha (a column of ones).
     values = torch.cat([features[splats.gaussian], splats.depth[:, None],
@@ -111,116 +110,152 @@ def render_cameras(means: torch.Tensor, scales: torch.Tensor, rotations: torch.T
     return results
 
 
-def _contributing_pairs(splats: Splats, pixel_uv: torch.Tensor, pixel_camera: torch.Tensor,
-                        num_cameras: int, image_hw, tile_size: int):
-    """(splat, pixel) pairs with alpha >= 1/255, sorted by pixel then depth. -> 2 x [M] long.
+def _composite(splats: Splats, pixel_uv: torch.Tensor, pixel_camera: torch.Tensor,
+               num_cameras: int, image_hw, tile_size: int):
+    """Compositing weights w = T alpha of every contributing (splat, pixel) pair.
 
-    Splat -> tiles its alpha box touches -> the requested pixels in those tiles; each
-    candidate is then tested exactly, without autograd, CANDIDATE_CHUNK pairs at a time.
+    Returns weight [M] (differentiable), pixel [M], splat [M] (long).
+
+    Splats are processed front to back in depth batches of whole splats (about
+    CANDIDATE_CHUNK candidate pairs each). Within a batch: splat -> tiles its alpha box
+    touches -> the still-active requested pixels in those tiles -> exact alpha test without
+    autograd -> pairs sorted by (pixel, depth) -> T from the pixel's running log
+    transmittance plus an exclusive segmented cumsum of log(1 - alpha), in float64 (a global
+    cumsum minus its value at each pixel's first pair; float64 so the subtraction of large
+    running sums loses nothing). A pair is kept while T (1 - alpha) > 1e-4; T only decreases,
+    so the kept pairs are a prefix as in the sequential early stop, and a pixel that stopped
+    takes no part in later batches (this is what keeps dense scenes cheap).
     """
     device = pixel_uv.device
     height, width = image_hw
-    tiles_x = -(-width // tile_size)
-    tiles_y = -(-height // tile_size)
-    tiles_per_camera = tiles_x * tiles_y
-    num_splats = len(splats)
-    empty = torch.zeros(0, dtype=torch.long, device=device)
-    if num_splats == 0 or pixel_uv.shape[0] == 0:
-        return empty, empty
-
-    with torch.no_grad():
-        # Pixels grouped by tile (a monotone clamped floor, so pixel-in-box implies
-        # tile-in-tile-range for the boxes below).
-        pixel_tile = (pixel_camera * tiles_per_camera
-                      + _tile_index(pixel_uv[:, 1], tile_size, tiles_y) * tiles_x
-                      + _tile_index(pixel_uv[:, 0], tile_size, tiles_x))
-        pixels_by_tile = torch.argsort(pixel_tile, stable=True)
-        tile_pixel_count = torch.bincount(pixel_tile, minlength=num_cameras * tiles_per_camera)
-        tile_first_pixel = torch.cumsum(tile_pixel_count, 0) - tile_pixel_count
-
-        # Splat -> touched tiles.
-        lo = splats.mean2d.detach() - splats.half_extent
-        hi = splats.mean2d.detach() + splats.half_extent
-        tx0, tx1 = _tile_index(lo[:, 0], tile_size, tiles_x), _tile_index(hi[:, 0], tile_size, tiles_x)
-        ty0, ty1 = _tile_index(lo[:, 1], tile_size, tiles_y), _tile_index(hi[:, 1], tile_size, tiles_y)
-        span_x = tx1 - tx0 + 1
-        tiles_of_splat = span_x * (ty1 - ty0 + 1)
-        st_splat = torch.repeat_interleave(torch.arange(num_splats, device=device), tiles_of_splat)
-        st_local = torch.arange(st_splat.shape[0], device=device) - torch.repeat_interleave(
-            torch.cumsum(tiles_of_splat, 0) - tiles_of_splat, tiles_of_splat)
-        st_tile = (splats.camera[st_splat] * tiles_per_camera
-                   + (ty0[st_splat] + st_local // span_x[st_splat]) * tiles_x
-                   + tx0[st_splat] + st_local % span_x[st_splat])
-        st_count = tile_pixel_count[st_tile]
-        occupied = st_count > 0
-        st_splat, st_tile, st_count = st_splat[occupied], st_tile[occupied], st_count[occupied]
-
-        # Expand (splat, tile) -> (splat, pixel) in chunks of ~CANDIDATE_CHUNK candidates.
-        mean2d = splats.mean2d.detach()
-        cov_xy, cov_yy, det = splats.cov_xy.detach(), splats.cov_yy.detach(), splats.det.detach()
-        opacity = splats.opacity.detach()
-        kept_splat, kept_pixel = [], []
-        ends = torch.cumsum(st_count, 0)
-        start = 0
-        while start < st_count.shape[0]:
-            budget_end = (ends[start - 1] if start > 0 else 0) + CANDIDATE_CHUNK
-            stop = max(start + 1, int(torch.searchsorted(ends, budget_end, right=True)))
-            count = st_count[start:stop]
-            cand_splat = torch.repeat_interleave(st_splat[start:stop], count)
-            offset_in_tile = torch.arange(cand_splat.shape[0], device=device) - \
-                torch.repeat_interleave(torch.cumsum(count, 0) - count, count)
-            cand_pixel = pixels_by_tile[
-                torch.repeat_interleave(tile_first_pixel[st_tile[start:stop]], count) + offset_in_tile]
-            alpha = _pair_alpha(mean2d, cov_xy, cov_yy, det, opacity, pixel_uv,
-                                cand_splat, cand_pixel)
-            contributes = alpha >= ALPHA_MIN
-            kept_splat.append(cand_splat[contributes])
-            kept_pixel.append(cand_pixel[contributes])
-            start = stop
-        if not kept_splat:
-            return empty, empty
-        pair_splat = torch.cat(kept_splat)
-        pair_pixel = torch.cat(kept_pixel)
-        # Splats are depth-sorted, so the splat index is the depth rank.
-        order = torch.argsort(pair_pixel * num_splats + pair_splat)
-    return pair_splat[order], pair_pixel[order]
+    num_pixels = pixel_uv.shape[0]
+    grid = _TileGrid(height, width, tile_size, num_cameras)
+    params = torch.stack([splats.mean2d[:, 0], splats.mean2d[:, 1], splats.cov_xy,
+                          splats.cov_yy, splats.det, splats.opacity], dim=-1)    # [S, 6]
+    weights, pair_pixels, pair_splats = [], [], []
+    if len(splats) and num_pixels:
+        st_splat, st_tile = _splat_tiles(splats, grid)
+        splat_first_st = torch.searchsorted(st_splat, torch.arange(len(splats) + 1, device=device))
+        log_t = torch.zeros(num_pixels, dtype=torch.float64, device=device)  # running log T
+        active = torch.ones(num_pixels, dtype=torch.bool, device=device)
+        pixels_by_tile, tile_count, tile_first = grid.bin_pixels(pixel_uv, pixel_camera, active)
+        first = 0                                       # first splat of the batch
+        while first < len(splats):
+            with torch.no_grad():
+                a = int(splat_first_st[first])
+                window = st_tile[a:a + CANDIDATE_CHUNK]
+                cumulative = torch.cumsum(tile_count[window], 0)
+                cut = a + int(torch.searchsorted(cumulative, CANDIDATE_CHUNK, right=True))
+                last = int(st_splat[cut]) if cut < st_splat.shape[0] else len(splats)
+                last = max(last, first + 1)
+                b = int(splat_first_st[last])
+                pair_splat, pair_pixel = _candidate_pairs(
+                    st_splat[a:b], st_tile[a:b], pixels_by_tile, tile_count, tile_first)
+                alpha = _pair_alpha(params.detach(), pixel_uv, pair_splat, pair_pixel)
+                contributes = alpha >= ALPHA_MIN
+                pair_splat, pair_pixel = pair_splat[contributes], pair_pixel[contributes]
+                # Splats are depth-sorted, so the splat index is the depth rank.
+                order = torch.argsort(pair_pixel * len(splats) + pair_splat)
+                pair_splat, pair_pixel = pair_splat[order], pair_pixel[order]
+            first = last
+            if pair_splat.shape[0] == 0:
+                continue
+            alpha = _pair_alpha(params, pixel_uv, pair_splat, pair_pixel)
+            log_one_minus = torch.log1p(-alpha.double())
+            running = torch.cumsum(log_one_minus, 0) - log_one_minus       # exclusive
+            pairs_per_pixel = torch.bincount(pair_pixel, minlength=num_pixels)
+            segment_first = torch.cumsum(pairs_per_pixel, 0) - pairs_per_pixel
+            log_transmittance = (running - running[segment_first[pair_pixel]]
+                                 + log_t[pair_pixel])
+            with torch.no_grad():
+                include = (log_transmittance + log_one_minus) > math.log(TRANSMITTANCE_MIN)
+                stopped = pair_pixel[~include]
+            weight = alpha * torch.exp(log_transmittance).to(alpha.dtype)
+            weights.append(weight[include])
+            pair_pixels.append(pair_pixel[include])
+            pair_splats.append(pair_splat[include])
+            log_t = log_t.index_add(0, pair_pixel[include], log_one_minus[include])
+            if stopped.shape[0]:
+                active[stopped] = False
+                if not active.any():
+                    break
+                pixels_by_tile, tile_count, tile_first = grid.bin_pixels(
+                    pixel_uv, pixel_camera, active)
+    if not weights:
+        empty = torch.zeros(0, dtype=torch.long, device=device)
+        return params[:0, 0] * 0, empty, empty
+    return torch.cat(weights), torch.cat(pair_pixels), torch.cat(pair_splats)
 
 
-def _tile_index(coordinate: torch.Tensor, tile_size: int, num_tiles: int) -> torch.Tensor:
-    return torch.floor(coordinate / tile_size).clamp(0, num_tiles - 1).long()
+class _TileGrid:
+    """tile_size x tile_size pixel tiles of N images of (H, W); global tile id =
+    camera * tiles_per_camera + row * tiles_x + column."""
+
+    def __init__(self, height: int, width: int, tile_size: int, num_cameras: int):
+        self.tile_size = tile_size
+        self.tiles_x = -(-width // tile_size)
+        self.tiles_y = -(-height // tile_size)
+        self.tiles_per_camera = self.tiles_x * self.tiles_y
+        self.num_tiles = num_cameras * self.tiles_per_camera
+
+    def column(self, u: torch.Tensor) -> torch.Tensor:
+        # A monotone clamped floor: u in [lo, hi] implies column(lo) <= column(u) <= column(hi).
+        return torch.floor(u / self.tile_size).clamp(0, self.tiles_x - 1).long()
+
+    def row(self, v: torch.Tensor) -> torch.Tensor:
+        return torch.floor(v / self.tile_size).clamp(0, self.tiles_y - 1).long()
+
+    @torch.no_grad()
+    def bin_pixels(self, pixel_uv, pixel_camera, active):
+        """Active pixels grouped by tile: (pixel ids sorted by tile [P_active],
+        pixels per tile [num_tiles], first position of each tile in that list [num_tiles])."""
+        ids = active.nonzero(as_tuple=True)[0]
+        tile = (pixel_camera[ids] * self.tiles_per_camera
+                + self.row(pixel_uv[ids, 1]) * self.tiles_x + self.column(pixel_uv[ids, 0]))
+        order = torch.argsort(tile, stable=True)
+        count = torch.bincount(tile, minlength=self.num_tiles)
+        return ids[order], count, torch.cumsum(count, 0) - count
 
 
-def _pair_alpha(mean2d, cov_xy, cov_yy, det, opacity, pixel_uv, pair_splat, pair_pixel):
-    """alpha = min(0.99, o exp(-power)) of each (splat, pixel) pair. -> [M]."""
-    delta = pixel_uv[pair_pixel] - mean2d[pair_splat]
-    power = splat_power(cov_xy[pair_splat], cov_yy[pair_splat], det[pair_splat],
-                        delta[:, 0], delta[:, 1])
-    return (opacity[pair_splat] * torch.exp(-power)).clamp_max(ALPHA_MAX)
+@torch.no_grad()
+def _splat_tiles(splats: Splats, grid: _TileGrid):
+    """Every (splat, tile) pair where the splat's alpha >= 1/255 box touches the tile,
+    sorted by splat. -> st_splat [T] long, st_tile [T] long (global tile id)."""
+    device = splats.mean2d.device
+    lo = splats.mean2d.detach() - splats.half_extent
+    hi = splats.mean2d.detach() + splats.half_extent
+    col0, col1 = grid.column(lo[:, 0]), grid.column(hi[:, 0])
+    row0, row1 = grid.row(lo[:, 1]), grid.row(hi[:, 1])
+    span = col1 - col0 + 1
+    tiles_of_splat = span * (row1 - row0 + 1)
+    st_splat = torch.repeat_interleave(torch.arange(len(splats), device=device), tiles_of_splat)
+    local = torch.arange(st_splat.shape[0], device=device) - torch.repeat_interleave(
+        torch.cumsum(tiles_of_splat, 0) - tiles_of_splat, tiles_of_splat)
+    st_tile = (splats.camera[st_splat] * grid.tiles_per_camera
+               + (row0[st_splat] + local // span[st_splat]) * grid.tiles_x
+               + col0[st_splat] + local % span[st_splat])
+    return st_splat, st_tile
 
 
-def _compositing_weights(splats: Splats, pixel_uv: torch.Tensor, pair_splat: torch.Tensor,
-                         pair_pixel: torch.Tensor, num_pixels: int) -> torch.Tensor:
-    """w = T alpha of each pair (pairs sorted by pixel, then front to back). -> [M].
+def _candidate_pairs(st_splat, st_tile, pixels_by_tile, tile_count, tile_first):
+    """(splat, tile) pairs -> (splat, pixel) pairs for every binned pixel of each tile."""
+    count = tile_count[st_tile]
+    pair_splat = torch.repeat_interleave(st_splat, count)
+    offset = torch.arange(pair_splat.shape[0], device=st_splat.device) - \
+        torch.repeat_interleave(torch.cumsum(count, 0) - count, count)
+    pair_pixel = pixels_by_tile[torch.repeat_interleave(tile_first[st_tile], count) + offset]
+    return pair_splat, pair_pixel
 
-    T is exp of the exclusive per-pixel cumsum of log(1 - alpha), in float64. A pair is kept
-    while T (1 - alpha) > 1e-4; since T only decreases along a pixel, the kept pairs are a
-    prefix, exactly as in the sequential early stop.
+
+def _pair_alpha(params, pixel_uv, pair_splat, pair_pixel):
+    """alpha = min(0.99, o exp(-power)) of each (splat, pixel) pair. -> [M].
+
+    params [S, 6] = (u, v, cov_xy, cov_yy, det, opacity) per splat (one gather per pair).
     """
-    alpha = _pair_alpha(splats.mean2d, splats.cov_xy, splats.cov_yy, splats.det,
-                        splats.opacity, pixel_uv, pair_splat, pair_pixel)
-    if pair_splat.shape[0] == 0:
-        return alpha
-    contributes = alpha.detach() >= ALPHA_MIN
-    log_keep = torch.where(contributes, torch.log1p(-alpha.double()), 0.0)   # log(1 - alpha)
-    running = torch.cumsum(log_keep, 0) - log_keep                            # exclusive
-    pairs_per_pixel = torch.bincount(pair_pixel, minlength=num_pixels)
-    first_pair = torch.cumsum(pairs_per_pixel, 0) - pairs_per_pixel
-    log_transmittance = running - running[first_pair[pair_pixel]]
-    with torch.no_grad():
-        before_stop = (log_transmittance + log_keep) > math.log(TRANSMITTANCE_MIN)
-    include = contributes & before_stop
-    weight = alpha * torch.exp(log_transmittance).to(alpha.dtype)
-    return torch.where(include, weight, torch.zeros_like(weight))
+    u, v, cov_xy, cov_yy, det, opacity = params.index_select(0, pair_splat).unbind(-1)
+    uv = pixel_uv.index_select(0, pair_pixel)
+    power = splat_power(cov_xy, cov_yy, det, uv[:, 0] - u, uv[:, 1] - v)
+    return (opacity * torch.exp(-power)).clamp_max(ALPHA_MAX)
 
 
 class _PairWeightedSum(torch.autograd.Function):
