@@ -93,8 +93,10 @@ def special_directions():
     dirs = [np.eye(3)[a] * s for a in range(3) for s in (1, -1)]
     for sx in (1, -1):
         for sy in (1, -1):
-            dirs += [np.array([sx, sy, 0.0]) / math.sqrt(2), np.array([sx, 0.0, sy]) / math.sqrt(2),
-                     np.array([sx, sy, 1.0]) / math.sqrt(3), np.array([sx, sy, -1.0]) / math.sqrt(3),
+            dirs += [np.array([sx, sy, 0.0]) / math.sqrt(2),
+                     np.array([sx, 0.0, sy]) / math.sqrt(2),
+                     np.array([sx, sy, 1.0]) / math.sqrt(3),
+                     np.array([sx, sy, -1.0]) / math.sqrt(3),
                      np.array([0.6 * sx, 0.8 * sy, 0.0])]
     return np.array(dirs)
 

@@ -17,8 +17,9 @@ LiDAR pattern, but they decide hand-made test cases):
   axes step together (SparseOcc steps one axis at a time and can visit such a voxel);
 * an origin on a voxel face starts in the voxel the ray moves into; a ray lying in a face
   (direction component 0 on that axis) belongs to the voxel on the + side (floor);
-* an origin outside the grid starts where the ray enters the grid (SparseOcc truncates the
-  origin towards zero with C ``int()``, which only differs for origins below the grid).
+* an origin outside the grid starts where the ray enters the grid (SparseOcc starts from the
+  origin's voxel truncated towards zero with C ``int()``; that differs only for an origin with
+  a negative grid coordinate, i.e. below the grid, since origins keep |x|, |y| < 39 m).
 """
 from __future__ import annotations
 
