@@ -1,0 +1,53 @@
+"""Run a model over a split and score it (mIoU with the camera mask, RayIoU, per class)."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from ..classes import DYNAMIC_OCC_CLASSES
+from ..data.batch import collate
+from ..data.dataset import OccDataset
+from ..metrics.rayiou import LidarOrigins
+from ..metrics.score import OccScore
+from ..network.postprocess import occupancy_grid
+from .trainer import to_device
+
+
+def dynamic_class_miou(result: dict) -> float | None:
+    """Mean IoU over the moving classes present in the split (paper Table 2's view)."""
+    values = [result["per_class"][c]["IoU"] for c in DYNAMIC_OCC_CLASSES
+              if result["per_class"].get(c, {}).get("IoU") is not None]
+    return round(float(np.mean(values)), 2) if values else None
+
+
+@torch.no_grad()
+def evaluate(model, cfg, infos, occ_root=None, save_pred: str | None = None, device="cpu",
+             rayiou: bool = True, limit: int | None = None, progress: bool = True,
+             workers: int = 0) -> dict:
+    dataset = OccDataset(infos, cfg, occ_root=occ_root, train=False)
+    indices = list(range(len(dataset)))[:limit]
+    subset = torch.utils.data.Subset(dataset, indices)
+    loader = torch.utils.data.DataLoader(subset, batch_size=1, collate_fn=collate,
+                                         num_workers=workers)
+    score = OccScore(dataset.dataset, rayiou=rayiou)
+    origins = LidarOrigins(dataset.infos) if rayiou else None
+    if save_pred:
+        Path(save_pred).mkdir(parents=True, exist_ok=True)
+    model.eval()
+    for index, batch in zip(indices, tqdm(loader, desc="eval", disable=not progress)):
+        batch = to_device(batch, device)
+        output = model(batch["images"], batch["ego2img"], batch["ego_warp"], batch["time_delta"])
+        grid = occupancy_grid(output, cfg)[0][0].cpu().numpy()
+        if save_pred:
+            np.savez_compressed(Path(save_pred) / f"{batch['token'][0]}.npz", semantics=grid)
+        if not batch["has_occ"][0]:
+            continue
+        score.add(grid, batch["occ_semantics"][0].cpu().numpy(),
+                  batch["occ_mask_camera"][0].cpu().numpy().astype(bool),
+                  origins(index) if origins is not None else None)
+    result = score.result()
+    result["mIoU_dynamic"] = dynamic_class_miou(result)
+    return result

@@ -1,0 +1,287 @@
+"""Training loop of ODG (DESIGN.md sec. 5).
+
+AdamW (lr 2e-4, weight decay 0.01, backbone lr x 0.1), warm-up + cosine schedule, gradient
+clipping at 35, mixed precision on CUDA, atomic checkpoints with optimizer and scheduler
+state, ``resume``, a tqdm bar and a CSV log of every loss term. A step whose loss or
+gradient is not finite is skipped (no optimizer update), counted and logged.
+
+Distributed: started by ``torchrun`` (env WORLD_SIZE/RANK/LOCAL_RANK), torch DDP with gloo on
+CPU and NCCL on CUDA. The skip decision is all-reduced so every rank skips the same steps.
+"""
+from __future__ import annotations
+
+import csv
+import logging
+import math
+import os
+import random
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.distributed as dist
+from torch.nn.parallel import DistributedDataParallel
+from tqdm import tqdm
+
+from ..config import ModelConfig
+from ..data.batch import collate
+from ..data.dataset import OccDataset
+from ..losses.criterion import ODGCriterion
+from ..network import ODG
+from ..network.backbone import load_torchvision_state_dict
+from ..network.checkpoint import save_checkpoint
+from .schedule import warmup_cosine
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class TrainOptions:
+    out_dir: Path
+    epochs: int = 24
+    max_steps: int | None = None          # stop early (smoke runs, budgets)
+    batch_size: int = 1                   # per process
+    lr: float = 2e-4
+    weight_decay: float = 0.01
+    backbone_lr_mult: float = 0.1
+    warmup_steps: int = 200
+    grad_clip: float = 35.0
+    workers: int = 2
+    seed: int = 0
+    render: bool = True
+    render_pixels_per_camera: int = 512
+    checkpoint_every: int = 500
+    device: str = "auto"
+    backbone_weights: str | None = None   # torchvision-layout ResNet state_dict (.pth)
+    init_checkpoint: str | None = None    # start from these weights (not a resume)
+    resume: bool = False
+    progress: bool = True
+    extra: dict = field(default_factory=dict)
+
+
+def distributed_context():
+    """(rank, world_size, local_rank); initialises the process group under torchrun."""
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    if world > 1 and not dist.is_initialized():
+        backend = "nccl" if torch.cuda.is_available() else "gloo"
+        dist.init_process_group(backend)
+    rank = dist.get_rank() if dist.is_initialized() else 0
+    return rank, world, int(os.environ.get("LOCAL_RANK", "0"))
+
+
+def to_device(batch: dict, device) -> dict:
+    out = {}
+    for key, value in batch.items():
+        if torch.is_tensor(value):
+            out[key] = value.to(device, non_blocking=True)
+        elif isinstance(value, list) and value and torch.is_tensor(value[0]):
+            out[key] = [v.to(device) for v in value]
+        elif isinstance(value, list) and value and isinstance(value[0], list):
+            out[key] = [[t.to(device) for t in v] for v in value]
+        else:
+            out[key] = value
+    return out
+
+
+def parameter_groups(model: ODG, opts: TrainOptions) -> list[dict]:
+    backbone = [p for p in model.backbone.parameters() if p.requires_grad]
+    ids = {id(p) for p in backbone}
+    rest = [p for p in model.parameters() if p.requires_grad and id(p) not in ids]
+    return [{"params": backbone, "lr": opts.lr * opts.backbone_lr_mult, "name": "backbone"},
+            {"params": rest, "lr": opts.lr, "name": "rest"}]
+
+
+class Trainer:
+    def __init__(self, cfg: ModelConfig, infos, opts: TrainOptions):
+        self.cfg, self.opts = cfg, opts
+        self.rank, self.world, local_rank = distributed_context()
+        if opts.device == "auto":
+            device = f"cuda:{local_rank}" if torch.cuda.is_available() else "cpu"
+        else:
+            device = opts.device
+        self.device = torch.device(device)
+        seed = opts.seed + self.rank
+        torch.manual_seed(seed), np.random.seed(seed), random.seed(seed)
+
+        self.dataset = OccDataset(infos, cfg, train=True)
+        self.sampler = (torch.utils.data.distributed.DistributedSampler(
+            self.dataset, self.world, self.rank, shuffle=True, seed=opts.seed)
+            if self.world > 1 else None)
+        g = torch.Generator().manual_seed(opts.seed)
+        self.loader = torch.utils.data.DataLoader(
+            self.dataset, batch_size=opts.batch_size, shuffle=self.sampler is None,
+            sampler=self.sampler, num_workers=opts.workers, collate_fn=collate,
+            drop_last=True, generator=g, persistent_workers=opts.workers > 0)
+        if len(self.loader) == 0:
+            raise ValueError(f"{len(self.dataset)} samples cannot fill one batch of "
+                             f"{opts.batch_size} per process")
+
+        self.model = ODG(cfg)
+        if opts.backbone_weights:
+            load_torchvision_state_dict(self.model.backbone, opts.backbone_weights)
+        if opts.init_checkpoint:
+            payload = torch.load(opts.init_checkpoint, map_location="cpu", weights_only=False)
+            own = self.model.state_dict()
+            self.model.load_state_dict({k: v.to(own[k].dtype) for k, v in
+                                        payload["model"].items()})
+        self.model.to(self.device)
+        self.optimizer = torch.optim.AdamW(parameter_groups(self.model, opts), lr=opts.lr,
+                                           weight_decay=opts.weight_decay)
+        steps_per_epoch = len(self.loader)
+        self.total_steps = steps_per_epoch * opts.epochs
+        if opts.max_steps:
+            self.total_steps = min(self.total_steps, opts.max_steps)
+        self.scheduler = torch.optim.lr_scheduler.LambdaLR(
+            self.optimizer, lambda s: warmup_cosine(s, self.total_steps, opts.warmup_steps))
+        self.criterion = ODGCriterion(cfg, render=opts.render,
+                                      render_pixels_per_camera=opts.render_pixels_per_camera,
+                                      seed=seed)
+        self.amp_dtype = None
+        if self.device.type == "cuda":
+            self.amp_dtype = torch.bfloat16 if torch.cuda.is_bf16_supported() else torch.float16
+        self.scaler = torch.amp.GradScaler("cuda", enabled=self.amp_dtype == torch.float16)
+        self.step = 0
+        self.skipped_steps = 0
+        self.out_dir = Path(opts.out_dir)
+        if opts.resume:
+            self._resume()
+        self.ddp = (DistributedDataParallel(self.model, device_ids=None if self.device.type ==
+                                            "cpu" else [self.device], find_unused_parameters=True)
+                    if self.world > 1 else None)
+
+    # ------------------------------------------------------------------ checkpoints
+    @property
+    def latest_path(self) -> Path:
+        return self.out_dir / "latest.pt"
+
+    def save(self, path: Path | None = None) -> None:
+        if self.rank != 0:
+            return
+        save_checkpoint(path or self.latest_path, self.model, extra={
+            "optimizer": self.optimizer.state_dict(), "scheduler": self.scheduler.state_dict(),
+            "scaler": self.scaler.state_dict(), "step": self.step,
+            "skipped_steps": self.skipped_steps, "total_steps": self.total_steps,
+            "train_options": {k: str(v) for k, v in vars(self.opts).items()}})
+
+    def _resume(self) -> None:
+        if not self.latest_path.exists():
+            raise FileNotFoundError(f"--resume: no checkpoint at {self.latest_path}")
+        payload = torch.load(self.latest_path, map_location="cpu", weights_only=False)
+        self.model.load_state_dict(payload["model"])
+        self.optimizer.load_state_dict(payload["optimizer"])
+        self.scheduler.load_state_dict(payload["scheduler"])
+        self.scaler.load_state_dict(payload["scaler"])
+        self.step = payload["step"]
+        self.skipped_steps = payload.get("skipped_steps", 0)
+        log.info("resumed from %s at step %d", self.latest_path, self.step)
+
+    # ------------------------------------------------------------------ one step
+    def train_step(self, batch: dict) -> tuple[dict[str, float], bool]:
+        """-> (loss terms as floats, applied). Non-finite loss or gradients: not applied."""
+        model = self.ddp or self.model
+        model.train()
+        batch = to_device(batch, self.device)
+        self.optimizer.zero_grad(set_to_none=True)
+        terms, finite = {}, True
+        try:
+            with torch.autocast(self.device.type, dtype=self.amp_dtype,
+                                enabled=self.amp_dtype is not None):
+                output = model(batch["images"], batch["ego2img"], batch["ego_warp"],
+                               batch["time_delta"])
+            losses = self.criterion(output, batch)
+            loss = losses["loss"]
+            finite = bool(torch.isfinite(loss))
+        except FloatingPointError as err:
+            log.warning("step %d: %s", self.step, err)
+            finite, loss, losses = False, None, {}
+        finite = self._all_ranks(finite)
+        if not finite:
+            return {k: float("nan") for k in losses}, False
+        self.scaler.scale(loss).backward()
+        self.scaler.unscale_(self.optimizer)
+        grad_norm = torch.nn.utils.clip_grad_norm_(self.model.parameters(), self.opts.grad_clip)
+        if not torch.isfinite(grad_norm):  # grads are all-reduced: every rank agrees
+            self.optimizer.zero_grad(set_to_none=True)
+            self.scaler.update()
+            return {k: float(v.detach()) for k, v in losses.items()}, False
+        self.scaler.step(self.optimizer)
+        self.scaler.update()
+        terms = {k: float(v.detach()) for k, v in losses.items()}
+        terms["grad_norm"] = float(grad_norm)
+        return terms, True
+
+    def _all_ranks(self, flag: bool) -> bool:
+        if self.world == 1:
+            return flag
+        t = torch.tensor([1.0 if flag else 0.0], device=self.device)
+        dist.all_reduce(t, op=dist.ReduceOp.MIN)
+        return bool(t.item() > 0)
+
+    # ------------------------------------------------------------------ loop
+    def fit(self) -> dict:
+        self.out_dir.mkdir(parents=True, exist_ok=True)
+        log_path = self.out_dir / "train_log.csv"
+        writer = None
+        log_file = open(log_path, "a", newline="") if self.rank == 0 else None
+        bar = tqdm(total=self.total_steps, initial=self.step, desc="train",
+                   disable=not self.opts.progress or self.rank != 0)
+        start, first_loss, last_loss = time.time(), None, None
+        epoch = self.step // len(self.loader)
+        try:
+            while self.step < self.total_steps:
+                if self.sampler is not None:
+                    self.sampler.set_epoch(epoch)
+                for batch in self.loader:
+                    if self.step >= self.total_steps:
+                        break
+                    t0 = time.time()
+                    terms, applied = self.train_step(batch)
+                    if applied:
+                        self.scheduler.step()
+                        last_loss = terms["loss"]
+                        first_loss = last_loss if first_loss is None else first_loss
+                    else:
+                        self.skipped_steps += 1
+                        log.warning("step %d skipped (non-finite loss or gradient); %d so far",
+                                    self.step, self.skipped_steps)
+                    self.step += 1
+                    if log_file is not None:
+                        row = {"step": self.step, "epoch": epoch, "applied": int(applied),
+                               "skipped_total": self.skipped_steps,
+                               "lr": self.optimizer.param_groups[1]["lr"],
+                               "seconds": round(time.time() - t0, 3), **terms}
+                        if writer is None:
+                            fields = list(row) + [k for k in self._all_term_names()
+                                                  if k not in row]
+                            new_file = log_path.stat().st_size == 0
+                            writer = csv.DictWriter(log_file, fieldnames=fields,
+                                                    extrasaction="ignore")
+                            if new_file:
+                                writer.writeheader()
+                        writer.writerow(row)
+                        log_file.flush()
+                    bar.update(1)
+                    bar.set_postfix(loss=f"{terms.get('loss', float('nan')):.3f}",
+                                    skipped=self.skipped_steps)
+                    if self.step % self.opts.checkpoint_every == 0:
+                        self.save()
+                epoch += 1
+        finally:
+            bar.close()
+            if log_file is not None:
+                log_file.close()
+        self.save()
+        self.save(self.out_dir / "final.pt")
+        return {"steps": self.step, "skipped_steps": self.skipped_steps,
+                "first_loss": first_loss, "last_loss": last_loss,
+                "seconds": round(time.time() - start, 1), "world_size": self.world,
+                "device": str(self.device)}
+
+    def _all_term_names(self) -> list[str]:
+        names = ["loss", "grad_norm", "occ_chamfer_l0"]
+        for layer in range(1, self.cfg.num_layers + 1):
+            names += [f"occ_chamfer_l{layer}", f"occ_focal_l{layer}", f"box_l1_l{layer}",
+                      f"box_focal_l{layer}", f"render_depth_l{layer}", f"render_sem_l{layer}"]
+        return names
