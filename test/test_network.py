@@ -19,7 +19,7 @@ PAPER_GAUSSIANS = {"odg_t": [600, 2400, 9600, 19200, 38400, 76800],
                    "odg_l": [4800, 9600, 19200, 38400, 76800, 76800]}
 
 
-def run(model, cfg, batch=1, frames=None, seed=0):
+def run(model, cfg, batch=1, frames=None, seed=0, **decode_options):
     frames = frames or cfg.num_frames
     g = torch.Generator().manual_seed(seed)
     H, W = cfg.image_size
@@ -28,7 +28,7 @@ def run(model, cfg, batch=1, frames=None, seed=0):
     warp = torch.eye(4).repeat(batch, frames, 1, 1)
     warp[:, :, 0, 3] = torch.arange(frames) * 4.0
     dt = torch.arange(frames, dtype=torch.float32).repeat(batch, 1) * 0.5
-    return model(images, ego2img, warp, dt), (images, ego2img, warp, dt)
+    return model(images, ego2img, warp, dt, **decode_options), (images, ego2img, warp, dt)
 
 
 @pytest.mark.parametrize("name", PRESET_NAMES)
@@ -43,7 +43,7 @@ def test_preset_shapes_and_counts(name):
     small = cfg.replace(backbone="resnet18", image_size=(32, 88), num_frames=2)
     model = ODG(small).eval()
     with torch.no_grad():
-        out, _ = run(model, small)
+        out, _ = run(model, small, gaussian_attributes=True)
     Q, D = cfg.num_queries, cfg.num_dynamic
     assert out.init_means.shape == (1, Q, 1, 3)
     assert len(out.layers) == 6
@@ -53,7 +53,7 @@ def test_preset_shapes_and_counts(name):
         assert layer.scales.shape == (1, Q, K, 3) and layer.rotations.shape == (1, Q, K, 4)
         assert layer.opacities.shape == (1, Q, K)
         assert layer.boxes.shape == (1, D, 10) and layer.box_logits.shape == (1, D, 10)
-        assert sum(layer.means.shape[1:3].numel() for _ in [0]) == Q * K
+        assert layer.means.shape[1] * layer.means.shape[2] == Q * K
 
 
 def test_das_attention_mixes_dynamic_and_static_queries_both_ways():
@@ -203,3 +203,47 @@ def test_online_inputs_geometry_is_consistent():
     cfg = tiny_config()
     _, e2i, warp, dt = online_inputs(cfg, 3, "cpu")
     assert e2i.shape == (1, 3, 6, 4, 4) and warp.shape == (1, 3, 4, 4) and dt.shape == (1, 3)
+
+
+def test_adaptive_pruning_drops_empty_queries_and_keeps_confident_ones():
+    from odg_ros.network.decoder import PruneRule
+    cfg = tiny_config()
+    model = ODG(cfg).eval()
+    _, inputs = run(model, cfg)
+    with torch.no_grad():
+        full = model(*inputs)
+        keep_hook = {}  # scores forced so exactly queries 0 (dynamic) and 10 (static) survive
+        original = PruneRule.keep
+
+        def keep(self, logits, box_logits, num_dynamic):
+            logits = logits.clone().fill_(-8.0)
+            if "kept" in keep_hook:  # later layers: the two survivors stay
+                logits.fill_(5.0)
+            else:
+                logits[:, [0, 10]] = 5.0
+            kept = original(self, logits, box_logits.clone().fill_(-8.0), num_dynamic)
+            keep_hook.setdefault("kept", kept)
+            return kept
+        PruneRule.keep = keep
+        try:
+            pruned = model(*inputs, prune=PruneRule(threshold=0.05, after_layer=2))
+        finally:
+            PruneRule.keep = original
+    assert keep_hook["kept"].tolist() == [0, 10]
+    assert pruned.layers[1].means.shape == full.layers[1].means.shape  # before pruning
+    last = pruned.last
+    assert last.means.shape[1] == 2 and last.query_index.tolist() == [0, 10]
+    assert last.num_dynamic == 1 and last.boxes.shape[1] == 1
+    assert last.scales is None  # Phi MLPs skipped at inference
+
+
+def test_pruning_with_nothing_to_drop_equals_the_full_model():
+    from odg_ros.network.decoder import PruneRule
+    cfg = tiny_config()
+    model = ODG(cfg).eval()
+    _, inputs = run(model, cfg)
+    with torch.no_grad():
+        full = model(*inputs)
+        same = model(*inputs, prune=PruneRule(threshold=0.0, after_layer=2))
+    torch.testing.assert_close(full.last.means, same.last.means)
+    torch.testing.assert_close(full.last.boxes, same.last.boxes)

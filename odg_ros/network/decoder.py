@@ -104,15 +104,52 @@ class Decoder(nn.Module):
             for k_prev, k in zip(prev_points, cfg.points_per_layer))
         self.attributes = GaussianAttributes(cfg.embed_dims, cfg.pc_range)
 
-    def forward(self, query, means, boxes, mlvl_feats, geometry) -> list[LayerOutput]:
+    def forward(self, query, means, boxes, mlvl_feats, geometry,
+                gaussian_attributes: bool = True, prune: "PruneRule | None" = None
+                ) -> list[LayerOutput]:
+        """gaussian_attributes: run Phi_s/r/sigma (rendering supervision needs them, the grid
+        does not). prune: adaptive inference, see ``PruneRule``."""
         outputs = []
-        for layer in self.layers:
+        num_dynamic = self.num_dynamic
+        query_index = None
+        for index, layer in enumerate(self.layers):
             query, means, logits, boxes_new, box_logits = layer(
                 query, means.detach(), None if boxes is None else boxes.detach(),
-                self.num_dynamic, geometry, mlvl_feats,
+                num_dynamic, geometry, mlvl_feats,
                 velocity_warp=self.cfg.motion_compensation, ego_warp=self.cfg.ego_compensation)
-            scales, rotations, opacities = self.attributes(means, query)
+            scales = rotations = opacities = None
+            if gaussian_attributes:
+                scales, rotations, opacities = self.attributes(means, query)
             outputs.append(LayerOutput(means, logits, scales, rotations, opacities,
-                                       boxes_new, box_logits))
+                                       boxes_new, box_logits, query_index, num_dynamic))
             boxes = boxes_new
+            if prune is not None and index + 1 >= prune.after_layer and \
+                    index + 1 < len(self.layers):
+                keep = prune.keep(logits, box_logits, num_dynamic)
+                query, means = query[:, keep], means[:, keep]
+                kept_dynamic = keep[keep < num_dynamic]
+                boxes = boxes[:, kept_dynamic] if boxes is not None else None
+                num_dynamic = len(kept_dynamic)
+                query_index = keep if query_index is None else query_index[keep]
         return outputs
+
+
+class PruneRule:
+    """Adaptive inference: after layer ``after_layer``, drop the queries whose best point
+    score is below ``threshold`` (empty space) and the dynamic queries whose box score is
+    also below it (no object), so later, denser layers only refine what the scene has.
+    A query is kept if any sample of the batch needs it (tensors stay dense)."""
+
+    def __init__(self, threshold: float = 0.05, after_layer: int = 2):
+        self.threshold = threshold
+        self.after_layer = after_layer
+
+    @torch.no_grad()
+    def keep(self, logits, box_logits, num_dynamic) -> torch.Tensor:
+        """logits [B, Q, K, C], box_logits [B, D, C_box] | None -> kept query indices [Q']."""
+        score = logits.float().amax(dim=(2, 3)).sigmoid()                  # [B, Q]
+        if box_logits is not None and num_dynamic:
+            box_score = box_logits.float().amax(dim=-1).sigmoid()          # [B, D]
+            score = torch.cat([torch.maximum(score[:, :num_dynamic], box_score),
+                               score[:, num_dynamic:]], dim=1)
+        return (score > self.threshold).any(dim=0).nonzero().squeeze(1)

@@ -47,9 +47,12 @@ class ODG(nn.Module):
         return out
 
     def decode(self, frame_feats: list[list[torch.Tensor]], ego2img: torch.Tensor,
-               ego_warp: torch.Tensor, time_delta: torch.Tensor) -> ODGOutput:
+               ego_warp: torch.Tensor, time_delta: torch.Tensor,
+               gaussian_attributes: bool | None = None, prune=None) -> ODGOutput:
         """frame_feats: T frames (0 = current, then older) of L levels [B, N, C, H_l, W_l];
         ego2img [B, T, N, 4, 4]; ego_warp [B, T, 4, 4]; time_delta [B, T].
+        gaussian_attributes: run Phi_s/r/sigma (default: while training; the grid does not
+        need them). prune: a ``decoder.PruneRule`` for adaptive inference (None: full model).
 
         With fewer frames than ``cfg.num_frames`` (a history still filling up) the oldest
         frame is repeated, as the dataset does at the start of a scene.
@@ -80,16 +83,18 @@ class ODG(nn.Module):
         geometry = {"ego2img": ego2img.float(), "ego_warp": ego_warp.float(),
                     "time_delta": time_delta.float(), "image_hw": self.cfg.image_size}
         query, means, boxes = self.queries(B)
-        layers = self.decoder(query, means, boxes, mlvl, geometry)
+        if gaussian_attributes is None:
+            gaussian_attributes = self.training
+        layers = self.decoder(query, means, boxes, mlvl, geometry, gaussian_attributes, prune)
         return ODGOutput(init_means=means, layers=layers, num_dynamic=self.num_dynamic)
 
     def forward(self, images: torch.Tensor, ego2img: torch.Tensor, ego_warp: torch.Tensor,
-                time_delta: torch.Tensor) -> ODGOutput:
+                time_delta: torch.Tensor, **decode_options) -> ODGOutput:
         """images [B, T, N, 3, H, W]: the backbone runs over all frames (training / offline)."""
         B, T = images.shape[:2]
         feats = self.extract_features(images.flatten(0, 1))            # batch = B*T
         frame_feats = [[f.unflatten(0, (B, T))[:, t] for f in feats] for t in range(T)]
-        return self.decode(frame_feats, ego2img, ego_warp, time_delta)
+        return self.decode(frame_feats, ego2img, ego_warp, time_delta, **decode_options)
 
     def parameter_groups(self) -> dict[str, int]:
         """Parameter counts per part (backbone, neck, decoder, heads)."""

@@ -17,14 +17,19 @@ class LayerOutput:
     opacities  [B, Q, K]     in (0, 1)
     boxes      [B, D, 10]    (cx, cy, cz, log w, log l, log h, sin yaw, cos yaw, vx, vy) or None
     box_logits [B, D, 10]    box class logits (classes.BOX_CLASSES order) or None
+    scales, rotations, opacities are None when the Phi MLPs were not run (inference).
+    query_index [Q'] indices of the queries this layer ran on when earlier layers pruned
+                some (adaptive inference), else None; num_dynamic: D of this layer.
     """
     means: torch.Tensor
     logits: torch.Tensor
-    scales: torch.Tensor
-    rotations: torch.Tensor
-    opacities: torch.Tensor
+    scales: torch.Tensor | None
+    rotations: torch.Tensor | None
+    opacities: torch.Tensor | None
     boxes: torch.Tensor | None = None
     box_logits: torch.Tensor | None = None
+    query_index: torch.Tensor | None = None
+    num_dynamic: int | None = None
 
 
 @dataclass
