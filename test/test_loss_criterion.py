@@ -145,6 +145,14 @@ def test_missing_boxes_with_dual_queries_is_an_error():
         ODGCriterion(CFG, render=False)(make_output(boxes=False), make_batch())
 
 
+def test_missing_gaussian_attributes_with_render_is_an_error():
+    out = make_output()
+    out.layers[3].scales = None
+    with pytest.raises(ValueError, match="layer 4 has no scales"):
+        ODGCriterion(CFG)(out, make_batch())
+    ODGCriterion(CFG, render=False)(out, make_batch())      # fine without rendering
+
+
 def test_empty_batch_is_finite():
     crit = ODGCriterion(CFG)
     out = make_output()

@@ -183,14 +183,10 @@ def occupancy_target(semantics: torch.Tensor, mask_camera: torch.Tensor,
 
 def gt_point_weights(target: OccupancyTarget, dist_to_pred: torch.Tensor) -> torch.Tensor:
     """OPUS per-GT weights of the GT -> pred term (see module docstring). [M] float."""
-    weights = torch.ones_like(dist_to_pred)
-    weights[(dist_to_pred > EMPTY_DIST_THR) & target.visible] = EMPTY_WEIGHT
-    rare = torch.zeros_like(target.visible)
-    for c in RARE_CLASSES:
-        rare |= target.labels == c
-    rare &= target.visible
-    weights[rare] = weights[rare].clamp(min=RARE_WEIGHT)
-    return weights
+    uncovered = (dist_to_pred > EMPTY_DIST_THR) & target.visible
+    weights = torch.where(uncovered, EMPTY_WEIGHT, 1.0).to(dist_to_pred.dtype)
+    rare = torch.isin(target.labels, target.labels.new_tensor(RARE_CLASSES)) & target.visible
+    return torch.where(rare, weights.clamp(min=RARE_WEIGHT), weights)
 
 
 def distance_weight(points: torch.Tensor, pc_range: Sequence[float]) -> torch.Tensor:

@@ -98,6 +98,9 @@ class ODGCriterion:
                 stats["nonfinite_box_targets"] += box.num_nonfinite_targets
 
             if self.use_render:
+                if layer.scales is None or layer.rotations is None or layer.opacities is None:
+                    raise ValueError(f"layer {l} has no scales/rotations/opacities (Phi MLPs not "
+                                     "run); the rendering loss needs them")
                 G = means.shape[1]
                 ren = render_loss(means, layer.scales.reshape(B, G, 3),
                                   layer.rotations.reshape(B, G, 4),
