@@ -26,8 +26,11 @@ def dynamic_class_miou(result: dict) -> float | None:
 @torch.no_grad()
 def evaluate(model, cfg, infos, occ_root=None, save_pred: str | None = None, device="cpu",
              rayiou: bool = True, limit: int | None = None, progress: bool = True,
-             workers: int = 0) -> dict:
-    dataset = OccDataset(infos, cfg, occ_root=occ_root, train=False)
+             workers: int = 0, frames: int | None = None, **decode_options) -> dict:
+    """frames: history length fed to the model (<= cfg.num_frames; the model repeats the
+    oldest frame for the rest). decode_options go to ``ODG.decode`` (e.g. prune=...)."""
+    data_cfg = cfg if frames is None else cfg.replace(num_frames=frames)
+    dataset = OccDataset(infos, data_cfg, occ_root=occ_root, train=False)
     indices = list(range(len(dataset)))[:limit]
     subset = torch.utils.data.Subset(dataset, indices)
     loader = torch.utils.data.DataLoader(subset, batch_size=1, collate_fn=collate,
@@ -39,7 +42,8 @@ def evaluate(model, cfg, infos, occ_root=None, save_pred: str | None = None, dev
     model.eval()
     for index, batch in zip(indices, tqdm(loader, desc="eval", disable=not progress)):
         batch = to_device(batch, device)
-        output = model(batch["images"], batch["ego2img"], batch["ego_warp"], batch["time_delta"])
+        output = model(batch["images"], batch["ego2img"], batch["ego_warp"], batch["time_delta"],
+                       **decode_options)
         grid = occupancy_grid(output, cfg)[0][0].cpu().numpy()
         if save_pred:
             np.savez_compressed(Path(save_pred) / f"{batch['token'][0]}.npz", semantics=grid)
