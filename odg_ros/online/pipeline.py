@@ -100,7 +100,8 @@ class OnlinePipeline:
                                                                        os.cpu_count() or 1)))
 
     # ----------------------------------------------------------------- inputs (callbacks)
-    def _bad(self, error: BadInput) -> BadInput:
+    def count_bad_input(self, error: BadInput) -> BadInput:
+        """Count a bad input found outside the pipeline (e.g. while converting a message)."""
         with self._count_lock:
             self.bad_inputs[error.kind] += 1
         return error
@@ -110,9 +111,9 @@ class OnlinePipeline:
         """Feed one camera message (not decoded yet). ``now``: node clock (s), 0 if not
         running yet. Returns True if it completed a set (now waiting for the worker)."""
         if camera not in self.camera_names:
-            raise self._bad(BadInput("unknown_camera", f"camera {camera!r} is not configured"))
+            raise self.count_bad_input(BadInput("unknown_camera", f"camera {camera!r} is not configured"))
         if not np.isfinite(stamp) or (now > 0 and stamp > now + self.settings.max_future):
-            raise self._bad(BadInput("future_stamp", f"{camera} stamp {stamp:.3f} is "
+            raise self.count_bad_input(BadInput("future_stamp", f"{camera} stamp {stamp:.3f} is "
                                      f"{stamp - now:.3f} s ahead of the clock ({now:.3f})"))
         with self._input_lock:
             complete = self.sync.add(camera, stamp, (image, header))
@@ -123,11 +124,11 @@ class OnlinePipeline:
     def on_camera_info(self, camera: str, K, height: int, width: int, frame_id: str) -> None:
         """Store a camera's intrinsics and image size (the last valid CameraInfo wins)."""
         if camera not in self.camera_names:
-            raise self._bad(BadInput("unknown_camera", f"camera {camera!r} is not configured"))
+            raise self.count_bad_input(BadInput("unknown_camera", f"camera {camera!r} is not configured"))
         try:
             calibration = check_intrinsics(K, height, width, frame_id)
         except BadInput as error:
-            raise self._bad(error) from None
+            raise self.count_bad_input(error) from None
         with self._input_lock:
             self._camera_info[camera] = calibration
 
@@ -137,7 +138,7 @@ class OnlinePipeline:
             with self._pose_lock:
                 self.poses.add(stamp, T_global_from_ego)
         except BadInput as error:
-            raise self._bad(error) from None
+            raise self.count_bad_input(error) from None
 
     def _buffer_lookup(self, stamp: float) -> np.ndarray:
         with self._pose_lock:
@@ -152,7 +153,7 @@ class OnlinePipeline:
         try:
             return self._process(camera_set)
         except BadInput as error:
-            raise self._bad(error) from None
+            raise self.count_bad_input(error) from None
 
     def _process(self, camera_set: CameraSet) -> OnlineResult:
         names = self.camera_names

@@ -1,0 +1,438 @@
+"""odg_node: the ODG occupancy network as a ROS 2 node (wiring only).
+
+Everything that decides anything lives in the ROS-free pipeline (odg_ros/online/); this
+module declares the parameters, converts messages to and from plain values, runs inference
+in a worker thread fed by the latest-wins mailbox, and publishes.
+
+Inputs (all remappable): one image topic per camera (CompressedImage or Image, best-effort
+sensor QoS), one CameraInfo per camera, the ego pose from /tf (+ /tf_static) or an Odometry
+topic, camera extrinsics from a rig file or TF. TF is read straight from tf2_msgs/TFMessage
+into a small transform buffer (online/transforms.py), so the node does not need tf2_ros.
+
+Outputs (reliable, keep-last 1): ~/occupancy (odg_ros_msgs/SemanticVoxelGrid),
+~/occupancy/cloud (PointCloud2: occupied voxel centres, x y z float32 + label uint8),
+~/occupancy/bev (OccupancyGrid: 100 where a column holds anything but free or
+driveable_surface between bev_min_z and bev_max_z), ~/objects (odg_ros_msgs/
+DynamicObjectArray), ~/objects/markers (MarkerArray), ~/fps (Float32), /diagnostics.
+Every output is in ``output_frame`` (the ego at the reference camera's stamp), stamped with
+that camera's header stamp.
+
+Bad input (corrupt image, wrong size or encoding, missing CameraInfo, NaN / non-orthonormal
+pose, pose miss, future stamp) never stops the node: a warning throttled per kind, a
+diagnostics counter, and the set is skipped.
+
+    odg_node --ros-args --params-file config/odg.yaml
+"""
+from __future__ import annotations
+
+import array
+import threading
+import time
+import traceback
+
+import numpy as np
+import rclpy
+import torch
+from builtin_interfaces.msg import Time as TimeMsg
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from geometry_msgs.msg import Point, Pose, Quaternion, Vector3
+from nav_msgs.msg import OccupancyGrid, Odometry
+from rcl_interfaces.msg import ParameterDescriptor, ParameterType
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy,
+                       qos_profile_sensor_data)
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image, PointCloud2, PointField
+from std_msgs.msg import ColorRGBA, Float32, Header
+from visualization_msgs.msg import Marker, MarkerArray
+
+from odg_ros_msgs.msg import DynamicObject, DynamicObjectArray, SemanticVoxelGrid
+
+from ..data.batch import CAMERA_NAMES
+from ..network.checkpoint import load_model
+from ..online import packing
+from ..online.diagnostics import PipelineStats
+from ..online.errors import BadInput
+from ..online.images import EncodedImage
+from ..online.pipeline import OnlinePipeline, PipelineSettings
+from ..online.poses import pose_from_xyz_xyzw
+from ..online.predictor import OnlinePredictor
+from ..online.rig import load_rig
+from ..online.transforms import TransformBuffer
+from ..resources import resource_path
+
+NODE_NAME = "odg_node"
+
+# name -> (default, description). The type is the default's type.
+PARAMETERS = {
+    "camera_names": (list(CAMERA_NAMES), "Camera names, in the model's camera order; "
+                     "{camera} in the topic patterns is replaced by each."),
+    "image_transport": ("compressed", "compressed: sensor_msgs/CompressedImage (jpeg/png); "
+                        "raw: sensor_msgs/Image (rgb8, bgr8, rgba8, bgra8, mono8)."),
+    "image_topic": ("/{camera}/image_rect_compressed", "Image topic pattern."),
+    "camera_info_topic": ("/{camera}/camera_info", "CameraInfo topic pattern (K and size)."),
+    "pose_source": ("tf", "tf: ego pose global_frame -> base_frame from /tf; odometry: "
+                    "nav_msgs/Odometry on odometry_topic."),
+    "odometry_topic": ("/odom", "Odometry topic (pose_source: odometry)."),
+    "global_frame": ("map", "Fixed frame of the ego pose."),
+    "base_frame": ("base_link", "Ego frame (the Occ3D grid is centred on it)."),
+    "extrinsics_source": ("rig", "rig: sensor2ego from rig_file; tf: base_frame -> each "
+                          "CameraInfo frame_id from /tf_static or /tf."),
+    "rig_file": ("", "Camera rig YAML (\"\" = the shipped config/rig_nuscenes.yaml)."),
+    "slop": (0.05, "Max stamp spread of one camera set, s."),
+    "history_frames": (0, "Frames the temporal decoder looks at (current included); "
+                       "0 = the model's num_frames."),
+    "history_max_gap": (1.0, "A longer gap between sets restarts the history, s."),
+    "max_pose_extrapolation": (0.05, "How far beyond the buffered poses a pose may be "
+                               "extrapolated, s; farther is a pose miss."),
+    "max_future_stamp": (0.5, "Images stamped this far ahead of the node clock are "
+                         "rejected, s."),
+    "preset": ("odg_cpu", "Model preset when no checkpoint is given (odg_t, odg_l, odg_cpu)."),
+    "checkpoint": ("", "Checkpoint path; \"\" = random weights (meaningless output)."),
+    "device": ("auto", "auto (cuda when available, else cpu), cpu, cuda or cuda:N."),
+    "score_threshold": (0.5, "Occupancy point score threshold."),
+    "box_score_threshold": (0.3, "Object score threshold."),
+    "output_frame": ("", "frame_id of the outputs; \"\" = base_frame."),
+    "bev_min_z": (-1.0, "Lower end of the BEV obstacle height band, m (grid frame)."),
+    "bev_max_z": (2.0, "Upper end of the BEV obstacle height band, m (grid frame)."),
+    "diagnostics_period": (1.0, "Period of /diagnostics and ~/fps, s."),
+    "warn_throttle": (5.0, "At most one warning per bad-input kind per this many s."),
+}
+CHOICES = {"image_transport": ("compressed", "raw"), "pose_source": ("tf", "odometry"),
+           "extrinsics_source": ("rig", "tf")}
+
+_PARAMETER_TYPES = {bool: ParameterType.PARAMETER_BOOL, int: ParameterType.PARAMETER_INTEGER,
+                    float: ParameterType.PARAMETER_DOUBLE, str: ParameterType.PARAMETER_STRING,
+                    list: ParameterType.PARAMETER_STRING_ARRAY}
+
+OUTPUT_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
+                        reliability=ReliabilityPolicy.RELIABLE,
+                        durability=DurabilityPolicy.VOLATILE)
+TF_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
+                    reliability=ReliabilityPolicy.RELIABLE)
+TF_STATIC_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
+                           reliability=ReliabilityPolicy.RELIABLE,
+                           durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+
+def stamp_seconds(stamp) -> float:
+    return stamp.sec + stamp.nanosec * 1e-9
+
+
+def _u8(data: bytes) -> array.array:
+    return array.array("B", data)
+
+
+def _pose_msg(position, orientation_wxyz=(1.0, 0.0, 0.0, 0.0)) -> Pose:
+    w, x, y, z = orientation_wxyz
+    return Pose(position=Point(x=float(position[0]), y=float(position[1]),
+                               z=float(position[2])),
+                orientation=Quaternion(x=float(x), y=float(y), z=float(z), w=float(w)))
+
+
+def resolve_device(name: str) -> str:
+    if name == "auto":
+        return "cuda" if torch.cuda.is_available() else "cpu"
+    if name.startswith("cuda") and not torch.cuda.is_available():
+        raise ValueError(f"device {name!r} requested but CUDA is not available")
+    if name != "cpu" and not name.startswith("cuda"):
+        raise ValueError(f"device must be auto, cpu, cuda or cuda:N, not {name!r}")
+    return name
+
+
+class OdgNode(Node):
+    def __init__(self, **node_kwargs):
+        super().__init__(NODE_NAME, **node_kwargs)
+        for name, (default, description) in PARAMETERS.items():
+            descriptor = ParameterDescriptor(description=description,
+                                             type=_PARAMETER_TYPES[type(default)])
+            if name in CHOICES:
+                descriptor.additional_constraints = "one of: " + ", ".join(CHOICES[name])
+            self.declare_parameter(name, default, descriptor)
+        p = {name: self.get_parameter(name).value for name in PARAMETERS}
+        for name, allowed in CHOICES.items():
+            if p[name] not in allowed:
+                raise ValueError(f"parameter {name}={p[name]!r}: expected one of {allowed}")
+        self.params = p
+        self.base_frame = p["base_frame"]
+        self.output_frame = p["output_frame"] or p["base_frame"]
+        cameras = list(p["camera_names"])
+
+        # --- model ---------------------------------------------------------------------
+        device = resolve_device(p["device"])
+        thresholds = dict(score_threshold=float(p["score_threshold"]),
+                          box_score_threshold=float(p["box_score_threshold"]))
+        if p["checkpoint"]:
+            model, cfg = load_model(p["checkpoint"], device=device, **thresholds)
+            self.get_logger().info(f"loaded {p['checkpoint']} ({cfg.name}) on {device}")
+        else:
+            model, cfg = load_model(None, p["preset"], device, **thresholds)
+            self.get_logger().warning(
+                f"NO CHECKPOINT GIVEN: preset {p['preset']} with RANDOM WEIGHTS on {device}. "
+                "The published occupancy and objects are meaningless; set the 'checkpoint' "
+                "parameter.")
+        self.cfg = cfg
+        history = int(p["history_frames"]) or None
+        predictor = OnlinePredictor(model, cfg, device, max_gap=float(p["history_max_gap"]),
+                                    num_frames=history)
+
+        # --- poses and extrinsics ---------------------------------------------------------
+        self.tf = TransformBuffer(max_extrapolation=float(p["max_pose_extrapolation"]))
+        pose_lookup = None
+        if p["pose_source"] == "tf":
+            global_frame, base = p["global_frame"], p["base_frame"]
+            pose_lookup = lambda t: self.tf.lookup(global_frame, base, t, "pose_miss")  # noqa
+        if p["extrinsics_source"] == "rig":
+            rig = load_rig(p["rig_file"] or resource_path("config/rig_nuscenes.yaml"))
+            missing = [c for c in cameras if c not in rig.cameras]
+            if missing:
+                raise ValueError(f"cameras {missing} are not in the rig file "
+                                 f"(it has {list(rig.cameras)})")
+            extrinsics = lambda camera, frame_id, t: rig.cameras[camera].sensor2ego  # noqa
+        else:
+            base = p["base_frame"]
+            extrinsics = lambda camera, frame_id, t: self.tf.lookup(  # noqa
+                base, frame_id, t, "missing_extrinsics")
+
+        self.stats = PipelineStats()
+        self.internal_errors = 0
+        self.pipeline = OnlinePipeline(
+            predictor,
+            PipelineSettings(cameras, slop=float(p["slop"]),
+                             max_future=float(p["max_future_stamp"]),
+                             pose_max_extrapolation=float(p["max_pose_extrapolation"])),
+            extrinsics, pose_lookup, self.stats)
+        self._bad_input_loggers = {}
+
+        # --- publishers -----------------------------------------------------------------
+        self.pub_grid = self.create_publisher(SemanticVoxelGrid, "~/occupancy", OUTPUT_QOS)
+        self.pub_cloud = self.create_publisher(PointCloud2, "~/occupancy/cloud", OUTPUT_QOS)
+        self.pub_bev = self.create_publisher(OccupancyGrid, "~/occupancy/bev", OUTPUT_QOS)
+        self.pub_objects = self.create_publisher(DynamicObjectArray, "~/objects", OUTPUT_QOS)
+        self.pub_markers = self.create_publisher(MarkerArray, "~/objects/markers", OUTPUT_QOS)
+        self.pub_fps = self.create_publisher(Float32, "~/fps", OUTPUT_QOS)
+        self.pub_diagnostics = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+
+        # --- subscriptions --------------------------------------------------------------
+        image_type = CompressedImage if p["image_transport"] == "compressed" else Image
+        self._inputs = []
+        for camera in cameras:
+            image_topic = p["image_topic"].format(camera=camera)
+            info_topic = p["camera_info_topic"].format(camera=camera)
+            self._inputs.append(self.create_subscription(
+                image_type, image_topic, lambda m, c=camera: self.on_image(c, m),
+                qos_profile_sensor_data))
+            self._inputs.append(self.create_subscription(
+                CameraInfo, info_topic, lambda m, c=camera: self.on_camera_info(c, m),
+                qos_profile_sensor_data))
+        if p["pose_source"] == "odometry":
+            self._inputs.append(self.create_subscription(
+                Odometry, p["odometry_topic"], self.on_odometry,
+                QoSProfile(depth=100, reliability=ReliabilityPolicy.BEST_EFFORT)))
+        if p["pose_source"] == "tf" or p["extrinsics_source"] == "tf":
+            from tf2_msgs.msg import TFMessage    # on ROS installs and in the venv shim
+            self._inputs.append(self.create_subscription(
+                TFMessage, "/tf", lambda m: self.on_tf(m, False), TF_QOS))
+            self._inputs.append(self.create_subscription(
+                TFMessage, "/tf_static", lambda m: self.on_tf(m, True), TF_STATIC_QOS))
+
+        self.create_timer(float(p["diagnostics_period"]), self.publish_diagnostics)
+        self._stop = threading.Event()
+        self._worker = threading.Thread(target=self._work, name="odg_inference", daemon=True)
+        self._worker.start()
+        self.get_logger().info(
+            f"{cfg.name}: {len(cameras)} cameras ({p['image_transport']}), pose from "
+            f"{p['pose_source']}, extrinsics from {p['extrinsics_source']}, history "
+            f"{predictor.history.capacity} frames, outputs in {self.output_frame}")
+
+    # ------------------------------------------------------------------ bad input reporting
+    def warn_bad_input(self, error: BadInput) -> None:
+        logger = self._bad_input_loggers.get(error.kind)
+        if logger is None:       # one logger per kind: each kind is throttled on its own
+            logger = self._bad_input_loggers[error.kind] = \
+                self.get_logger().get_child(error.kind)
+        logger.warning(f"skipped: {error.message}",
+                       throttle_duration_sec=float(self.params["warn_throttle"]))
+
+    def now_seconds(self) -> float:
+        return self.get_clock().now().nanoseconds * 1e-9
+
+    # ------------------------------------------------------------------------- callbacks
+    def on_image(self, camera: str, msg) -> None:
+        if isinstance(msg, CompressedImage):
+            image = EncodedImage(True, msg.format, bytes(msg.data))
+        else:
+            image = EncodedImage(False, msg.encoding, bytes(msg.data), msg.height, msg.width,
+                                 msg.step)
+        try:
+            self.pipeline.on_image(camera, stamp_seconds(msg.header.stamp), image,
+                                   self.now_seconds(), header=msg.header.stamp)
+        except BadInput as error:
+            self.warn_bad_input(error)
+
+    def on_camera_info(self, camera: str, msg: CameraInfo) -> None:
+        try:
+            self.pipeline.on_camera_info(camera, np.asarray(msg.k), msg.height, msg.width,
+                                         msg.header.frame_id)
+        except BadInput as error:
+            self.warn_bad_input(error)
+
+    def on_odometry(self, msg: Odometry) -> None:
+        position, orientation = msg.pose.pose.position, msg.pose.pose.orientation
+        try:
+            T = pose_from_xyz_xyzw((position.x, position.y, position.z),
+                                   (orientation.x, orientation.y, orientation.z, orientation.w))
+        except BadInput as error:
+            self.warn_bad_input(self.pipeline.count_bad_input(error))
+            return
+        try:
+            self.pipeline.on_pose(stamp_seconds(msg.header.stamp), T)
+        except BadInput as error:     # counted by the pipeline
+            self.warn_bad_input(error)
+
+    def on_tf(self, msg, static: bool) -> None:
+        for transform in msg.transforms:
+            t, r = transform.transform.translation, transform.transform.rotation
+            try:
+                T = pose_from_xyz_xyzw((t.x, t.y, t.z), (r.x, r.y, r.z, r.w))
+                self.tf.add(transform.header.frame_id, transform.child_frame_id,
+                            stamp_seconds(transform.header.stamp), T, static)
+            except BadInput as error:
+                self.warn_bad_input(self.pipeline.count_bad_input(error))
+
+    # ------------------------------------------------------------------------ inference
+    def _work(self) -> None:
+        while not self._stop.is_set():
+            camera_set = self.pipeline.next_set(timeout=0.2)
+            if camera_set is None:
+                continue
+            try:
+                result = self.pipeline.process(camera_set)
+                self.publish(result)
+            except BadInput as error:
+                self.warn_bad_input(error)
+            except Exception:     # never let the worker die silently: log, count, go on
+                self.internal_errors += 1
+                self.get_logger().error(f"inference failed:\n{traceback.format_exc()}",
+                                        throttle_duration_sec=5.0)
+
+    def publish(self, result) -> None:
+        start = time.perf_counter()
+        header = Header(stamp=result.header if isinstance(result.header, TimeMsg)
+                        else TimeMsg(), frame_id=self.output_frame)
+        cfg = self.cfg
+        fields = packing.voxel_grid_fields(result.grid, result.confidence, cfg.pc_range,
+                                           cfg.voxel_size)
+        grid = SemanticVoxelGrid(header=header, origin=_pose_msg(fields["origin_position"]),
+                                 resolution=fields["resolution"], size_x=fields["size_x"],
+                                 size_y=fields["size_y"], size_z=fields["size_z"],
+                                 memory_order=fields["memory_order"],
+                                 free_label=fields["free_label"],
+                                 unknown_label=fields["unknown_label"],
+                                 class_names=fields["class_names"])
+        grid.labels = _u8(fields["labels"])
+        grid.confidence = _u8(fields["confidence"])
+        self.pub_grid.publish(grid)
+
+        if self.pub_cloud.get_subscription_count():
+            c = packing.cloud_fields(result.grid, cfg.pc_range, cfg.voxel_size)
+            cloud = PointCloud2(header=header, height=c["height"], width=c["width"],
+                                fields=[PointField(name=n, offset=o, datatype=d, count=k)
+                                        for n, o, d, k in c["fields"]],
+                                is_bigendian=c["is_bigendian"], point_step=c["point_step"],
+                                row_step=c["row_step"], is_dense=c["is_dense"])
+            cloud.data = _u8(c["data"])
+            self.pub_cloud.publish(cloud)
+
+        if self.pub_bev.get_subscription_count():
+            b = packing.bev_fields(result.grid, cfg.pc_range, cfg.voxel_size,
+                                   float(self.params["bev_min_z"]),
+                                   float(self.params["bev_max_z"]))
+            bev = OccupancyGrid(header=header)
+            bev.info.map_load_time = header.stamp
+            bev.info.resolution = b["resolution"]
+            bev.info.width, bev.info.height = b["width"], b["height"]
+            bev.info.origin = _pose_msg(b["origin_position"])
+            bev.data = array.array("b", b["data"])
+            self.pub_bev.publish(bev)
+
+        objects = DynamicObjectArray(header=header)
+        for box in result.boxes:
+            o = packing.object_fields(box)
+            obj = DynamicObject(class_id=o["class_id"], class_name=o["class_name"],
+                                score=o["score"], pose=_pose_msg(o["position"],
+                                                                 o["orientation"]),
+                                size=Vector3(x=o["size"][0], y=o["size"][1], z=o["size"][2]))
+            obj.velocity.linear = Vector3(x=o["velocity"][0], y=o["velocity"][1], z=0.0)
+            objects.objects.append(obj)
+        self.pub_objects.publish(objects)
+
+        if self.pub_markers.get_subscription_count():
+            markers = MarkerArray(markers=[Marker(header=header, action=Marker.DELETEALL)])
+            for i, obj in enumerate(objects.objects):
+                r, g, b = packing.box_color(obj.class_id)
+                markers.markers.append(Marker(
+                    header=header, ns="objects", id=i, type=Marker.CUBE, action=Marker.ADD,
+                    pose=obj.pose, scale=Vector3(x=obj.size.x, y=obj.size.y, z=obj.size.z),
+                    color=ColorRGBA(r=r, g=g, b=b, a=0.5)))
+                markers.markers.append(Marker(
+                    header=header, ns="labels", id=i, type=Marker.TEXT_VIEW_FACING,
+                    action=Marker.ADD, pose=_pose_msg((obj.pose.position.x,
+                                                       obj.pose.position.y,
+                                                       obj.pose.position.z + obj.size.z)),
+                    scale=Vector3(z=0.8), color=ColorRGBA(r=1.0, g=1.0, b=1.0, a=1.0),
+                    text=f"{obj.class_name} {obj.score:.2f}"))
+            self.pub_markers.publish(markers)
+
+        timings = dict(result.timings)
+        timings["publish"] = time.perf_counter() - start
+        self.stats.record_output(result.stamp, self.now_seconds(), timings)
+
+    # ----------------------------------------------------------------------- diagnostics
+    def counters(self) -> dict[str, int]:
+        counters = self.pipeline.counters()
+        counters["internal_errors"] = self.internal_errors
+        return counters
+
+    def publish_diagnostics(self) -> None:
+        status = self.stats.status(self.counters())
+        if self.internal_errors:
+            status["level"] = max(status["level"], 2)      # DiagnosticStatus.ERROR
+            status["message"] += f"; {self.internal_errors} internal errors (see the log)"
+        message = DiagnosticStatus(
+            level=bytes([status["level"]]), name=f"{self.get_fully_qualified_name()}: pipeline",
+            message=status["message"], hardware_id=str(self.pipeline.predictor.device),
+            values=[KeyValue(key=k, value=v) for k, v in status["values"]])
+        self.pub_diagnostics.publish(DiagnosticArray(
+            header=Header(stamp=self.get_clock().now().to_msg()), status=[message]))
+        self.pub_fps.publish(Float32(data=float(self.stats.rate_hz())))
+
+    def destroy_node(self):
+        self._stop.set()
+        self.pipeline.close()
+        if self._worker.is_alive():
+            self._worker.join(timeout=5.0)
+        return super().destroy_node()
+
+
+def main(args=None) -> int:
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = OdgNode()
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except (ValueError, FileNotFoundError, OSError) as error:
+        # configuration errors (bad parameter, missing checkpoint / rig file): no traceback
+        rclpy.logging.get_logger(NODE_NAME).fatal(f"cannot start: {error}")
+        return 1
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
