@@ -68,13 +68,18 @@ TF_STATIC_QOS = TopicQos(reliable=True, transient_local=True, depth=1)
 STATE_QOS = TopicQos(reliable=True, depth=50)
 
 
-def topic_qos(topic: str) -> TopicQos:
-    """QoS of a layout topic (anything else, e.g. /clock: reliable, volatile)."""
+SENSOR_TYPES = (IMAGE_TYPE, CAMERA_INFO_TYPE, POINT_CLOUD_TYPE, "sensor_msgs/msg/Image")
+
+
+def topic_qos(topic: str, msgtype: str | None = None) -> TopicQos:
+    """QoS of a topic: /tf_static transient local, /tf reliable, camera images, camera infos
+    and point clouds (by layout name or by message type) best effort, anything else reliable."""
     if topic == TF_STATIC_TOPIC:
         return TF_STATIC_QOS
     if topic == TF_TOPIC:
         return TF_QOS
-    if topic == LIDAR_TOPIC or any(topic in (image_topic(c), camera_info_topic(c))
-                                   for c in CAMERA_NAMES):
+    layout_sensor_topics = {LIDAR_TOPIC} | {image_topic(c) for c in CAMERA_NAMES} \
+        | {camera_info_topic(c) for c in CAMERA_NAMES}
+    if topic in layout_sensor_topics or msgtype in SENSOR_TYPES:
         return SENSOR_QOS
     return STATE_QOS

@@ -1,0 +1,172 @@
+"""Publish a rosbag2 bag with rclpy, for machines without rosbag2 (``odg replay``).
+
+Messages go out as the raw CDR bytes stored in the bag (``Publisher.publish`` accepts
+serialized bytes), with the message types named in the bag, so nothing is deserialized.
+Inter-message timing follows the bag's log times divided by ``rate``. QoS per topic is that of
+``bag_layout.topic_qos``: ``/tf_static`` reliable + transient local (late joiners still get the
+sensor frames), camera images, camera infos and point clouds best effort (sensor data), the rest
+reliable. With ``clock``, ``/clock`` carries the bag time of every message just before it.
+"""
+from __future__ import annotations
+
+import importlib
+import signal
+import time
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from tqdm import tqdm
+
+from odg_ros.ros import bag_layout as layout
+from odg_ros.ros.bag import bag_topics, iter_bag
+
+
+def message_class(msgtype: str):
+    """'sensor_msgs/msg/CompressedImage' -> the rclpy message class (clear error if missing)."""
+    package, kind, name = msgtype.split("/")
+    try:
+        return getattr(importlib.import_module(f"{package}.{kind}"), name)
+    except (ImportError, AttributeError) as error:
+        raise LookupError(f"message type {msgtype} is not available to rclpy ({error})") from error
+
+
+def rclpy_qos(qos: layout.TopicQos):
+    from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+    return QoSProfile(
+        history=HistoryPolicy.KEEP_LAST, depth=qos.depth,
+        reliability=ReliabilityPolicy.RELIABLE if qos.reliable else ReliabilityPolicy.BEST_EFFORT,
+        durability=(DurabilityPolicy.TRANSIENT_LOCAL if qos.transient_local
+                    else DurabilityPolicy.VOLATILE))
+
+
+@dataclass
+class ReplayStats:
+    published: Counter = field(default_factory=Counter)
+    skipped_topics: dict[str, str] = field(default_factory=dict)  # topic -> why
+    loops: int = 0
+    interrupted: bool = False
+    wall_s: float = 0.0
+
+    def __str__(self) -> str:
+        total = sum(self.published.values())
+        text = f"published {total} messages on {len(self.published)} topics in {self.wall_s:.1f} s"
+        if self.loops > 1:
+            text += f" ({self.loops} loops)"
+        for topic, why in self.skipped_topics.items():
+            text += f"\n  skipped {topic}: {why}"
+        return text + (" -- interrupted" if self.interrupted else "")
+
+
+class _Interrupted(Exception):
+    pass
+
+
+def _raise_interrupted(signum, frame):
+    raise _Interrupted()
+
+
+def replay(bag, *, rate: float = 1.0, clock: bool = False, loop: bool = False,
+           wait_for_subscribers_s: float = 0.0, progress: bool = True,
+           node_name: str = "odg_replay") -> ReplayStats:
+    """Publish every message of ``bag`` in log-time order; returns what was published.
+
+    wait_for_subscribers_s: before the first message, wait up to this long until every topic
+    has at least one subscriber (nothing published to an unmatched volatile topic is kept).
+    Ctrl-C or SIGTERM stop it cleanly (stats.interrupted). rclpy must not be initialised in
+    the default context by the caller; the DDS environment is the caller's business
+    (``odg replay`` applies odg_ros.ros.dds.use_localhost_dds first).
+    """
+    import rclpy
+    from rclpy.duration import Duration
+    from rclpy.signals import SignalHandlerOptions
+
+    if not (rate > 0 and rate < float("inf")):
+        raise ValueError(f"rate must be a positive number, got {rate}")
+    bag = Path(bag)
+    topics = bag_topics(bag)
+    if not topics:
+        raise ValueError(f"{bag}: the bag has no topics")
+    stats = ReplayStats()
+
+    # Our own SIGINT/SIGTERM handling: rclpy's would shut the context down under our feet.
+    previous = {sig: signal.signal(sig, _raise_interrupted) for sig in (signal.SIGINT,
+                                                                        signal.SIGTERM)}
+    context = rclpy.Context()
+    rclpy.init(context=context, signal_handler_options=SignalHandlerOptions.NO)
+    node = None
+    start = time.monotonic()
+    try:
+        node = rclpy.create_node(node_name, context=context)
+        publishers = {}
+        for name, info in topics.items():
+            try:
+                cls = message_class(info.msgtype)
+            except LookupError as error:
+                stats.skipped_topics[name] = str(error)
+                continue
+            qos = layout.topic_qos(name, info.msgtype)
+            if qos.transient_local:  # late joiners get every latched message of the bag
+                qos = layout.TopicQos(True, True, depth=max(1, min(info.count, 100)))
+            publishers[name] = node.create_publisher(cls, name, rclpy_qos(qos))
+        clock_pub = None
+        if clock:
+            from rosgraph_msgs.msg import Clock
+            clock_pub = node.create_publisher(Clock, layout.CLOCK_TOPIC, 10)
+        if not publishers:
+            raise ValueError(f"{bag}: no topic has a message type rclpy knows")
+
+        if wait_for_subscribers_s > 0:
+            deadline = time.monotonic() + wait_for_subscribers_s
+            while time.monotonic() < deadline and any(
+                    p.get_subscription_count() == 0 for p in publishers.values()):
+                time.sleep(0.02)
+            lonely = [t for t, p in publishers.items() if p.get_subscription_count() == 0]
+            if lonely:
+                node.get_logger().warning(
+                    f"no subscriber after {wait_for_subscribers_s:.1f} s on: {', '.join(lonely)}")
+
+        total = sum(topics[t].count for t in publishers)
+        while True:
+            stats.loops += 1
+            bar = tqdm(total=total, desc=f"replay {bag.name}", unit="msg", disable=not progress)
+            wall0 = bag0 = None
+            last_clock_ns = None
+            for topic, stamp_ns, _, raw in iter_bag(bag, topics=publishers):
+                if bag0 is None:
+                    wall0, bag0 = time.monotonic(), stamp_ns
+                delay = wall0 + (stamp_ns - bag0) * 1e-9 / rate - time.monotonic()
+                if delay > 0:
+                    time.sleep(delay)
+                if clock_pub is not None and stamp_ns != last_clock_ns:
+                    clock_pub.publish(_clock_message(stamp_ns))
+                    last_clock_ns = stamp_ns
+                publishers[topic].publish(raw)
+                stats.published[topic] += 1
+                bar.update(1)
+            bar.close()
+            if not loop:
+                break
+        # Reliable messages still in flight would be lost with the participant.
+        for name, pub in publishers.items():
+            if layout.topic_qos(name, topics[name].msgtype).reliable:
+                pub.wait_for_all_acked(Duration(seconds=2))
+    except (_Interrupted, KeyboardInterrupt):
+        stats.interrupted = True
+    finally:
+        stats.wall_s = time.monotonic() - start
+        # A second Ctrl-C during clean-up must not leave the participant half destroyed.
+        for sig in previous:
+            signal.signal(sig, signal.SIG_IGN)
+        if node is not None:
+            node.destroy_node()
+        context.try_shutdown()
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+    return stats
+
+
+def _clock_message(stamp_ns: int):
+    from builtin_interfaces.msg import Time
+    from rosgraph_msgs.msg import Clock
+    return Clock(clock=Time(sec=stamp_ns // 1_000_000_000, nanosec=stamp_ns % 1_000_000_000))
