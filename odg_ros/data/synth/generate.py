@@ -1,0 +1,276 @@
+"""Write the synthetic dataset: a nuScenes-format dataroot with Occ3D ground truth.
+
+Layout under ``out``::
+
+    <version>/*.json                      nuScenes v1.0 tables (+ lidarseg.json)
+    samples/CAM_*/*.jpg, sweeps/CAM_*/*.jpg
+    samples/LIDAR_TOP/*.pcd.bin, sweeps/LIDAR_TOP/*.pcd.bin
+    lidarseg/<version>/<lidar token>_lidarseg.bin
+    gts/<scene name>/<sample token>/labels.npz   (semantics, mask_lidar, mask_camera)
+    maps/<token>.png                      placeholder semantic-prior map (1 x 1 px)
+    splits.json                           {"train": [scene names], "val": [...]}
+
+Every byte is a function of the seed (tokens are hashes, zips have fixed dates).
+"""
+from __future__ import annotations
+
+import json
+import os
+import time
+
+import numpy as np
+from PIL import Image
+from tqdm import tqdm
+
+from odg_ros.data.batch import CAMERA_NAMES
+from odg_ros.data.synth import occupancy, rig, sensors, shading
+from odg_ros.data.synth.city import build_world
+from odg_ros.data.synth.tables import Tables, link_chain, quaternion_yaw, save_npz, token, visibility_token
+from odg_ros.data.synth.world import World
+from odg_ros.geometry import invert_transform, matrix_to_quaternion
+
+DEFAULT_IMAGE_HW = (198, 352)
+MASK_RAYS_HW = (66, 118)       # camera rays per camera for mask_camera (~1 ray per voxel at 40 m)
+ANNOTATION_RANGE = 60.0        # annotate things whose centre is this close to the ego (xy, m)
+BASE_TIMESTAMP_US = 1_533_000_000_000_000
+
+
+def split_scenes(names: list[str]) -> dict:
+    """Every fifth scene (at least one when there are two or more) goes to val."""
+    val = [n for i, n in enumerate(names) if i % 5 == 4]
+    if not val and len(names) >= 2:
+        val = [names[-1]]
+    return {"train": [n for n in names if n not in val], "val": val}
+
+
+def _pose_record(tok, timestamp, T):
+    return {"token": tok, "timestamp": int(timestamp),
+            "rotation": [float(v) for v in matrix_to_quaternion(T[:3, :3])],
+            "translation": [float(v) for v in T[:3, 3]]}
+
+
+class _SceneWriter:
+    def __init__(self, out, version, tables: Tables, seed, index, seconds, image_hw):
+        self.out, self.version, self.tables, self.seed = out, version, tables, seed
+        self.index = index
+        self.name = f"scene-{index + 1:04d}"
+        self.keyframes = max(1, int(round(seconds * rig.KEYFRAME_HZ)))
+        duration = (self.keyframes - 1) / rig.KEYFRAME_HZ + 0.2
+        self.world: World = build_world(np.random.SeedSequence([seed, index]), self.name, duration)
+        self.hw = tuple(int(v) for v in image_hw)
+        self.cams = rig.cameras(self.hw)
+        self.T_ego_lidar = rig.lidar_T_ego_from_lidar()
+        self.t0_us = BASE_TIMESTAMP_US + (seed % 1000) * 10 ** 10 + index * 10 ** 9
+        self.logfile = f"synth{seed}-{self.name}"
+        self.scene_token = token(seed, "scene", index)
+        self.log_token = token(seed, "log", index)
+        self.chains = {ch: [] for ch in CAMERA_NAMES + ("LIDAR_TOP",)}
+        self.samples = []
+        self.ann_by_thing = {}
+        self._setup_tables()
+
+    # -- static records ------------------------------------------------------------------------
+    def _setup_tables(self):
+        T = self.tables
+        map_token = token(self.seed, "map", self.index)
+        T.add("log", {"token": self.log_token, "logfile": self.logfile, "vehicle": "synth-car",
+                      "date_captured": "2018-08-01", "location": "synth-city"})
+        T.add("map", {"token": map_token, "log_tokens": [self.log_token], "category": "semantic_prior",
+                      "filename": f"maps/{map_token}.png"})
+        os.makedirs(os.path.join(self.out, "maps"), exist_ok=True)
+        Image.fromarray(np.zeros((1, 1), np.uint8)).save(os.path.join(self.out, "maps", f"{map_token}.png"))
+        self.calib = {}
+        for cam in self.cams:
+            tok = token(self.seed, "calibrated_sensor", self.index, cam.name)
+            T.add("calibrated_sensor", {
+                "token": tok, "sensor_token": token("sensor", cam.name),
+                "translation": [float(v) for v in cam.T_ego_from_cam[:3, 3]],
+                "rotation": [float(v) for v in rig.CAMERA_CALIBRATION[cam.name][1]],
+                "camera_intrinsic": [[float(v) for v in row] for row in cam.intrinsics]})
+            self.calib[cam.name] = tok
+        tok = token(self.seed, "calibrated_sensor", self.index, "LIDAR_TOP")
+        T.add("calibrated_sensor", {"token": tok, "sensor_token": token("sensor", "LIDAR_TOP"),
+                                    "translation": list(rig.LIDAR_CALIBRATION[0]),
+                                    "rotation": list(rig.LIDAR_CALIBRATION[1]), "camera_intrinsic": []})
+        self.calib["LIDAR_TOP"] = tok
+
+    def stamp(self, t):
+        return self.t0_us + int(round(t * 1e6))
+
+    def _sample_data(self, channel, t, key, k, ext, height, width):
+        ts = self.stamp(t)
+        tok = token(self.seed, "sample_data", self.index, channel, ts)
+        folder = "samples" if key else "sweeps"
+        rec = {"token": tok, "sample_token": token(self.seed, "sample", self.index, k),
+               "ego_pose_token": tok, "calibrated_sensor_token": self.calib[channel], "timestamp": ts,
+               "fileformat": ext.split(".")[0], "is_key_frame": bool(key), "height": height, "width": width,
+               "filename": f"{folder}/{channel}/{self.logfile}__{channel}__{ts}.{ext}", "prev": "", "next": ""}
+        self.tables.add("sample_data", rec)
+        self.tables.add("ego_pose", _pose_record(tok, ts, self.world.ego_pose(t)))
+        self.chains[channel].append(rec)
+        return rec
+
+    # -- sensors -------------------------------------------------------------------------------------
+    def camera_set(self, m, k, key):
+        """Render camera set m (its six images at their own stamps). Returns keyframe data."""
+        base = m / rig.CAMERA_HZ
+        out = []
+        for ci, cam in enumerate(self.cams):
+            t = base + rig.CAMERA_DELAY_S[cam.name]
+            prims = self.world.prims_at(t)
+            T_global_cam = self.world.ego_pose(t) @ cam.T_ego_from_cam
+            hits, dirs = sensors.render_camera(prims, T_global_cam, cam.intrinsics, self.hw)
+            seed = np.random.SeedSequence([self.seed, self.index, m, ci]).generate_state(1)[0]
+            image = shading.shade(self.world, prims, hits, T_global_cam[:3, 3], dirs, self.hw, seed,
+                                  camera_gain=1.0 + 0.04 * np.sin(ci * 2.1 + self.index))
+            rec = self._sample_data(cam.name, t, key, k, "jpg", self.hw[0], self.hw[1])
+            path = os.path.join(self.out, rec["filename"])
+            os.makedirs(os.path.dirname(path), exist_ok=True)
+            Image.fromarray(image).save(path, quality=90)
+            if key:
+                out.append((cam, t, hits, prims))
+        return out
+
+    def lidar_sweep(self, j, k, key):
+        t = (j + 1) / rig.LIDAR_HZ   # stamped at the end of the rotation
+        prims = self.world.prims_at(t)
+        T_global_lidar = self.world.ego_pose(t) @ self.T_ego_lidar
+        hits, dirs_g, dirs_l = sensors.scan_lidar(prims, T_global_lidar)
+        rng = np.random.default_rng(np.random.SeedSequence([self.seed, self.index, 7919, j]))
+        points, seg, inst = sensors.lidar_points(self.world, prims, hits, dirs_g, dirs_l, T_global_lidar[:3, 3], rng)
+        rec = self._sample_data("LIDAR_TOP", t, key, k, "pcd.bin", 0, 0)
+        path = os.path.join(self.out, rec["filename"])
+        os.makedirs(os.path.dirname(path), exist_ok=True)
+        points.tofile(path)
+        return rec, t, prims, points, seg, inst
+
+    # -- keyframe --------------------------------------------------------------------------------
+    def keyframe(self, k, cam_data, lidar):
+        lidar_rec, t, prims, points, seg, inst = lidar
+        sample_token = token(self.seed, "sample", self.index, k)
+        ts = self.stamp(t)
+        self.samples.append({"token": sample_token, "timestamp": ts, "prev": "", "next": "",
+                             "scene_token": self.scene_token})
+        # lidarseg labels
+        rel = f"lidarseg/{self.version}/{lidar_rec['token']}_lidarseg.bin"
+        os.makedirs(os.path.join(self.out, os.path.dirname(rel)), exist_ok=True)
+        seg.astype(np.uint8).tofile(os.path.join(self.out, rel))
+        self.tables.add("lidarseg", {"token": lidar_rec["token"], "sample_data_token": lidar_rec["token"],
+                                     "filename": rel})
+        # Occ3D ground truth
+        T_global_ego = self.world.ego_pose(t)
+        sem = occupancy.voxelize(self.world, prims, T_global_ego)
+        occupied = sem != occupancy.FREE_LABEL
+        dist = np.linalg.norm(points[:, :3].astype(np.float64), axis=1)
+        dirs = (points[:, :3] / np.maximum(dist, 1e-9)[:, None]) @ self.T_ego_lidar[:3, :3].T
+        mask_lidar = occupancy.traverse(occupied, self.T_ego_lidar[:3, 3], dirs, dist + 0.3)
+        mask_camera = np.zeros_like(mask_lidar)
+        T_ego_global = invert_transform(T_global_ego)
+        for cam, t_cam, _, _ in cam_data:
+            T = T_ego_global @ self.world.ego_pose(t_cam) @ cam.T_ego_from_cam
+            K = cam.intrinsics.copy()
+            K[0] *= MASK_RAYS_HW[1] / self.hw[1]
+            K[1] *= MASK_RAYS_HW[0] / self.hw[0]
+            d = sensors.pixel_rays(K, MASK_RAYS_HW) @ T[:3, :3].T
+            mask_camera |= occupancy.traverse(occupied, T[:3, 3], d)
+        save_npz(os.path.join(self.out, "gts", self.name, sample_token, "labels.npz"), semantics=sem,
+                 mask_lidar=mask_lidar.astype(np.uint8), mask_camera=mask_camera.astype(np.uint8))
+        # annotations
+        centre, yaw, wlh, vel = self.world.boxes(t)
+        n_things = len(centre)
+        lidar_pts = np.bincount(inst[inst >= 0], minlength=n_things)
+        covered, visible = np.zeros(n_things), np.zeros(n_things)
+        for _, _, hits, prims_c in cam_data:
+            obj = hits.prim >= 0
+            win_inst = prims_c.inst[hits.prim[obj]]
+            visible += np.bincount(win_inst[win_inst >= 0], minlength=n_things)
+            pi = prims_c.inst[hits.pair_prim]
+            keep = pi >= 0
+            key = np.unique(hits.pair_ray[keep] * (n_things + 1) + pi[keep])
+            covered += np.bincount(key % (n_things + 1), minlength=n_things + 1)[:n_things]
+        ego_xy = T_global_ego[:2, 3]
+        near = np.flatnonzero(np.linalg.norm(centre[:, :2] - ego_xy, axis=1) < ANNOTATION_RANGE)
+        speeds = np.linalg.norm(vel, axis=1)
+        for i in near:
+            rec = {"token": token(self.seed, "sample_annotation", self.index, k, i), "sample_token": sample_token,
+                   "instance_token": token(self.seed, "instance", self.index, i),
+                   "visibility_token": visibility_token(visible[i] / covered[i] if covered[i] else 0.0),
+                   "attribute_tokens": [self.tables.attribute_token(a) for a in self._attributes(i, speeds[i])],
+                   "translation": [float(v) for v in centre[i]], "size": [float(v) for v in wlh[i]],
+                   "rotation": quaternion_yaw(yaw[i]), "prev": "", "next": "",
+                   "num_lidar_pts": int(lidar_pts[i]), "num_radar_pts": 0}
+            self.ann_by_thing.setdefault(i, []).append(rec)
+            self.tables.add("sample_annotation", rec)
+
+    def _attributes(self, i, speed):
+        thing = self.world.things[i]
+        if thing.kind == "pedestrian":
+            return ["pedestrian.moving" if speed > 0.3 else "pedestrian.standing"]
+        if thing.kind == "cycle":
+            return [thing.shape.attribute or "cycle.with_rider"]
+        if thing.kind == "vehicle":
+            if speed > 0.3:
+                return ["vehicle.moving"]
+            parked = self.world.movers.paths[thing.mover].length < 0.1
+            return ["vehicle.parked" if parked else "vehicle.stopped"]
+        return []
+
+    def finish(self):
+        T = self.tables
+        link_chain(self.samples)
+        for s in self.samples:
+            T.add("sample", s)
+        for recs in self.chains.values():
+            link_chain(recs)
+        for i, recs in sorted(self.ann_by_thing.items()):
+            link_chain(recs)
+            T.add("instance", {"token": token(self.seed, "instance", self.index, i),
+                               "category_token": T.category_token(self.world.things[i].shape.category),
+                               "nbr_annotations": len(recs), "first_annotation_token": recs[0]["token"],
+                               "last_annotation_token": recs[-1]["token"]})
+        T.add("scene", {"token": self.scene_token, "log_token": self.log_token, "nbr_samples": len(self.samples),
+                        "first_sample_token": self.samples[0]["token"], "last_sample_token": self.samples[-1]["token"],
+                        "name": self.name, "description": f"synthetic city, seed {self.seed}"})
+
+
+def generate(out: str, scenes: int = 6, seconds: float = 10.0, seed: int = 0, image_hw=DEFAULT_IMAGE_HW,
+             version: str = "v1.0-trainval", progress: bool = True) -> dict:
+    """Generate the dataset. Returns a summary (counts, seconds, bytes)."""
+    if scenes < 1 or seconds <= 0:
+        raise ValueError("need at least one scene and a positive duration")
+    if os.path.exists(os.path.join(out, version)) and os.listdir(os.path.join(out, version)):
+        raise FileExistsError(f"{os.path.join(out, version)} already exists; choose an empty --out")
+    start = time.time()
+    os.makedirs(out, exist_ok=True)
+    tables = Tables(seed)
+    for name in CAMERA_NAMES:
+        tables.add("sensor", {"token": token("sensor", name), "channel": name, "modality": "camera"})
+    tables.add("sensor", {"token": token("sensor", "LIDAR_TOP"), "channel": "LIDAR_TOP", "modality": "lidar"})
+    keyframes = max(1, int(round(seconds * rig.KEYFRAME_HZ)))
+    bar = tqdm(total=scenes * keyframes, unit="keyframe", desc="odg synth", disable=not progress)
+    names = []
+    for i in range(scenes):
+        w = _SceneWriter(out, version, tables, seed, i, seconds, image_hw)
+        names.append(w.name)
+        cps, lps = rig.CAMERA_SETS_PER_KEYFRAME, rig.SWEEPS_PER_KEYFRAME
+        for k in range(w.keyframes):
+            cam_data = []
+            for m in range(max(0, cps * (k - 1) + 1), cps * k + 1):
+                cam_data = w.camera_set(m, k, key=(m == cps * k)) or cam_data
+            lidar = None
+            for j in range(max(0, lps * (k - 1) + 1), lps * k + 1):
+                lidar = w.lidar_sweep(j, k, key=(j == lps * k))
+            w.keyframe(k, cam_data, lidar)
+            bar.set_postfix_str(w.name)
+            bar.update(1)
+        w.finish()
+    bar.close()
+    tables.write(out, version)
+    split = split_scenes(names)
+    with open(os.path.join(out, "splits.json"), "w") as f:
+        json.dump(split, f, indent=1)
+    size = sum(os.path.getsize(os.path.join(d, f)) for d, _, fs in os.walk(out) for f in fs)
+    images = sum(r["fileformat"] == "jpg" for r in tables.records["sample_data"])
+    return {"scenes": scenes, "keyframes": scenes * keyframes, "images": images,
+            "lidar_sweeps": len(tables.records["sample_data"]) - images,
+            "seconds": time.time() - start, "bytes": size, "split": split}

@@ -1,0 +1,338 @@
+"""Camera images from ray-cast hits: procedural textures per material, Lambert + specular
+shading with the scene's sun and sky light, sky gradient with clouds, aerial perspective,
+and a sensor model (exposure, vignetting, shot/read noise). All deterministic.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from odg_ros.data.synth import materials as M
+from odg_ros.data.synth.primitives import Primitives
+from odg_ros.data.synth.raycast import GROUND, SKY, Hits
+from odg_ros.data.synth.world import WHITE, YELLOW, World
+
+
+# -- deterministic value noise -----------------------------------------------------------------
+
+def _hash(ix, iy, iz, seed):
+    """Integer lattice -> float32 in [0, 1) (splitmix-style mixing, wraps on overflow)."""
+    h = (ix.astype(np.int64) * 73856093) ^ (iy.astype(np.int64) * 19349663) ^ (iz.astype(np.int64) * 83492791)
+    h = h ^ np.int64(seed * 2654435761 % (1 << 31))
+    h = (h ^ (h >> 13)) * 1274126177
+    h = h ^ (h >> 16)
+    return ((h & 0xFFFFFF).astype(np.float32)) / np.float32(1 << 24)
+
+
+def hash_cell(x, y, z, seed):
+    """Random value in [0, 1) per integer cell of (x, y, z) (floats, floored)."""
+    return _hash(np.floor(x), np.floor(y), np.floor(z), seed)
+
+
+def value_noise(x, y, z, seed):
+    """Smooth trilinear value noise in [0, 1) at float coordinates."""
+    fx, fy, fz = np.floor(x), np.floor(y), np.floor(z)
+    tx, ty, tz = x - fx, y - fy, z - fz
+    tx, ty, tz = (tx * tx * (3 - 2 * tx)).astype(np.float32), (ty * ty * (3 - 2 * ty)).astype(np.float32), \
+        (tz * tz * (3 - 2 * tz)).astype(np.float32)
+    ix, iy, iz = fx.astype(np.int64), fy.astype(np.int64), fz.astype(np.int64)
+    out = 0
+    for dx in (0, 1):
+        wx = tx if dx else 1 - tx
+        for dy in (0, 1):
+            wy = ty if dy else 1 - ty
+            for dz in (0, 1):
+                wz = tz if dz else 1 - tz
+                out = out + wx * wy * wz * _hash(ix + dx, iy + dy, iz + dz, seed)
+    return out
+
+
+def value_noise2(x, y, seed):
+    fx, fy = np.floor(x), np.floor(y)
+    tx, ty = x - fx, y - fy
+    tx, ty = (tx * tx * (3 - 2 * tx)).astype(np.float32), (ty * ty * (3 - 2 * ty)).astype(np.float32)
+    ix, iy = fx.astype(np.int64), fy.astype(np.int64)
+    z = np.zeros_like(ix)
+    a = _hash(ix, iy, z, seed) * (1 - tx) + _hash(ix + 1, iy, z, seed) * tx
+    b = _hash(ix, iy + 1, z, seed) * (1 - tx) + _hash(ix + 1, iy + 1, z, seed) * tx
+    return a * (1 - ty) + b * ty
+
+
+def fbm2(x, y, scale, octaves, seed):
+    """Fractal 2D noise in about [-0.5, 0.5], features of size ``scale`` metres and finer."""
+    out, amp, total = 0.0, 1.0, 0.0
+    for o in range(octaves):
+        f = (2.0 ** o) / scale
+        out = out + amp * (value_noise2(x * f, y * f, seed + 17 * o) - 0.5)
+        total += amp
+        amp *= 0.5
+    return out / total
+
+
+def _frac(x):
+    return x - np.floor(x)
+
+
+# -- materials -----------------------------------------------------------------------------------
+
+def _ground_albedo(mat, paint, x, y, seed):
+    """Albedo [n, 3] of ground points (city-frame metres x, y)."""
+    n = len(mat)
+    alb = np.zeros((n, 3), np.float32)
+    coarse = fbm2(x, y, 6.0, 2, seed + 1)
+    fine = value_noise2(x * 9.0, y * 9.0, seed + 2) - 0.5
+
+    def put(m, base, var_coarse, var_fine):
+        sel = mat == m
+        if sel.any():
+            k = 1 + var_coarse * coarse[sel] + var_fine * fine[sel]
+            alb[sel] = np.asarray(base, np.float32)[None] * k[:, None]
+        return sel
+
+    put(M.ASPHALT, (0.3, 0.3, 0.31), 0.35, 0.25)
+    sel = put(M.PARKING, (0.36, 0.35, 0.34), 0.3, 0.25)
+    if sel.any():  # stall lines
+        line = _frac(x[sel] / 2.7) < 0.05
+        alb[np.flatnonzero(sel)[line]] = 0.75
+    sel = put(M.TILES, (0.58, 0.56, 0.53), 0.2, 0.08)
+    if sel.any():
+        xs, ys = x[sel], y[sel]
+        tile = 0.85 + 0.3 * hash_cell(xs / 0.5, ys / 0.5, 0, seed + 3)
+        grout = (_frac(xs / 0.5) < 0.06) | (_frac(ys / 0.5) < 0.06)
+        alb[sel] *= np.where(grout, 0.6, tile)[:, None]
+    sel = put(M.COBBLE, (0.48, 0.34, 0.28), 0.2, 0.1)
+    if sel.any():
+        xs, ys = x[sel], y[sel]
+        row = np.floor(ys / 0.22)
+        xo = xs / 0.3 + 0.5 * (row % 2)
+        stone = 0.75 + 0.5 * hash_cell(xo, row, 1, seed + 4)
+        gap = (_frac(xo) < 0.1) | (_frac(ys / 0.22) < 0.12)
+        alb[sel] *= np.where(gap, 0.45, stone)[:, None]
+    sel = put(M.GRASS, (0.22, 0.38, 0.12), 0.5, 0.45)
+    if sel.any():
+        hue = value_noise2(x[sel] / 3.0, y[sel] / 3.0, seed + 5)[:, None]
+        alb[sel] = alb[sel] * (1 - 0.35 * hue) + 0.35 * hue * np.array([0.38, 0.36, 0.18], np.float32)
+    put(M.DIRT, (0.42, 0.33, 0.22), 0.4, 0.4)
+    sel = put(M.GRAVEL, (0.5, 0.48, 0.44), 0.15, 0.2)
+    if sel.any():
+        alb[sel] *= (0.7 + 0.6 * hash_cell(x[sel] / 0.05, y[sel] / 0.05, 2, seed + 6))[:, None]
+    wear = 0.85 + 0.3 * (value_noise2(x * 3, y * 3, seed + 7))
+    white = paint == WHITE
+    alb[white] = (np.array([0.82, 0.82, 0.8], np.float32)[None] * wear[white, None])
+    yellow = paint == YELLOW
+    alb[yellow] = (np.array([0.85, 0.68, 0.15], np.float32)[None] * wear[yellow, None])
+    return alb
+
+
+def _object_albedo(prims: Primitives, idx, local, n_local, seed):
+    """Albedo [n, 3] of hits on primitives ``idx`` at local points (metres) with local normals."""
+    mat = prims.material[idx]
+    base = prims.color[idx].astype(np.float32)
+    half = prims.half[idx].astype(np.float32)
+    alb = base.copy()
+    lx, ly, lz = local[:, 0], local[:, 1], local[:, 2]
+    zb = lz + half[:, 2]   # height above the primitive's bottom
+    # per-primitive random numbers (stable: hashed from its rounded centre)
+    pid = hash_cell(prims.center[idx, 0] * 10, prims.center[idx, 1] * 10, prims.center[idx, 2] * 10, seed)
+    side_x = np.abs(n_local[:, 0]) > 0.5          # face normal along local x
+    top = n_local[:, 2] > 0.5
+    along = np.where(side_x, ly, lx)              # horizontal coordinate on a vertical face
+    dirt = fbm2(lx + 3 * ly, lz + ly, 1.5, 2, seed + 11)
+
+    def sel(m):
+        return np.flatnonzero(mat == m)
+
+    i = sel(M.FACADE)
+    if len(i):
+        floor_h = 3.0 + 0.6 * pid[i]
+        spacing = 2.4 + 1.8 * _frac(pid[i] * 7.3)
+        wx = _frac(along[i] / spacing)
+        wz = _frac((zb[i] - 0.3) / floor_h)
+        width = 0.35 + 0.3 * _frac(pid[i] * 13.1)
+        window = (np.abs(wx - 0.5) < width / 2) & (wz > 0.3) & (wz < 0.8) & (zb[i] > 1.0) & ~top[i]
+        shop = (zb[i] < 2.8) & (zb[i] > 0.3) & (np.abs(wx - 0.5) < 0.42) & (_frac(pid[i] * 3.7) < 0.5) & ~top[i]
+        lit = hash_cell(along[i] / spacing, zb[i] / floor_h, pid[i] * 1000, seed + 12)
+        glass = np.stack([0.12 + 0.1 * lit, 0.15 + 0.1 * lit, 0.2 + 0.12 * lit], -1).astype(np.float32)
+        a = alb[i] * (1 + 0.25 * dirt[i])[:, None]
+        a = np.where((window | shop)[:, None], glass, a)
+        roof = np.array([0.32, 0.31, 0.3], np.float32)[None] * (0.8 + 0.4 * value_noise2(lx[i], ly[i], seed + 13))[:, None]
+        alb[i] = np.where(top[i][:, None], roof, a)
+    i = sel(M.FOLIAGE)
+    if len(i):
+        leaf = value_noise(lx[i] * 4, ly[i] * 4, lz[i] * 4, seed + 14)
+        clump = value_noise(lx[i] * 0.8, ly[i] * 0.8, lz[i] * 0.8, seed + 15)
+        alb[i] *= (0.45 + 0.55 * leaf * 0.7 + 0.5 * clump * 0.6)[:, None]
+    i = sel(M.BARK)
+    if len(i):
+        ang = np.arctan2(ly[i], lx[i])
+        alb[i] *= (0.6 + 0.6 * value_noise2(ang * 6, zb[i] * 0.7, seed + 16))[:, None]
+    i = sel(M.SIGN)
+    if len(i):
+        border = (np.abs(ly[i]) > 0.82 * half[i, 1]) | (np.abs(lz[i]) > 0.82 * half[i, 2])
+        back = n_local[i, 0] < 0
+        alb[i] = np.where(border[:, None], 0.9, alb[i])
+        alb[i] = np.where(back[:, None], 0.5, alb[i])
+    i = sel(M.PAINT)
+    if len(i):
+        sill = (zb[i] < 0.12 * 2 * half[i, 2])
+        alb[i] *= np.where(sill, 0.45, 1.0)[:, None]
+        front = n_local[i, 0] > 0.7
+        rear = n_local[i, 0] < -0.7
+        upper = zb[i] > 1.0 * half[i, 2]
+        corner = np.abs(ly[i]) > 0.62 * half[i, 1]
+        grille = front & ~corner & ~upper
+        alb[i] = np.where((front & corner & upper)[:, None], np.array([0.95, 0.95, 0.9], np.float32), alb[i])
+        alb[i] = np.where((rear & corner & upper)[:, None], np.array([0.7, 0.05, 0.05], np.float32), alb[i])
+        alb[i] = np.where(grille[:, None], alb[i] * 0.35, alb[i])
+    i = sel(M.GLASS)
+    if len(i):
+        pillar = (np.abs(along[i]) > np.where(side_x[i], half[i, 1], half[i, 0]) - 0.12) | \
+                 (np.abs(_frac(along[i] / 1.3) - 0.5) < 0.04)
+        pane = np.array([0.07, 0.08, 0.1], np.float32)[None] * (1 + 0.6 * zb[i, None] / (2 * half[i, 2:3]))
+        a = np.where(pillar[:, None], base[i], pane)
+        alb[i] = np.where(top[i][:, None], base[i], a)
+    i = sel(M.TYRE)
+    if len(i):
+        rim = (np.abs(n_local[i, 1]) > 0.85) & (lx[i] ** 2 + (lz[i]) ** 2 < (0.55 * half[i, 0]) ** 2)
+        alb[i] = np.where(rim[:, None], np.array([0.45, 0.45, 0.47], np.float32), alb[i])
+    i = sel(M.CLOTH)
+    if len(i):
+        alb[i] *= (0.75 + 0.5 * value_noise(lx[i] * 6, ly[i] * 6, lz[i] * 6, seed + 17))[:, None]
+    i = sel(M.SKIN)
+    if len(i):
+        hair = (lz[i] > 0.35 * half[i, 2]) | ((lx[i] < -0.2 * half[i, 0]) & (lz[i] > -0.2 * half[i, 2]))
+        hair_color = np.where(_frac(pid[i] * 5.1) < 0.5, 0.08, 0.3)[:, None] * np.array([1.0, 0.8, 0.6], np.float32)
+        alb[i] = np.where(hair[:, None], hair_color, alb[i])
+    i = sel(M.CONCRETE)
+    if len(i):
+        alb[i] *= (1 + 0.3 * dirt[i])[:, None]
+    i = sel(M.CONE)
+    if len(i):
+        rel = zb[i] / (2 * half[i, 2])
+        band = ((rel > 0.55) & (rel < 0.68)) | ((rel > 0.3) & (rel < 0.4))
+        alb[i] = np.where(band[:, None], np.array([0.92, 0.92, 0.92], np.float32), alb[i])
+    i = sel(M.PLASTIC)
+    if len(i):
+        lid = zb[i] > 2 * half[i, 2] - 0.08
+        alb[i] *= np.where(lid, 0.6, 1.0)[:, None]
+    i = sel(M.BUS_BODY)
+    if len(i):
+        rel = zb[i] / (2 * half[i, 2])
+        band = (rel > 0.45) & (rel < 0.86) & (np.abs(_frac(along[i] / 1.6) - 0.5) > 0.05)
+        stripe = (rel > 0.3) & (rel < 0.36)
+        a = np.where(band[:, None], np.array([0.08, 0.1, 0.12], np.float32), alb[i])
+        alb[i] = np.where(stripe[:, None], a * 0.4, a)
+    i = sel(M.CARGO)
+    if len(i):
+        rib = _frac(along[i] / 0.6) < 0.1
+        alb[i] *= np.where(rib, 0.75, 1.0)[:, None] * (1 + 0.2 * dirt[i])[:, None]
+    i = sel(M.HAZARD)
+    if len(i):
+        rel = zb[i] / (2 * half[i, 2])
+        diag = (_frac((along[i] + zb[i]) / 0.5) < 0.5) & (rel < 0.3)
+        alb[i] = np.where(diag[:, None], np.array([0.08, 0.08, 0.08], np.float32), alb[i] * (1 + 0.3 * dirt[i])[:, None])
+    i = sel(M.STRIPES)
+    if len(i):
+        white = _frac((along[i] + zb[i]) / 0.7) < 0.5
+        alb[i] = np.where(white[:, None], np.array([0.92, 0.92, 0.9], np.float32), alb[i])
+    i = sel(M.FENCE)
+    if len(i):
+        mesh = (_frac(along[i] / 0.12) < 0.3) | (_frac(zb[i] / 0.12) < 0.3)
+        alb[i] *= np.where(mesh, 1.0, 0.55)[:, None]
+    i = sel(M.METAL)
+    if len(i):
+        alb[i] *= (0.9 + 0.2 * value_noise2(zb[i] * 2, along[i] * 2, seed + 18))[:, None]
+    return np.clip(alb, 0, 1)
+
+
+SPECULAR = {M.PAINT: (0.5, 60.0), M.GLASS: (0.8, 120.0), M.METAL: (0.3, 30.0), M.BUS_BODY: (0.35, 60.0),
+            M.SIGN: (0.2, 20.0), M.PLASTIC: (0.15, 20.0)}
+
+
+def sky_color(dirs, lighting, seed):
+    """RGB [n, 3] of the sky along unit global directions."""
+    up = np.clip(dirs[:, 2], 0, 1)[:, None]
+    col = lighting.horizon[None] * (1 - np.sqrt(up)) + lighting.zenith[None] * np.sqrt(up)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        px = dirs[:, 0] / np.maximum(dirs[:, 2], 0.03)
+        py = dirs[:, 1] / np.maximum(dirs[:, 2], 0.03)
+    cloud = fbm2(px * 300, py * 300, 400.0, 3, seed + 21) + 0.5
+    cover = np.clip((cloud - (0.75 - 0.6 * lighting.cloudiness)) * 3, 0, 1)[:, None]
+    col = col * (1 - cover) + cover * np.array([0.9, 0.9, 0.92]) * (0.75 + 0.25 * up)
+    glow = np.clip(dirs @ lighting.sun, 0, 1)[:, None]
+    col = col + lighting.sun_color[None] * (glow ** 64 * 0.5 + glow ** 1500 * 3.0) * (1 - lighting.cloudiness)
+    return col.astype(np.float32)
+
+
+_VIGNETTE = {}
+
+
+def _vignette(h, w):
+    if (h, w) not in _VIGNETTE:
+        v, u = np.meshgrid((np.arange(h) + 0.5) / h - 0.5, (np.arange(w) + 0.5) / w - 0.5, indexing="ij")
+        _VIGNETTE[(h, w)] = (1 - 0.35 * (u * u + v * v)).astype(np.float32)
+    return _VIGNETTE[(h, w)]
+
+
+def shade(world: World, prims: Primitives, hits: Hits, origin, dirs, hw, seed, camera_gain=1.0):
+    """uint8 [H, W, 3] image of one camera from its hits. ``seed`` makes the sensor noise."""
+    L = world.lighting
+    n = len(dirs)
+    color = np.zeros((n, 3), np.float32)
+    sky = hits.prim == SKY
+    ground = hits.prim == GROUND
+    obj = hits.prim >= 0
+    tex_seed = world.texture_seed
+    # ground
+    gi = np.flatnonzero(ground)
+    normal = hits.normal.astype(np.float32)
+    albedo = np.zeros((n, 3), np.float32)
+    specular = np.zeros(n, np.float32)
+    shininess = np.full(n, 10.0, np.float32)
+    if len(gi):
+        p = origin[None, :2] + hits.t[gi, None] * dirs[gi, :2]
+        c = world.global_to_city_xy(p)
+        mat, paint = world.ground.lookup(c[:, 0], c[:, 1])
+        albedo[gi] = _ground_albedo(mat, paint, c[:, 0], c[:, 1], tex_seed)
+        specular[gi] = 0.05
+    oi = np.flatnonzero(obj)
+    if len(oi):
+        pid = hits.prim[oi]
+        # local normal = inverse yaw rotation of the world normal
+        cy, sy = np.cos(prims.yaw[pid]), np.sin(prims.yaw[pid])
+        nw = normal[oi]
+        n_local = np.stack([cy * nw[:, 0] + sy * nw[:, 1], -sy * nw[:, 0] + cy * nw[:, 1], nw[:, 2]], -1)
+        albedo[oi] = _object_albedo(prims, pid, hits.local[oi], n_local.astype(np.float32), tex_seed)
+        mats = prims.material[pid]
+        for m, (ks, sh) in SPECULAR.items():
+            s = mats == m
+            specular[oi[s]] = ks
+            shininess[oi[s]] = sh
+    hit = ~sky
+    nh = normal[hit]
+    dh = dirs[hit].astype(np.float32)
+    sun = L.sun.astype(np.float32)
+    sun_rgb = L.sun_color.astype(np.float32)[None]
+    lam = np.clip(nh @ sun, 0, 1)[:, None]
+    amb = L.ambient.astype(np.float32)[None] * (0.55 + 0.45 * nh[:, 2:3])
+    col = albedo[hit] * (amb + sun_rgb * lam)
+    half_vec = sun[None] - dh
+    half_vec /= np.linalg.norm(half_vec, axis=1, keepdims=True)
+    cos_h = np.clip(np.einsum("ij,ij->i", nh, half_vec), 0, 1)
+    spec = cos_h ** shininess[hit]
+    col += ((specular[hit] * spec)[:, None] * (lam > 0)) * sun_rgb
+    # reflections of the sky on shiny surfaces (Fresnel-ish)
+    cos_v = np.abs(np.einsum("ij,ij->i", nh, dh))
+    refl = (specular[hit] * (1 - cos_v) ** 3)[:, None]
+    horizon = L.horizon.astype(np.float32)[None]
+    col = col * (1 - refl) + refl * horizon
+    fog = np.exp(-hits.t[hit].astype(np.float32) / np.float32(L.fog_distance))[:, None]
+    color[hit] = col * fog + horizon * (1 - fog)
+    color[sky] = sky_color(dirs[sky], L, tex_seed)
+    # sensor: exposure, tone curve, vignetting, noise
+    h, w = hw
+    img = color.reshape(h, w, 3) * np.float32(L.exposure * camera_gain)
+    img = img / (img + 0.35) * np.float32(1.35)
+    img *= _vignette(h, w)[..., None]
+    rng = np.random.default_rng(seed)
+    img += rng.standard_normal(img.shape, dtype=np.float32) * (0.008 + 0.02 * np.sqrt(np.clip(img, 0, 1)))
+    return (np.clip(img, 0, 1) * 255 + 0.5).astype(np.uint8)
