@@ -1,7 +1,6 @@
 """Focal loss, Hungarian matching and the box loss against hand-checked float64 values."""
 import math
 
-import numpy as np
 import pytest
 import torch
 
