@@ -232,3 +232,29 @@ def test_ego_twists_against_reference_and_hard_cases():
     bad[1, 0, 3] = np.nan
     with pytest.raises(ValueError, match="non-finite"):
         ego_twists([0, 1, 2], bad)
+
+
+def test_mcap_is_readable_by_an_independent_ros2_decoder(world, bags):
+    """What rosbag2's MCAP storage plugin needs: ros2 profile, ros2msg schemas, cdr channels
+    with offered QoS, the rosbag2 metadata record; every message decodes with mcap_ros2."""
+    from mcap.reader import make_reader
+    from mcap_ros2.decoder import DecoderFactory
+
+    _, expected = world
+    scene = "scene-0002"
+    with open(bags / scene / f"{scene}.mcap", "rb") as f:
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        assert reader.get_header().profile == "ros2"
+        summary = reader.get_summary()
+        for channel in summary.channels.values():
+            assert channel.message_encoding == "cdr"
+            assert summary.schemas[channel.schema_id].encoding == "ros2msg"
+            assert "offered_qos_profiles" in channel.metadata
+        assert any(m.name == "rosbag2" for m in reader.iter_metadata())
+        counts = {}
+        for _, channel, message, decoded in reader.iter_decoded_messages():
+            counts[channel.topic] = counts.get(channel.topic, 0) + 1
+            if channel.topic == "/odom":
+                assert decoded.child_frame_id == "base_link"
+                assert message.log_time == message.publish_time
+    assert counts == expected[scene]["counts"]
