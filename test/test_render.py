@@ -215,9 +215,8 @@ def test_field_of_view_clamp_matches_reference():
 def test_tiles_and_depth_batches_do_not_change_result(monkeypatch, dense):
     scene, cam, k, pixels = random_scene(11, 300, 400, dense=dense)
     base = render(scene, cam, k, pixels)
-    for chunk, tile_size in ((97, 1), (500, 5), (10**9, 500)):
+    for chunk, tile_size in ((211, 3), (997, 2), (3001, 5), (10**9, 500)):
         monkeypatch.setattr(splat_module, "CANDIDATE_CHUNK", chunk)
-        monkeypatch.setattr(splat_module, "SUM_CHUNK", 13)
         other = render(scene, cam, k, pixels, tile_size=tile_size)
         for a, b in zip(base, other):
             torch.testing.assert_close(a, b, atol=1e-12, rtol=1e-12)
@@ -262,16 +261,26 @@ def test_gradcheck_tiny_scene():
     assert torch.autograd.gradcheck(fn, inputs, eps=1e-6, atol=1e-6, rtol=1e-5)
 
 
-def test_gradcheck_pair_weighted_sum():
+def test_pair_weighted_sum_value_and_gradcheck():
     weight = torch.rand(9, dtype=torch.float64, requires_grad=True)
     values = torch.rand(4, 3, dtype=torch.float64, requires_grad=True)
-    pixel = torch.tensor([0, 0, 1, 2, 2, 2, 4, 4, 4])
-    splat = torch.tensor([0, 1, 3, 0, 2, 3, 1, 2, 3])
+    # Unsorted pixels, as the depth batches produce them; pixel 3 has no pair.
+    pixel = torch.tensor([2, 0, 4, 1, 2, 0, 4, 2, 4])
+    splat = torch.tensor([0, 0, 1, 3, 2, 1, 2, 3, 3])
+    out = _PairWeightedSum.apply(weight, values, pixel, splat, 5)
+    expected = torch.zeros(5, 3, dtype=torch.float64).index_add(
+        0, pixel, weight[:, None] * values[splat])
+    torch.testing.assert_close(out, expected)
     assert torch.autograd.gradcheck(
         lambda w, v: _PairWeightedSum.apply(w, v, pixel, splat, 5), (weight, values))
+    empty = torch.zeros(0, dtype=torch.long)
+    assert torch.autograd.gradcheck(
+        lambda w, v: _PairWeightedSum.apply(w, v, empty, empty, 5),
+        (weight[:0].detach().requires_grad_(True), values))
 
 
-def test_gradients_finite_and_nonzero_on_random_scene():
+def test_gradients_finite_and_nonzero_on_random_scene(monkeypatch):
+    monkeypatch.setattr(splat_module, "CHECK_CSR", True)   # sorted, unique, in range
     scene, cam, k, pixels = random_scene(8, 400, 300, dtype=torch.float32)
     for t in scene.values():
         t.requires_grad_(True)

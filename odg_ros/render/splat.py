@@ -29,6 +29,7 @@ does not store the [pairs, C] product.
 from __future__ import annotations
 
 import math
+import warnings
 from typing import NamedTuple, Sequence
 
 import torch
@@ -38,7 +39,7 @@ from .projection import ALPHA_MAX, ALPHA_MIN, Splats, project_gaussians, splat_p
 TRANSMITTANCE_MIN = 1e-4         # a pixel is done once T would reach this (exclusive)
 TILE_SIZE = 16                   # pixel tile edge for culling (as gsplat)
 CANDIDATE_CHUNK = 1_000_000      # candidate (splat, pixel) pairs per depth batch
-SUM_CHUNK = 1_000_000            # pairs per step of the weighted feature sum
+CHECK_CSR = False                # the CSR matrices are valid by construction (a test checks)
 
 
 class RenderResult(NamedTuple):
@@ -140,12 +141,16 @@ def _composite(splats: Splats, pixel_uv: torch.Tensor, pixel_camera: torch.Tenso
         active = torch.ones(num_pixels, dtype=torch.bool, device=device)
         pixels_by_tile, tile_count, tile_first = grid.bin_pixels(pixel_uv, pixel_camera, active)
         first = 0                                       # first splat of the batch
+        cumulative = None         # candidates of the (splat, tile) pairs from cumulative_start on
         while first < len(splats):
             with torch.no_grad():
                 a = int(splat_first_st[first])
-                window = st_tile[a:a + CANDIDATE_CHUNK]
-                cumulative = torch.cumsum(tile_count[window], 0)
-                cut = a + int(torch.searchsorted(cumulative, CANDIDATE_CHUNK, right=True))
+                if cumulative is None:                  # (re)counted when pixels drop out
+                    cumulative_start = a
+                    cumulative = torch.cumsum(tile_count[st_tile[a:]], 0)
+                before = int(cumulative[a - cumulative_start - 1]) if a > cumulative_start else 0
+                cut = cumulative_start + int(torch.searchsorted(
+                    cumulative, before + CANDIDATE_CHUNK, right=True))
                 last = int(st_splat[cut]) if cut < st_splat.shape[0] else len(splats)
                 last = max(last, first + 1)
                 b = int(splat_first_st[last])
@@ -181,6 +186,7 @@ def _composite(splats: Splats, pixel_uv: torch.Tensor, pixel_camera: torch.Tenso
                     break
                 pixels_by_tile, tile_count, tile_first = grid.bin_pixels(
                     pixel_uv, pixel_camera, active)
+                cumulative = None
     if not weights:
         empty = torch.zeros(0, dtype=torch.long, device=device)
         return params[:0, 0] * 0, empty, empty
@@ -261,35 +267,53 @@ def _pair_alpha(params, pixel_uv, pair_splat, pair_pixel):
 class _PairWeightedSum(torch.autograd.Function):
     """out[p] = sum over pairs m with pixel[m] = p of weight[m] * values[splat[m]].
 
-    weight [M], values [S, D], pixel [M], splat [M] long, num_pixels -> out [P, D].
-    Chunked so no [M, D] tensor is kept for backward (autograd would store one).
+    weight [M], values [S, D], pixel [M], splat [M] long (each (pixel, splat) at most once),
+    num_pixels -> out [P, D]. The pairs form a sparse [P, S] matrix in CSR form, so forward
+    is one sparse x dense product, d/dvalues the transposed product and d/dweight a sampled
+    dense product; no [M, D] tensor is ever built (this is ~10x faster than gathering).
     """
 
     @staticmethod
     def forward(ctx, weight, values, pixel, splat, num_pixels):
-        out = values.new_zeros(num_pixels, values.shape[1])
-        for lo in range(0, weight.shape[0], SUM_CHUNK):
-            hi = lo + SUM_CHUNK
-            out.index_add_(0, pixel[lo:hi], weight[lo:hi, None] * values[splat[lo:hi]])
-        ctx.save_for_backward(weight, values, pixel, splat)
-        return out
+        ctx.shape = (num_pixels, values.shape[0])
+        if weight.shape[0] == 0:
+            ctx.mark_non_differentiable()
+            ctx.save_for_backward(weight, values)
+            return values.new_zeros(num_pixels, values.shape[1])
+        by_pixel = torch.argsort(pixel, stable=True)   # rows; splat order kept within a row
+        matrix = _csr(pixel[by_pixel], splat[by_pixel], weight[by_pixel], ctx.shape)
+        ctx.save_for_backward(weight, values, by_pixel, pixel, splat)
+        return matrix @ values
 
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx, grad_out):
-        weight, values, pixel, splat = ctx.saved_tensors
+        if len(ctx.saved_tensors) == 2:
+            weight, values = ctx.saved_tensors
+            return torch.zeros_like(weight), torch.zeros_like(values), None, None, None
+        weight, values, by_pixel, pixel, splat = ctx.saved_tensors
         grad_weight = grad_values = None
+        grad_out = grad_out.contiguous()
         if ctx.needs_input_grad[0]:
+            pattern = _csr(pixel[by_pixel], splat[by_pixel], torch.zeros_like(weight), ctx.shape)
+            sampled = torch.sparse.sampled_addmm(pattern, grad_out, values.t().contiguous())
             grad_weight = torch.empty_like(weight)
-            for lo in range(0, weight.shape[0], SUM_CHUNK):
-                hi = lo + SUM_CHUNK
-                grad_weight[lo:hi] = (grad_out[pixel[lo:hi]] * values[splat[lo:hi]]).sum(-1)
+            grad_weight[by_pixel] = sampled.values()
         if ctx.needs_input_grad[1]:
-            grad_values = torch.zeros_like(values)
-            for lo in range(0, weight.shape[0], SUM_CHUNK):
-                hi = lo + SUM_CHUNK
-                grad_values.index_add_(0, splat[lo:hi], weight[lo:hi, None] * grad_out[pixel[lo:hi]])
+            by_splat = torch.argsort(splat, stable=True)
+            transposed = _csr(splat[by_splat], pixel[by_splat], weight[by_splat],
+                              (ctx.shape[1], ctx.shape[0]))
+            grad_values = transposed @ grad_out
         return grad_weight, grad_values, None, None, None
+
+
+def _csr(rows, cols, vals, shape):
+    """CSR matrix from row-sorted (row, col, value) triples."""
+    crow = torch.zeros(shape[0] + 1, dtype=torch.long, device=rows.device)
+    crow[1:] = torch.cumsum(torch.bincount(rows, minlength=shape[0]), 0)
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta")
+        return torch.sparse_csr_tensor(crow, cols, vals, shape, check_invariants=CHECK_CSR)
 
 
 def _check_inputs(means, scales, rotations, opacities, features, cam_from_ego, intrinsics,
