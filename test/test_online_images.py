@@ -7,8 +7,8 @@ from PIL import Image
 
 from odg_ros.geometry import ego_to_image, invert_transform, make_transform
 from odg_ros.online.errors import BadInput
-from odg_ros.online.images import EncodedImage, decode, decode_compressed, decode_raw, \
-    to_network_input
+from odg_ros.online.images import EncodedImage, decode, decode_compressed, decode_for_input, \
+    decode_raw, to_network_input
 from odg_ros.online.rig import check_intrinsics, load_rig, set_ego2img
 from odg_ros.preprocess import adjust_intrinsics, resize_crop
 from odg_ros.resources import resource_path
@@ -146,3 +146,43 @@ def test_set_ego2img_compensates_motion_between_camera_stamps():
     direct = ego_to_image(K, ego_from_cam)
     assert np.allclose(ego2img[0] @ point_ref, direct @ point_ref)
     assert np.allclose(ego2img[1] @ point_ref, direct @ point_later)
+
+
+def nuscenes_like_jpeg(h=900, w=1600):
+    rng = np.random.default_rng(0)
+    yy, xx = np.mgrid[0:h, 0:w]
+    base = np.stack([(xx * 0.15) % 255, (yy * 0.25) % 255, ((xx + yy) * 0.1) % 255], -1)
+    array = np.clip(base + rng.normal(0, 6, base.shape), 0, 255).astype(np.uint8)
+    buffer = io.BytesIO()
+    Image.fromarray(array).save(buffer, format="JPEG", quality=90)
+    return buffer.getvalue()
+
+
+@pytest.mark.parametrize("input_hw, reduced_hw", [((128, 352), (225, 400)),
+                                                  ((256, 704), (450, 800))])
+def test_reduced_jpeg_decode_matches_the_full_decode(input_hw, reduced_hw):
+    data = nuscenes_like_jpeg()
+    K = np.array([[1266.4, 0, 816.3], [0, 1266.4, 491.5], [0, 0, 1]])
+    rgb, original_hw = decode_for_input(EncodedImage(True, "jpeg", data), input_hw)
+    assert original_hw == (900, 1600) and rgb.shape[:2] == reduced_hw
+    fast, K_fast = to_network_input(rgb, (900, 1600), K, input_hw, original_hw)
+    full, K_full = to_network_input(decode_compressed(data), (900, 1600), K, input_hw)
+    assert np.array_equal(K_fast, K_full) and fast.shape == full.shape
+    difference = np.abs(fast.astype(int) - full)
+    assert difference.mean() < 1.0 and difference.max() <= 8
+    with pytest.raises(BadInput) as error:                 # the ORIGINAL size is checked
+        to_network_input(rgb, (450, 800), K, input_hw, original_hw)
+    assert error.value.kind == "wrong_image_size"
+
+
+def test_reduced_decode_falls_back_when_the_scale_is_not_exact():
+    data = nuscenes_like_jpeg(901, 1600)                    # 901 is not divisible by 2, 4, 8
+    rgb, original_hw = decode_for_input(EncodedImage(True, "jpeg", data), (128, 352))
+    assert original_hw == (901, 1600) and rgb.shape[:2] == (901, 1600)
+    png_image = rgb_image(90, 160)
+    rgb, original_hw = decode_for_input(EncodedImage(True, "png", encode(png_image, "PNG")),
+                                        (32, 88))
+    assert np.array_equal(rgb, png_image) and original_hw == (90, 160)
+    with pytest.raises(BadInput) as error:
+        decode_for_input(EncodedImage(True, "jpeg", data[:3000]), (128, 352))
+    assert error.value.kind == "corrupt_image"

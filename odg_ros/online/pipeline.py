@@ -25,7 +25,7 @@ import numpy as np
 from ..geometry import is_rigid
 from .diagnostics import PipelineStats
 from .errors import BAD_INPUT_KINDS, BadInput
-from .images import EncodedImage, decode, to_network_input
+from .images import EncodedImage, decode_for_input, to_network_input
 from .mailbox import LatestMailbox
 from .poses import PoseBuffer
 from .predictor import OnlinePredictor
@@ -179,9 +179,9 @@ class OnlinePipeline:
         def prepare(camera):
             image, _ = camera_set.payloads[camera]
             try:
-                rgb = decode(image)
+                rgb, original_hw = decode_for_input(image, self.input_hw)
                 return to_network_input(rgb, infos[camera].image_hw, infos[camera].intrinsics,
-                                        self.input_hw)
+                                        self.input_hw, original_hw)
             except BadInput as error:
                 raise BadInput(error.kind, f"{camera}: {error.message}") from None
 
