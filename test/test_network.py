@@ -247,3 +247,18 @@ def test_pruning_with_nothing_to_drop_equals_the_full_model():
         same = model(*inputs, prune=PruneRule(threshold=0.0, after_layer=2))
     torch.testing.assert_close(full.last.means, same.last.means)
     torch.testing.assert_close(full.last.boxes, same.last.boxes)
+
+
+def test_every_trainable_parameter_gets_a_gradient():
+    """A parameter without gradient is dead weight, and breaks DDP's all-reduce."""
+    cfg = tiny_config()
+    model = ODG(cfg).train()
+    out, _ = run(model, cfg, seed=4)
+    total = out.init_means.sum()
+    for layer in out.layers:
+        for t in (layer.means, layer.logits, layer.scales, layer.rotations, layer.opacities,
+                  layer.boxes, layer.box_logits):
+            total = total + t.sum()
+    total.backward()
+    dead = [n for n, p in model.named_parameters() if p.requires_grad and p.grad is None]
+    assert not dead, dead

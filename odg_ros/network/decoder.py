@@ -8,7 +8,7 @@ Per layer, for queries [dynamic; static]:
 5. heads: K_l new means + class logits (all), box code + box logits (dynamic);
    Phi_s / Phi_r / Phi_sigma give every Gaussian's scale, rotation and opacity.
 Means and boxes are detached between layers (OPUS / SparseBEV), so each layer learns a
-refinement of the previous one.
+refinement of the previous one; the initial box is not detached (it has no other gradient).
 """
 from __future__ import annotations
 
@@ -65,7 +65,8 @@ class DecoderLayer(nn.Module):
     def forward(self, query, prev_means, prev_boxes, num_dynamic, geometry, mlvl_feats,
                 velocity_warp: bool, ego_warp: bool):
         """query [B, Q, E]; prev_means [B, Q, K_prev, 3]; prev_boxes [B, D, 10] | None;
-        geometry: dict with ego2img [B,T,N,4,4], ego_warp [B,T,4,4], time_delta [B,T], image_hw.
+        geometry: dict with ego2img [B,T,N,4,4], ego_warp [B,T,4,4], time_delta [B,T], image_hw
+        (and frame_index, see ``SpatioTemporalSampling``).
         Returns the new query and (means, logits, boxes, box_logits)."""
         D = num_dynamic
         position = self.position(prev_means)
@@ -82,7 +83,8 @@ class DecoderLayer(nn.Module):
             velocity = torch.cat([prev_boxes[..., 8:10], velocity[:, D:]], dim=1)
         sampled = self.sampling(query, prev_means, velocity, mlvl_feats, geometry["ego2img"],
                                 geometry["ego_warp"] if ego_warp else None,
-                                geometry["time_delta"], geometry["image_hw"])
+                                geometry["time_delta"], geometry["image_hw"],
+                                geometry.get("frame_index"))
         query = self.norm_mixing(self.mixing(sampled, query))
         query = self.norm_ffn(query + self.ffn(query))
 
@@ -113,8 +115,13 @@ class Decoder(nn.Module):
         num_dynamic = self.num_dynamic
         query_index = None
         for index, layer in enumerate(self.layers):
+            # Refinements are detached between layers (OPUS/SparseBEV); the learnable
+            # initial box is not, or it would get no gradient at all (the initial means
+            # have their own Chamfer term).
+            if boxes is not None and index > 0:
+                boxes = boxes.detach()
             query, means, logits, boxes_new, box_logits = layer(
-                query, means.detach(), None if boxes is None else boxes.detach(),
+                query, means.detach(), boxes,
                 num_dynamic, geometry, mlvl_feats,
                 velocity_warp=self.cfg.motion_compensation, ego_warp=self.cfg.ego_compensation)
             scales = rotations = opacities = None

@@ -85,6 +85,19 @@ def to_device(batch: dict, device) -> dict:
     return out
 
 
+def zero_weight_anchor(output) -> torch.Tensor:
+    """0 x (every output tensor): each parameter gets a (possibly zero) gradient on every rank
+    even when a term is empty on it (no LiDAR pixel -> Phi unused), so DDP's all-reduce sees
+    the same parameters everywhere. NaN outputs still make the step non-finite (skipped)."""
+    total = output.init_means.sum() * 0.0
+    for layer in output.layers:
+        for t in (layer.means, layer.logits, layer.scales, layer.rotations, layer.opacities,
+                  layer.boxes, layer.box_logits):
+            if t is not None:
+                total = total + t.float().sum() * 0.0
+    return total
+
+
 def parameter_groups(model: ODG, opts: TrainOptions) -> list[dict]:
     backbone = [p for p in model.backbone.parameters() if p.requires_grad]
     ids = {id(p) for p in backbone}
@@ -148,7 +161,7 @@ class Trainer:
         if opts.resume:
             self._resume()
         self.ddp = (DistributedDataParallel(self.model, device_ids=None if self.device.type ==
-                                            "cpu" else [self.device], find_unused_parameters=True)
+                                            "cpu" else [self.device])
                     if self.world > 1 else None)
 
     # ------------------------------------------------------------------ checkpoints
@@ -191,7 +204,7 @@ class Trainer:
                 output = model(batch["images"], batch["ego2img"], batch["ego_warp"],
                                batch["time_delta"])
             losses = self.criterion(output, batch)
-            loss = losses["loss"]
+            loss = losses["loss"] + zero_weight_anchor(output)
             finite = bool(torch.isfinite(loss))
         except FloatingPointError as err:
             log.warning("step %d: %s", self.step, err)
