@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import importlib
 import signal
+import threading
 import time
 from collections import Counter
 from dataclasses import dataclass, field
@@ -90,11 +91,14 @@ def replay(bag, *, rate: float = 1.0, clock: bool = False, loop: bool = False,
     stats = ReplayStats()
 
     # Our own SIGINT/SIGTERM handling: rclpy's would shut the context down under our feet.
-    previous = {sig: signal.signal(sig, _raise_interrupted) for sig in (signal.SIGINT,
-                                                                        signal.SIGTERM)}
+    # (Signal handlers can only be set from the main thread; elsewhere the caller stops us.)
+    previous = {}
+    if threading.current_thread() is threading.main_thread():
+        previous = {sig: signal.signal(sig, _raise_interrupted)
+                    for sig in (signal.SIGINT, signal.SIGTERM)}
     context = rclpy.Context()
     rclpy.init(context=context, signal_handler_options=SignalHandlerOptions.NO)
-    node = None
+    node = bar = None
     start = time.monotonic()
     try:
         node = rclpy.create_node(node_name, context=context)
@@ -145,6 +149,7 @@ def replay(bag, *, rate: float = 1.0, clock: bool = False, loop: bool = False,
                 stats.published[topic] += 1
                 bar.update(1)
             bar.close()
+            bar = None
             if not loop:
                 break
         # Reliable messages still in flight would be lost with the participant.
@@ -155,6 +160,8 @@ def replay(bag, *, rate: float = 1.0, clock: bool = False, loop: bool = False,
         stats.interrupted = True
     finally:
         stats.wall_s = time.monotonic() - start
+        if bar is not None:
+            bar.close()
         # A second Ctrl-C during clean-up must not leave the participant half destroyed.
         for sig in previous:
             signal.signal(sig, signal.SIG_IGN)
