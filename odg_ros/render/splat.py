@@ -16,15 +16,17 @@ gsplat / Inria numerics: contributions with alpha < 1/255 are skipped, and a pix
 the first Gaussian that would bring its transmittance to <= 1e-4 (that Gaussian is excluded).
 Projection conventions: see projection.py.
 
-How it stays fast and bounded without a CUDA kernel: only the requested pixels are evaluated.
-Pixels are binned into 16x16 tiles; each splat's alpha >= 1/255 box is intersected with the
-tiles, so only (splat, pixel) pairs in touched tiles are ever formed, never a dense
-Gaussians x pixels tensor. Candidate pairs are tested without autograd in chunks, the
-surviving pairs are sorted by (pixel, depth), and the transmittance is an exclusive segmented
-cumulative sum of log(1 - alpha) in float64 (a global cumsum minus its value at each pixel's
-first pair; float64 so that subtracting large running sums loses nothing). Memory is
-O(surviving pairs); the weighted sum of the features uses a custom autograd function that
-does not store the [pairs, C] product.
+How it stays fast and bounded without a CUDA kernel (details in _composite): only the
+requested pixels are evaluated. Pixels are binned into 16x16 tiles and each splat is paired
+only with the tiles its alpha >= 1/255 box touches, so only (splat, pixel) pairs in touched
+tiles are ever formed, never a dense Gaussians x pixels tensor. Splats go front to back in
+depth batches of ~1M candidate pairs; candidates are tested without autograd, survivors get
+T from a float64 segmented cumulative sum of log(1 - alpha), and pixels that reached the
+early stop leave the later batches. The weighted sums are CSR sparse x dense products.
+Memory is O(contributing pairs) plus one batch of candidates.
+
+The code is device-agnostic PyTorch but has only been run on CPU; there is no gsplat backend
+(none could be tested here).
 """
 from __future__ import annotations
 
