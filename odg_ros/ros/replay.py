@@ -90,14 +90,14 @@ def replay(bag, *, rate: float = 1.0, clock: bool = False, loop: bool = False,
         raise ValueError(f"{bag}: the bag has no topics")
     stats = ReplayStats()
 
+    context = rclpy.Context()
+    rclpy.init(context=context, signal_handler_options=SignalHandlerOptions.NO)
     # Our own SIGINT/SIGTERM handling: rclpy's would shut the context down under our feet.
     # (Signal handlers can only be set from the main thread; elsewhere the caller stops us.)
     previous = {}
     if threading.current_thread() is threading.main_thread():
         previous = {sig: signal.signal(sig, _raise_interrupted)
                     for sig in (signal.SIGINT, signal.SIGTERM)}
-    context = rclpy.Context()
-    rclpy.init(context=context, signal_handler_options=SignalHandlerOptions.NO)
     node = bar = None
     start = time.monotonic()
     try:
