@@ -22,7 +22,7 @@ EPS = 1e-6
 @dataclass
 class Hits:
     """Nearest hit per ray. N rays."""
-    t: np.ndarray       # float64 [N] distance along the unit ray (inf: sky)
+    t: np.ndarray       # float64 [N] distance along the unit ray (inf: sky); float32-exact for objects
     prim: np.ndarray    # int32 [N] primitive index, GROUND or SKY
     normal: np.ndarray  # float32 [N, 3] unit world normal (0 for sky)
     local: np.ndarray   # float32 [N, 3] hit point in the primitive's local frame, metres
@@ -40,9 +40,9 @@ def rect_pairs(r0, r1, c0, c1, width, wrap=False):
     prim = np.repeat(np.arange(len(counts), dtype=np.int32), counts)
     starts = np.cumsum(counts) - counts
     off = np.arange(total, dtype=np.int64) - np.repeat(starts, counts)
-    ncp = nc[prim]
-    rows = r0[prim] + off // ncp
-    cols = c0[prim] + off % ncp
+    q, rem = np.divmod(off, nc[prim])
+    rows = r0[prim] + q
+    cols = c0[prim] + rem
     if wrap:
         cols = cols % width
     return rows * width + cols, prim
@@ -124,7 +124,7 @@ def _intersect(prims: Primitives, origin, dirs, ray, prim):
 def surface(prims: Primitives, index, points_global):
     """Unit world normals [Q, 3] and local hit coordinates [Q, 3] (metres) at surface points
     of primitives ``index[q]``."""
-    u = prims.to_unit(points_global, index)
+    u = prims.to_unit(points_global, index).astype(np.float32)
     kind = prims.kind[index]
     n = np.zeros_like(u)
     box = kind == BOX
@@ -148,9 +148,9 @@ def surface(prims: Primitives, index, points_global):
         cap &= radial2 < (r * r) * (1 - 1e-6)
         nf[cap] = np.stack([np.zeros(cap.sum()), np.zeros(cap.sum()), np.sign(uf[cap, 2])], -1)
         n[fru] = nf
-    half = prims.half[index]
+    half = prims.half[index].astype(np.float32)
     n = n / half
-    c, s = np.cos(prims.yaw[index]), np.sin(prims.yaw[index])
+    c, s = np.cos(prims.yaw[index]).astype(np.float32), np.sin(prims.yaw[index]).astype(np.float32)
     nw = np.stack([c * n[:, 0] - s * n[:, 1], s * n[:, 0] + c * n[:, 1], n[:, 2]], -1)
     nw /= np.maximum(np.linalg.norm(nw, axis=1, keepdims=True), 1e-12)
     return nw.astype(np.float32), (u * half).astype(np.float32)
@@ -164,7 +164,7 @@ def cast(prims: Primitives, origin, dirs, pair_ray, pair_prim, max_t=np.inf) -> 
     t_pair = _intersect(prims, origin, dirs, pair_ray, pair_prim)
     hit = t_pair < max_t
     pr, pp, tp = pair_ray[hit], pair_prim[hit], t_pair[hit]
-    tbuf = np.full(n, np.inf)
+    tbuf = np.full(n, np.inf, np.float32)   # same dtype as tp: ufunc.at is slow when casting
     np.minimum.at(tbuf, pr, tp)
     prim = np.full(n, SKY, np.int32)
     win = tp == tbuf[pr]
@@ -172,6 +172,7 @@ def cast(prims: Primitives, origin, dirs, pair_ray, pair_prim, max_t=np.inf) -> 
     with np.errstate(divide="ignore", invalid="ignore"):
         tg = np.where(dirs[:, 2] < -1e-9, -origin[2] / dirs[:, 2], np.inf)
     ground = (tg < tbuf) & (tg < max_t) & (origin[2] > 0)
+    tbuf = tbuf.astype(np.float64)
     tbuf[ground] = tg[ground]
     prim[ground] = GROUND
     normal = np.zeros((n, 3), np.float32)

@@ -12,8 +12,21 @@ NEAR = 0.05
 _BOX_EDGES = np.array([(a, a | bit) for a in range(8) for bit in (1, 2, 4) if not a & bit])
 
 
+_PIXEL_RAYS = {}
+
+
 def pixel_rays(K, hw) -> np.ndarray:
-    """Unit ray directions [H*W, 3] in the camera frame through pixel centres (u+0.5, v+0.5)."""
+    """Unit ray directions [H*W, 3] in the camera frame through pixel centres (u+0.5, v+0.5).
+    Cached per (K, hw); do not modify the result."""
+    key = (tuple(np.round(np.asarray(K, float).ravel(), 9)), tuple(hw))
+    if key not in _PIXEL_RAYS:
+        if len(_PIXEL_RAYS) > 64:
+            _PIXEL_RAYS.clear()
+        _PIXEL_RAYS[key] = _pixel_rays(K, hw)
+    return _PIXEL_RAYS[key]
+
+
+def _pixel_rays(K, hw) -> np.ndarray:
     h, w = hw
     v, u = np.meshgrid(np.arange(h) + 0.5, np.arange(w) + 0.5, indexing="ij")
     x = (u - K[0, 2]) / K[0, 0]

@@ -28,33 +28,43 @@ def hash_cell(x, y, z, seed):
     return _hash(np.floor(x), np.floor(y), np.floor(z), seed)
 
 
-def value_noise(x, y, z, seed):
-    """Smooth trilinear value noise in [0, 1) at float coordinates."""
-    fx, fy, fz = np.floor(x), np.floor(y), np.floor(z)
-    tx, ty, tz = x - fx, y - fy, z - fz
-    tx, ty, tz = (tx * tx * (3 - 2 * tx)).astype(np.float32), (ty * ty * (3 - 2 * ty)).astype(np.float32), \
-        (tz * tz * (3 - 2 * tz)).astype(np.float32)
-    ix, iy, iz = fx.astype(np.int64), fy.astype(np.int64), fz.astype(np.int64)
-    out = 0
-    for dx in (0, 1):
-        wx = tx if dx else 1 - tx
-        for dy in (0, 1):
-            wy = ty if dy else 1 - ty
-            for dz in (0, 1):
-                wz = tz if dz else 1 - tz
-                out = out + wx * wy * wz * _hash(ix + dx, iy + dy, iz + dz, seed)
-    return out
+def _make_tile(size=256, cell=8):
+    """Periodic smooth value noise on a size x size texel tile, lattice every ``cell`` texels."""
+    n = size // cell
+    lattice = _hash(*np.meshgrid(np.arange(n), np.arange(n), indexing="ij"), np.zeros((n, n), np.int64), 12345)
+    t = (np.arange(size) % cell) / cell
+    t = t * t * (3 - 2 * t)
+    i0 = np.arange(size) // cell
+    i1 = (i0 + 1) % n
+    rows = lattice[i0] * (1 - t)[:, None] + lattice[i1] * t[:, None]          # along x
+    tile = rows[:, i0] * (1 - t)[None, :] + rows[:, i1] * t[None, :]          # along y
+    return np.ascontiguousarray(tile, dtype=np.float32).ravel()
+
+
+_TILE_SIZE, _TILE_CELL = 256, 8
+_TILE = _make_tile(_TILE_SIZE, _TILE_CELL)
 
 
 def value_noise2(x, y, seed):
-    fx, fy = np.floor(x), np.floor(y)
-    tx, ty = x - fx, y - fy
-    tx, ty = (tx * tx * (3 - 2 * tx)).astype(np.float32), (ty * ty * (3 - 2 * ty)).astype(np.float32)
-    ix, iy = fx.astype(np.int64), fy.astype(np.int64)
-    z = np.zeros_like(ix)
-    a = _hash(ix, iy, z, seed) * (1 - tx) + _hash(ix + 1, iy, z, seed) * tx
-    b = _hash(ix, iy + 1, z, seed) * (1 - tx) + _hash(ix + 1, iy + 1, z, seed) * tx
-    return a * (1 - ty) + b * ty
+    """Smooth 2D value noise in [0, 1), unit feature size (a bilinear lookup of a periodic tile,
+    shifted per seed; the tile repeats every 32 units)."""
+    off = (seed * 2654435761) % (1 << 20)
+    u = np.asarray(x, np.float32) * _TILE_CELL + np.float32(off % 251)
+    v = np.asarray(y, np.float32) * _TILE_CELL + np.float32((off // 251) % 241)
+    fu, fv = np.floor(u), np.floor(v)
+    tu, tv = u - fu, v - fv
+    iu = fu.astype(np.int64) & (_TILE_SIZE - 1)
+    iv = fv.astype(np.int64) & (_TILE_SIZE - 1)
+    iu1, iv1 = (iu + 1) & (_TILE_SIZE - 1), (iv + 1) & (_TILE_SIZE - 1)
+    iu, iu1 = iu * _TILE_SIZE, iu1 * _TILE_SIZE
+    a = _TILE[iu + iv] * (1 - tv) + _TILE[iu + iv1] * tv
+    b = _TILE[iu1 + iv] * (1 - tv) + _TILE[iu1 + iv1] * tv
+    return a * (1 - tu) + b * tu
+
+
+def value_noise(x, y, z, seed):
+    """3D-looking noise from the 2D tile on a skewed projection (cheap, good enough for texture)."""
+    return value_noise2(x + 0.57 * z, y - 0.71 * z, seed)
 
 
 def fbm2(x, y, scale, octaves, seed):
@@ -246,6 +256,10 @@ def _object_albedo(prims: Primitives, idx, local, n_local, seed):
 
 SPECULAR = {M.PAINT: (0.5, 60.0), M.GLASS: (0.8, 120.0), M.METAL: (0.3, 30.0), M.BUS_BODY: (0.35, 60.0),
             M.SIGN: (0.2, 20.0), M.PLASTIC: (0.15, 20.0)}
+_SPEC_KS = np.zeros(256, np.float32)
+_SPEC_SH = np.full(256, 10.0, np.float32)
+for _m, (_ks, _sh) in SPECULAR.items():
+    _SPEC_KS[_m], _SPEC_SH[_m] = _ks, _sh
 
 
 def sky_color(dirs, lighting, seed):
@@ -277,56 +291,49 @@ def shade(world: World, prims: Primitives, hits: Hits, origin, dirs, hw, seed, c
     """uint8 [H, W, 3] image of one camera from its hits. ``seed`` makes the sensor noise."""
     L = world.lighting
     n = len(dirs)
-    color = np.zeros((n, 3), np.float32)
     sky = hits.prim == SKY
     ground = hits.prim == GROUND
-    obj = hits.prim >= 0
     tex_seed = world.texture_seed
-    # ground
-    gi = np.flatnonzero(ground)
-    normal = hits.normal.astype(np.float32)
+    normal = hits.normal                      # float32, zero for sky
+    d32 = dirs.astype(np.float32)
     albedo = np.zeros((n, 3), np.float32)
     specular = np.zeros(n, np.float32)
     shininess = np.full(n, 10.0, np.float32)
+    gi = np.flatnonzero(ground)
     if len(gi):
         p = origin[None, :2] + hits.t[gi, None] * dirs[gi, :2]
-        c = world.global_to_city_xy(p)
+        c = world.global_to_city_xy(p).astype(np.float32)
         mat, paint = world.ground.lookup(c[:, 0], c[:, 1])
         albedo[gi] = _ground_albedo(mat, paint, c[:, 0], c[:, 1], tex_seed)
         specular[gi] = 0.05
-    oi = np.flatnonzero(obj)
+    oi = np.flatnonzero(hits.prim >= 0)
     if len(oi):
         pid = hits.prim[oi]
         # local normal = inverse yaw rotation of the world normal
-        cy, sy = np.cos(prims.yaw[pid]), np.sin(prims.yaw[pid])
+        cy, sy = np.cos(prims.yaw[pid]).astype(np.float32), np.sin(prims.yaw[pid]).astype(np.float32)
         nw = normal[oi]
         n_local = np.stack([cy * nw[:, 0] + sy * nw[:, 1], -sy * nw[:, 0] + cy * nw[:, 1], nw[:, 2]], -1)
-        albedo[oi] = _object_albedo(prims, pid, hits.local[oi], n_local.astype(np.float32), tex_seed)
-        mats = prims.material[pid]
-        for m, (ks, sh) in SPECULAR.items():
-            s = mats == m
-            specular[oi[s]] = ks
-            shininess[oi[s]] = sh
-    hit = ~sky
-    nh = normal[hit]
-    dh = dirs[hit].astype(np.float32)
+        albedo[oi] = _object_albedo(prims, pid, hits.local[oi], n_local, tex_seed)
+        ks = _SPEC_KS[prims.material[pid]]
+        specular[oi] = ks
+        shininess[oi] = np.where(ks > 0, _SPEC_SH[prims.material[pid]], 10.0)
     sun = L.sun.astype(np.float32)
     sun_rgb = L.sun_color.astype(np.float32)[None]
-    lam = np.clip(nh @ sun, 0, 1)[:, None]
-    amb = L.ambient.astype(np.float32)[None] * (0.55 + 0.45 * nh[:, 2:3])
-    col = albedo[hit] * (amb + sun_rgb * lam)
-    half_vec = sun[None] - dh
+    lam = np.clip(normal @ sun, 0, 1)
+    amb = L.ambient.astype(np.float32)[None] * (0.55 + 0.45 * normal[:, 2:3])
+    col = albedo * (amb + sun_rgb * lam[:, None])
+    half_vec = sun[None] - d32
     half_vec /= np.linalg.norm(half_vec, axis=1, keepdims=True)
-    cos_h = np.clip(np.einsum("ij,ij->i", nh, half_vec), 0, 1)
-    spec = cos_h ** shininess[hit]
-    col += ((specular[hit] * spec)[:, None] * (lam > 0)) * sun_rgb
+    spec = np.clip(np.einsum("ij,ij->i", normal, half_vec), 0, 1) ** shininess
+    col += ((specular * spec) * (lam > 0))[:, None] * sun_rgb
     # reflections of the sky on shiny surfaces (Fresnel-ish)
-    cos_v = np.abs(np.einsum("ij,ij->i", nh, dh))
-    refl = (specular[hit] * (1 - cos_v) ** 3)[:, None]
+    cos_v = np.abs(np.einsum("ij,ij->i", normal, d32))
+    refl = (specular * (1 - cos_v) ** 3)[:, None]
     horizon = L.horizon.astype(np.float32)[None]
     col = col * (1 - refl) + refl * horizon
-    fog = np.exp(-hits.t[hit].astype(np.float32) / np.float32(L.fog_distance))[:, None]
-    color[hit] = col * fog + horizon * (1 - fog)
+    t = np.where(sky, 0, hits.t).astype(np.float32)
+    fog = np.exp(-t / np.float32(L.fog_distance))[:, None]
+    color = col * fog + horizon * (1 - fog)
     color[sky] = sky_color(dirs[sky], L, tex_seed)
     # sensor: exposure, tone curve, vignetting, noise
     h, w = hw

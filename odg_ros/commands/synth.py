@@ -1,0 +1,25 @@
+"""``odg synth``: generate the synthetic driving world (docs/SYNTH.md)."""
+from __future__ import annotations
+
+
+def add_arguments(parser) -> None:
+    from odg_ros.data.synth.generate import DEFAULT_IMAGE_HW
+    parser.add_argument("--out", required=True, help="output dataroot (must not hold this version yet)")
+    parser.add_argument("--scenes", type=int, default=6, help="number of scenes (every 5th goes to val)")
+    parser.add_argument("--seconds", type=float, default=10.0, help="length of each scene (2 keyframes/s)")
+    parser.add_argument("--seed", type=int, default=0, help="same seed, same bytes")
+    parser.add_argument("--image-size", type=int, nargs=2, default=list(DEFAULT_IMAGE_HW), metavar=("H", "W"),
+                        help="camera image size (intrinsics are the nuScenes ones scaled from 900 x 1600)")
+    parser.add_argument("--version", default="v1.0-trainval", help="name of the table folder")
+
+
+def run(args) -> int:
+    from odg_ros.data.synth.generate import generate
+    summary = generate(args.out, scenes=args.scenes, seconds=args.seconds, seed=args.seed,
+                       image_hw=tuple(args.image_size), version=args.version)
+    print(f"wrote {summary['scenes']} scenes, {summary['keyframes']} keyframes, {summary['images']} images, "
+          f"{summary['lidar_sweeps']} LiDAR sweeps to {args.out} in {summary['seconds']:.0f} s "
+          f"({summary['bytes'] / 2 ** 20:.0f} MiB)")
+    print(f"train: {len(summary['split']['train'])} scenes, val: {len(summary['split']['val'])} scenes "
+          f"(splits.json); next: odg prepare --dataroot {args.out} --out {args.out}/infos_train.pkl")
+    return 0
