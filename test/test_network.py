@@ -262,3 +262,19 @@ def test_every_trainable_parameter_gets_a_gradient():
     total.backward()
     dead = [n for n, p in model.named_parameters() if p.requires_grad and p.grad is None]
     assert not dead, dead
+
+
+def test_history_without_grad_gives_the_same_output_and_no_backbone_grad_from_the_past():
+    cfg = tiny_config()
+    model = ODG(cfg).train()
+    for m in model.modules():  # deterministic training-mode forward
+        if isinstance(m, torch.nn.Dropout):
+            m.p = 0.0
+        if isinstance(m, DaSAttention):
+            m.dropout = 0.0
+    _, inputs = run(model, cfg, seed=5)
+    full = model(*inputs)
+    cheap = model(*inputs, history_grad=False)
+    torch.testing.assert_close(full.last.means, cheap.last.means, rtol=1e-4, atol=1e-4)
+    cheap.last.logits.sum().backward()
+    assert model.backbone.layer4[0].conv1.weight.grad is not None

@@ -37,6 +37,9 @@ def add_arguments(parser):
                         help="ablation: no Gaussian-splatting rendering supervision")
     parser.add_argument("--render-pixels", type=int, default=512,
                         help="supervised LiDAR pixels per camera and step")
+    parser.add_argument("--no-history-grad", action="store_true",
+                        help="backbone gradients through the current frame only (faster, "
+                             "SparseBEV's stop_prev_grad)")
     parser.add_argument("--set", action="append", metavar="KEY=VALUE",
                         help="model config override, e.g. --set das_attention=false")
     parser.add_argument("--backbone-weights", help="torchvision-layout ResNet .pth to start from")
@@ -52,6 +55,7 @@ def run(args) -> int:
                         batch_size=args.batch_size, lr=args.lr, warmup_steps=args.warmup,
                         workers=args.workers, seed=args.seed, render=not args.no_render,
                         render_pixels_per_camera=args.render_pixels,
+                        history_grad=not args.no_history_grad,
                         checkpoint_every=args.checkpoint_every, device=args.device,
                         backbone_weights=args.backbone_weights, init_checkpoint=args.init,
                         resume=args.resume)

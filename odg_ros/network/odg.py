@@ -2,7 +2,8 @@
 
 Feature extraction is separate from decoding so the online path runs the backbone on the
 newest frame only and reuses the cached features of the k-1 previous frames
-(``extract_features`` once per frame, ``decode`` over the cached list).
+(``extract_features`` once per frame, ``decode`` over the cached list, or ``decode_ring``
+over a ``FeatureRing`` that keeps the cached frames in the sampling layout).
 """
 from __future__ import annotations
 
@@ -14,7 +15,9 @@ from .backbone import ResNet
 from .decoder import Decoder
 from .fpn import FPN
 from .outputs import ODGOutput
+from .feature_ring import FeatureRing
 from .queries import DualGaussianQueries
+from .sampling import camera_rows_layout
 
 
 class ODG(nn.Module):
@@ -28,23 +31,20 @@ class ODG(nn.Module):
         self.neck = FPN(self.backbone.out_channels, cfg.fpn_channels)
         self.queries = DualGaussianQueries(num_dynamic, num_static, cfg.embed_dims, cfg.pc_range)
         self.decoder = Decoder(cfg, num_dynamic)
+        # True: sample the camera-rows layout (2-D grid_sample); False: the plain per-camera
+        # 3-D layout, kept as the reference the fast path is tested and benchmarked against
+        self.fast_sampling = True
 
     def extract_features(self, images: torch.Tensor) -> list[torch.Tensor]:
         """images [B, N, 3, H, W] (normalised) -> L levels [B, N, C, H_l, W_l].
 
-        The levels are stored in the sampling layout [B, G, C/G, N, H_l, W_l] and returned as
-        views, so decoding needs no re-layout of cached frames.
+        The levels are views of the FPN output (channels-last memory, no copy); ``decode``
+        lays the frames out for sampling (``sampling.camera_rows_layout``), and a
+        ``FeatureRing`` does it once per frame for ``decode_ring``.
         """
         B, N = images.shape[:2]
         x = images.flatten(0, 1).contiguous(memory_format=torch.channels_last)
-        levels = self.neck(self.backbone(x))
-        G = self.cfg.num_groups
-        out = []
-        for f in levels:
-            _, C, h, w = f.shape
-            f = f.reshape(B, N, G, C // G, h, w).permute(0, 2, 3, 1, 4, 5).contiguous()
-            out.append(f.permute(0, 3, 1, 2, 4, 5).reshape(B, N, C, h, w))
-        return out
+        return [f.unflatten(0, (B, N)) for f in self.neck(self.backbone(x))]
 
     def decode(self, frame_feats: list[list[torch.Tensor]], ego2img: torch.Tensor,
                ego_warp: torch.Tensor, time_delta: torch.Tensor,
@@ -64,6 +64,14 @@ class ODG(nn.Module):
         missing = self.cfg.num_frames - T
         if missing < 0:
             raise ValueError(f"{T} frames given, the model takes at most {self.cfg.num_frames}")
+        if self.fast_sampling:
+            # the T given frames are laid out once; the missing ones read the oldest
+            G, L = self.cfg.num_groups, len(frame_feats[0])
+            mlvl = [camera_rows_layout([feats[level] for feats in frame_feats], G)
+                    for level in range(L)]
+            return self._decode_stored(mlvl, ego2img, ego_warp, time_delta,
+                                       self._frame_index(list(range(T)), ego2img.device),
+                                       gaussian_attributes, prune)
         if missing:
             frame_feats = list(frame_feats) + [frame_feats[-1]] * missing
             ego2img = torch.cat([ego2img, ego2img[:, -1:].expand(-1, missing, -1, -1, -1)], 1)
@@ -77,11 +85,50 @@ class ODG(nn.Module):
             for feats in frame_feats:
                 f = feats[level]
                 _, N, C, h, w = f.shape
-                per_frame.append(f.view(B, N, G, C // G, h, w).permute(0, 2, 3, 1, 4, 5))
+                per_frame.append(f.reshape(B, N, G, C // G, h, w).permute(0, 2, 3, 1, 4, 5))
             stacked = torch.stack(per_frame)                            # [T, B, G, c, N, h, w]
             mlvl.append(stacked.reshape(-1, *stacked.shape[3:]))
+        return self._decode_stored(mlvl, ego2img, ego_warp, time_delta, None,
+                                   gaussian_attributes, prune)
+
+    def decode_ring(self, ring: FeatureRing, ego2img: torch.Tensor, ego_warp: torch.Tensor,
+                    time_delta: torch.Tensor, gaussian_attributes: bool | None = None,
+                    prune=None) -> ODGOutput:
+        """``decode`` over the frames cached in ``ring`` (newest first, T = len(ring)), with
+        the geometry of those T frames as for ``decode``: no per-step re-layout of history."""
+        T = len(ring)
+        if T == 0:
+            raise ValueError("decode_ring: the feature ring is empty")
+        if not (ego2img.shape[1] == ego_warp.shape[1] == time_delta.shape[1] == T):
+            raise ValueError(f"{T} cached frames but geometry for {ego2img.shape[1]}, "
+                             f"{ego_warp.shape[1]}, {time_delta.shape[1]} frames")
+        if T > self.cfg.num_frames:
+            raise ValueError(f"{T} frames cached, the model takes at most {self.cfg.num_frames}")
+        slots = ring.slots()                       # slots[t]: storage slot of time step t
+        order = sorted(range(T), key=lambda t: slots[t])   # time step of each stored slot
+        index = torch.tensor(order, device=ego2img.device)
+        return self._decode_stored(ring.levels(), ego2img.index_select(1, index),
+                                   ego_warp.index_select(1, index),
+                                   time_delta.index_select(1, index),
+                                   self._frame_index(slots, ego2img.device),
+                                   gaussian_attributes, prune)
+
+    def _frame_index(self, slots: list[int], device) -> torch.Tensor | None:
+        """Stored frame read by each of the model's ``num_frames`` time steps: ``slots`` for
+        the given ones, the oldest again for the rest; None when that is the identity."""
+        index = slots + [slots[-1]] * (self.cfg.num_frames - len(slots))
+        if index == list(range(self.cfg.num_frames)):
+            return None
+        return torch.tensor(index, device=device)
+
+    def _decode_stored(self, mlvl, ego2img, ego_warp, time_delta, frame_index,
+                       gaussian_attributes, prune) -> ODGOutput:
+        """mlvl: L levels of F stored frames in a sampling layout; geometry [B, F, ...] in the
+        same storage order; frame_index [num_frames] (see ``SpatioTemporalSampling``)."""
+        B = ego2img.shape[0]
         geometry = {"ego2img": ego2img.float(), "ego_warp": ego_warp.float(),
-                    "time_delta": time_delta.float(), "image_hw": self.cfg.image_size}
+                    "time_delta": time_delta.float(), "image_hw": self.cfg.image_size,
+                    "frame_index": frame_index}
         query, means, boxes = self.queries(B)
         if gaussian_attributes is None:
             gaussian_attributes = self.training
@@ -89,11 +136,23 @@ class ODG(nn.Module):
         return ODGOutput(init_means=means, layers=layers, num_dynamic=self.num_dynamic)
 
     def forward(self, images: torch.Tensor, ego2img: torch.Tensor, ego_warp: torch.Tensor,
-                time_delta: torch.Tensor, **decode_options) -> ODGOutput:
-        """images [B, T, N, 3, H, W]: the backbone runs over all frames (training / offline)."""
+                time_delta: torch.Tensor, history_grad: bool = True,
+                **decode_options) -> ODGOutput:
+        """images [B, T, N, 3, H, W]: the backbone runs over all frames (training / offline).
+
+        history_grad=False runs the backbone on frames t > 0 without autograd (SparseBEV's
+        ``stop_prev_grad``): the same outputs, a backbone backward over one frame instead of T.
+        """
         B, T = images.shape[:2]
-        feats = self.extract_features(images.flatten(0, 1))            # batch = B*T
-        frame_feats = [[f.unflatten(0, (B, T))[:, t] for f in feats] for t in range(T)]
+        if history_grad or T == 1:
+            feats = self.extract_features(images.flatten(0, 1))        # batch = B*T
+            frame_feats = [[f.unflatten(0, (B, T))[:, t] for f in feats] for t in range(T)]
+        else:
+            current = self.extract_features(images[:, 0])
+            with torch.no_grad():
+                past = self.extract_features(images[:, 1:].flatten(0, 1))
+            frame_feats = [current] + [[f.unflatten(0, (B, T - 1))[:, t] for f in past]
+                                       for t in range(T - 1)]
         return self.decode(frame_feats, ego2img, ego_warp, time_delta, **decode_options)
 
     def parameter_groups(self) -> dict[str, int]:

@@ -52,6 +52,7 @@ class TrainOptions:
     seed: int = 0
     render: bool = True
     render_pixels_per_camera: int = 512
+    history_grad: bool = True             # False: no backbone gradient through past frames
     checkpoint_every: int = 500
     device: str = "auto"
     backbone_weights: str | None = None   # torchvision-layout ResNet state_dict (.pth)
@@ -202,7 +203,7 @@ class Trainer:
             with torch.autocast(self.device.type, dtype=self.amp_dtype,
                                 enabled=self.amp_dtype is not None):
                 output = model(batch["images"], batch["ego2img"], batch["ego_warp"],
-                               batch["time_delta"])
+                               batch["time_delta"], history_grad=self.opts.history_grad)
             losses = self.criterion(output, batch)
             loss = losses["loss"] + zero_weight_anchor(output)
             finite = bool(torch.isfinite(loss))
