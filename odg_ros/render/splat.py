@@ -85,9 +85,24 @@ def render_cameras(means: torch.Tensor, scales: torch.Tensor, rotations: torch.T
 
     Gaussian tensors as in render_gaussians; cam_from_ego [N, 4, 4]; intrinsics [N, 3, 3];
     pixels: N tensors [P_n, 2]; image_hw (H, W) shared. Returns N RenderResults.
+    Always computed in float32 or float64, whatever autocast is active: half-precision
+    Gaussians are rendered (and returned) in float32. Projection to pixels needs more than
+    bf16's 8 mantissa bits (a 704 px image has a 4 px step there) and the sparse products
+    have no half-precision CPU kernels.
     """
     height, width = _check_inputs(means, scales, rotations, opacities, features, cam_from_ego,
                                   intrinsics, pixels, image_hw, near, tile_size)
+    if means.dtype in (torch.float16, torch.bfloat16):
+        means, scales, rotations, opacities, features = (
+            t.float() for t in (means, scales, rotations, opacities, features))
+    with torch.autocast(means.device.type, enabled=False):
+        return _render_cameras(means, scales, rotations, opacities, features, cam_from_ego,
+                               intrinsics, pixels, height, width, near, tile_size)
+
+
+def _render_cameras(means, scales, rotations, opacities, features, cam_from_ego, intrinsics,
+                    pixels, height, width, near, tile_size) -> list[RenderResult]:
+    """render_cameras on checked inputs of one float32/float64 dtype, autocast off."""
     num_cameras = cam_from_ego.shape[0]
     counts = [int(p.shape[0]) for p in pixels]
     pixel_uv = torch.cat([p.to(means.dtype) for p in pixels], dim=0) if pixels else \
