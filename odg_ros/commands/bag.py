@@ -32,11 +32,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args) -> int:
     from odg_ros.ros.bag import write_scene_bag
-    from odg_ros.ros.nuscenes_source import NuScenesTables
+    from odg_ros.ros.nuscenes_source import NuScenesSensorTables
 
     dataroot = args.world if args.source == "synth" else args.dataroot
     try:
-        tables = NuScenesTables(dataroot, args.version)
+        tables = NuScenesSensorTables(dataroot, args.version)
         scenes = args.scene or tables.scene_names()
         if not scenes:
             raise ValueError(f"{dataroot}: no scenes")

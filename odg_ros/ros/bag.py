@@ -282,7 +282,7 @@ def _scene_messages(records: list[SensorRecord]) -> Iterator[tuple[str, int, obj
 
 def write_scene_bag(records: list[SensorRecord], out, *, force: bool = False,
                     progress: bool = True) -> BagSummary:
-    """Write one scene's records (``NuScenesTables.scene_records``) as an MCAP bag at ``out``.
+    """Write one scene's records (``NuScenesSensorTables.scene_records``) as an MCAP bag at ``out``.
 
     ``out`` must not exist, unless ``force`` and it is a bag folder (has metadata.yaml), which
     is then replaced. A failure leaves no partial bag behind.

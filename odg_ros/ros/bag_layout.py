@@ -7,10 +7,10 @@ default::
     /CAM_FRONT/camera_info            sensor_msgs/msg/CameraInfo       frame CAM_FRONT  best effort
     ... the same for the other five cameras
     /LIDAR_TOP                        sensor_msgs/msg/PointCloud2      frame LIDAR_TOP  best effort
-    /tf                               tf2_msgs/msg/TFMessage           map -> base_link, reliable
-    /tf_static                        tf2_msgs/msg/TFMessage           base_link -> sensors, reliable,
-                                                                       transient local
-    /odom                             nav_msgs/msg/Odometry            map, child base_link, reliable
+    /tf                               tf2_msgs/msg/TFMessage           map -> base_link  reliable
+    /tf_static                        tf2_msgs/msg/TFMessage           base_link -> sensors
+                                                                       reliable, transient local
+    /odom                             nav_msgs/msg/Odometry            map, base_link  reliable
 
 Camera frames are the nuScenes camera frames, i.e. optical frames (x right, y down, z forward),
 so ``base_link -> CAM_*`` is the nuScenes ``calibrated_sensor`` pose as it is.

@@ -2,9 +2,11 @@
 
 Only what a bag needs: for every camera and LiDAR ``sample_data`` of a scene (keyframes AND
 sweeps) its channel, microsecond stamp, file, ego pose at that stamp and the sensor's
-calibration. Tables used (``<dataroot>/<version>/*.json``, the nuScenes schema): scene, sample,
-sample_data, ego_pose, calibrated_sensor, sensor. A sweep belongs to the scene of the sample
-its ``sample_token`` names (as in the nuScenes devkit).
+calibration. Tables used (``<dataroot>/<version>/*.json``, the nuScenes schema): scene,
+sample, sample_data, ego_pose, calibrated_sensor, sensor. A sweep belongs to the scene of the
+sample its ``sample_token`` names (as in the nuScenes devkit). Narrower than
+odg_ros.data.nuscenes_tables (the training-side reader): no annotation tables are needed, so
+it also bags datasets or splits without them.
 """
 from __future__ import annotations
 
@@ -48,13 +50,13 @@ def find_version(dataroot: Path) -> str:
     versions = sorted(p.name for p in dataroot.iterdir() if (p / "scene.json").is_file())
     if len(versions) != 1:
         found = ", ".join(versions) if versions else "none"
-        raise ValueError(f"{dataroot}: expected exactly one folder with scene.json (found: {found});"
-                         " pass --version")
+        raise ValueError(f"{dataroot}: expected exactly one folder with scene.json "
+                         f"(found: {found}); pass --version")
     return versions[0]
 
 
-class NuScenesTables:
-    """The tables of one nuScenes version, indexed by token."""
+class NuScenesSensorTables:
+    """The sensor tables of one nuScenes version, indexed by token."""
 
     def __init__(self, dataroot, version: str | None = None):
         self.dataroot = Path(dataroot)
@@ -108,7 +110,8 @@ class NuScenesTables:
             if channel not in channels:
                 continue
             if channel != LIDAR_CHANNEL and (K is None or K.shape != (3, 3)):
-                raise ValueError(f"camera {channel} calibration {calib_token} has no 3x3 intrinsics")
+                raise ValueError(f"camera {channel} calibration {calib_token} has no 3x3 "
+                                 "intrinsics")
             pose = self.tables["ego_pose"][row["ego_pose_token"]]
             records.append(SensorRecord(
                 channel=channel,

@@ -15,7 +15,7 @@ import tiny_nuscenes
 from odg_ros import geometry
 from odg_ros.ros import bag_layout as layout
 from odg_ros.ros.bag import bag_topics, deserialize, ego_twists, iter_bag, write_scene_bag
-from odg_ros.ros.nuscenes_source import NuScenesTables
+from odg_ros.ros.nuscenes_source import NuScenesSensorTables
 
 
 @pytest.fixture(scope="module")
@@ -62,7 +62,7 @@ def test_counts_per_topic_and_metadata(world, bags):
 
 def test_stamps_ordered_and_from_nuscenes_microseconds(world, bags):
     root, expected = world
-    tables = NuScenesTables(root)
+    tables = NuScenesSensorTables(root)
     for scene in expected:
         stamps = []
         for topic, log_ns, msgtype, raw in iter_bag(bags / scene):
@@ -83,7 +83,8 @@ def test_jpeg_bytes_decode_to_the_written_image(world, bags):
     scene = "scene-0001"
     exp = expected[scene]
     frame = 0
-    for topic, _, msgtype, raw in iter_bag(bags / scene, topics=["/CAM_BACK_LEFT/image_rect_compressed"]):
+    topic = "/CAM_BACK_LEFT/image_rect_compressed"
+    for _, _, msgtype, raw in iter_bag(bags / scene, topics=[topic]):
         msg = deserialize(raw, msgtype)
         assert msg.format == "jpeg" and msg.header.frame_id == "CAM_BACK_LEFT"
         image = np.asarray(Image.open(io.BytesIO(msg.data.tobytes())).convert("RGB"), np.int32)
@@ -97,7 +98,7 @@ def test_jpeg_bytes_decode_to_the_written_image(world, bags):
 def test_tf_equals_ego_pose_and_static_equals_calibration(world, bags):
     root, _ = world
     scene = "scene-0001"
-    records = NuScenesTables(root).scene_records(scene)
+    records = NuScenesSensorTables(root).scene_records(scene)
     pose_by_ns = {r.timestamp_us * 1000: r.T_global_from_ego for r in records}
     calib = {r.channel: r.T_ego_from_sensor for r in records}
 
@@ -144,7 +145,7 @@ def test_odometry_twist_and_camera_info(world, bags):
 
 def test_point_cloud_matches_the_sweep(world, bags):
     root, _ = world
-    records = [r for r in NuScenesTables(root).scene_records("scene-0002")
+    records = [r for r in NuScenesSensorTables(root).scene_records("scene-0002")
                if r.channel == "LIDAR_TOP"]
     clouds = list(iter_bag(bags / "scene-0002", topics=["/LIDAR_TOP"]))
     assert len(clouds) == len(records)
@@ -157,7 +158,7 @@ def test_point_cloud_matches_the_sweep(world, bags):
 def test_single_scene_without_lidar_and_refusals(world, tmp_path):
     root, expected = world
     out = tmp_path / "one"
-    tables = NuScenesTables(root)
+    tables = NuScenesSensorTables(root)
     summary = write_scene_bag(tables.scene_records("scene-0002", with_lidar=False), out,
                               progress=False)
     want = {t: n for t, n in expected["scene-0002"]["counts"].items() if t != "/LIDAR_TOP"}
@@ -174,7 +175,7 @@ def test_single_scene_without_lidar_and_refusals(world, tmp_path):
 
 def test_missing_image_fails_cleanly(world, tmp_path):
     root, _ = world
-    records = NuScenesTables(root).scene_records("scene-0002", with_lidar=False)
+    records = NuScenesSensorTables(root).scene_records("scene-0002", with_lidar=False)
     broken = [r if i != 10 else dataclasses.replace(r, path=tmp_path / "nope.jpg")
               for i, r in enumerate(records)]
     with pytest.raises(FileNotFoundError, match="nope.jpg"):

@@ -8,7 +8,6 @@ import textwrap
 import time
 
 import numpy as np
-import pytest
 
 from ros_test_utils import RawRecorder, non_loopback, udp_local_addresses
 
@@ -87,8 +86,7 @@ def test_tf2_msgs_has_the_upstream_type_hash(ros_context, rclpy_module):
 
 
 PUBLISHER_SCRIPT = textwrap.dedent("""
-    import sys, time
-    import numpy as np
+    import os, sys, time
     import rclpy
     from rclpy.qos import QoSProfile, ReliabilityPolicy
     sys.path.insert(0, {test_dir!r})
@@ -108,7 +106,8 @@ PUBLISHER_SCRIPT = textwrap.dedent("""
         obj_pub.publish(object_array(m))
     grid_pub.wait_for_all_acked(rclpy.duration.Duration(seconds=10))
     obj_pub.wait_for_all_acked(rclpy.duration.Duration(seconds=10))
-    print("SOCKETS", sorted(__import__("ros_test_utils").udp_local_addresses(__import__("os").getpid())))
+    from ros_test_utils import udp_local_addresses
+    print("SOCKETS", sorted(udp_local_addresses(os.getpid())))
     node.destroy_node()
     rclpy.shutdown()
 """)

@@ -12,7 +12,7 @@ import pytest
 import tiny_nuscenes
 from odg_ros.ros import bag_layout as layout
 from odg_ros.ros.bag import bag_topics, iter_bag, write_scene_bag
-from odg_ros.ros.nuscenes_source import NuScenesTables
+from odg_ros.ros.nuscenes_source import NuScenesSensorTables
 from ros_test_utils import RawRecorder, non_loopback, udp_local_addresses
 
 
@@ -21,7 +21,7 @@ def bag(tmp_path_factory):
     root = tmp_path_factory.mktemp("tiny_nuscenes")
     tiny_nuscenes.build(root, scene_durations_s=(1.0,))
     out = tmp_path_factory.mktemp("bags") / "scene-0001"
-    write_scene_bag(NuScenesTables(root).scene_records("scene-0001"), out, progress=False)
+    write_scene_bag(NuScenesSensorTables(root).scene_records("scene-0001"), out, progress=False)
     return out
 
 
@@ -118,7 +118,7 @@ def test_clock_and_late_tf_static(ros_context, rclpy_module, bag):
     while replay.poll() is None and len(recorder.received["/tf"]) < 5:
         executor.spin_once(timeout_sec=0.01)
     late = {}
-    late_sub = node.create_subscription(
+    node.create_subscription(
         TFMessage, "/tf_static", lambda raw: late.setdefault("raw", raw),
         QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                    durability=DurabilityPolicy.TRANSIENT_LOCAL), raw=True)

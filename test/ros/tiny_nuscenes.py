@@ -84,7 +84,8 @@ def build(root: Path, scene_durations_s=(1.0, 0.5), with_lidar=True) -> dict:
         tables["log"].append({"token": _token("log", scene_index), "location": "tiny"})
         tables["scene"].append({"token": scene_token, "name": name,
                                 "log_token": _token("log", scene_index),
-                                "nbr_samples": len(keyframes), "first_sample_token": sample_tokens[0],
+                                "nbr_samples": len(keyframes),
+                                "first_sample_token": sample_tokens[0],
                                 "last_sample_token": sample_tokens[-1], "description": "tiny"})
 
         def nearest_sample(ts):
