@@ -74,6 +74,7 @@ class NuScenesSensorTables:
             if not isinstance(rows, list):
                 raise ValueError(f"{path}: expected a JSON list of records")
             self.tables[name] = {row["token"]: row for row in rows}
+        self._by_scene: dict[str, list[dict]] | None = None
 
     def scene_names(self) -> list[str]:
         return sorted(row["name"] for row in self.tables["scene"].values())
@@ -85,19 +86,30 @@ class NuScenesSensorTables:
         raise KeyError(f"scene {name!r} not in {self.dataroot / self.version} "
                        f"(scenes: {', '.join(self.scene_names())})")
 
+    def _sample_data_by_scene(self) -> dict[str, list[dict]]:
+        """scene token -> its sample_data rows (one pass over the table, then cached: the full
+        nuScenes has millions of rows and bagging every scene must not rescan them)."""
+        if self._by_scene is None:
+            scene_of_sample = {tok: row["scene_token"] for tok, row in self.tables["sample"].items()}
+            self._by_scene = {}
+            for row in self.tables["sample_data"].values():
+                scene_token = scene_of_sample.get(row["sample_token"])
+                if scene_token is None:
+                    raise ValueError(f"sample_data {row['token']} names unknown sample "
+                                     f"{row['sample_token']}")
+                self._by_scene.setdefault(scene_token, []).append(row)
+        return self._by_scene
+
     def scene_records(self, scene_name: str, with_lidar: bool = True) -> list[SensorRecord]:
         """All camera (and LiDAR) sample_data of a scene, sorted by (stamp, channel)."""
         scene = self._scene(scene_name)
-        sample_tokens = {tok for tok, row in self.tables["sample"].items()
-                         if row["scene_token"] == scene["token"]}
-        if not sample_tokens:
-            raise ValueError(f"scene {scene_name!r} has no samples")
+        rows = self._sample_data_by_scene().get(scene["token"], [])
+        if not rows:
+            raise ValueError(f"scene {scene_name!r} has no sample_data")
         channels = set(CAMERA_NAMES) | ({LIDAR_CHANNEL} if with_lidar else set())
         calib_cache: dict[str, tuple] = {}
         records = []
-        for row in self.tables["sample_data"].values():
-            if row["sample_token"] not in sample_tokens:
-                continue
+        for row in rows:
             calib_token = row["calibrated_sensor_token"]
             if calib_token not in calib_cache:
                 calib = self.tables["calibrated_sensor"][calib_token]
