@@ -455,3 +455,19 @@ def test_bad_input_raises_clear_errors():
         render(scene, cam * 2, k, pixels)
     with pytest.raises(ValueError, match="float64"):
         render(dict(scene, opacities=scene["opacities"].float()), cam, k, pixels)
+
+
+def test_autocast_and_half_precision_inputs_render_in_float32():
+    scene, cam, k, pixels = random_scene(12, 200, 200, dtype=torch.float32)
+    plain = render(scene, cam, k, pixels)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        autocast = render(scene, cam, k, pixels)
+    for a, b in zip(plain, autocast):
+        assert b.dtype == torch.float32
+        torch.testing.assert_close(a, b)
+    half = {n: t.bfloat16() for n, t in scene.items()}
+    result = render(half, cam, k, pixels)
+    rounded = render({n: t.float() for n, t in half.items()}, cam, k, pixels)
+    for a, b in zip(rounded, result):
+        assert b.dtype == torch.float32
+        torch.testing.assert_close(a, b)
