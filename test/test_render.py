@@ -221,6 +221,13 @@ def test_tiles_and_depth_batches_do_not_change_result(monkeypatch, dense):
         other = render(scene, cam, k, pixels, tile_size=tile_size)
         for a, b in zip(base, other):
             torch.testing.assert_close(a, b, atol=1e-12, rtol=1e-12)
+    # Gradients too: the running transmittance is carried across depth batches.
+    monkeypatch.setattr(splat_module, "CANDIDATE_CHUNK", 997)
+    batched = backward_grads(scene, cam, k, pixels)
+    monkeypatch.setattr(splat_module, "CANDIDATE_CHUNK", 10**9)
+    single = backward_grads(scene, cam, k, pixels)
+    for name in single:
+        torch.testing.assert_close(batched[name], single[name], atol=1e-10, rtol=1e-10)
 
 
 def test_render_cameras_equals_single_renders():
@@ -259,6 +266,27 @@ def test_gradcheck_tiny_scene():
     out = fn(*inputs)
     per_pixel_contributions = out[2]
     assert (per_pixel_contributions > 0.3).all()
+    assert torch.autograd.gradcheck(fn, inputs, eps=1e-6, atol=1e-6, rtol=1e-5)
+
+
+def test_gradcheck_across_depth_batches_with_early_stop(monkeypatch):
+    # One splat per depth batch; every pixel stops after 4 of the 7 Gaussians (T = 2.2e-4 ..
+    # 3.3e-4 after the 4th, 2.8e-5 .. 5.8e-5 after the 5th), far enough from 1e-4 that finite
+    # differences do not cross the cut-off.
+    monkeypatch.setattr(splat_module, "CANDIDATE_CHUNK", 1)
+    z = [3.0, 4.0, 5.0, 6.0, 7.0, 8.0, 9.0]
+    scene, cam, k = simple_scene([[0.02 * i, -0.01 * i, d] for i, d in enumerate(z)],
+                                 [[0.4, 0.35, 0.3]] * 7, opacities=[0.88] * 7)
+    pixels = torch.tensor([[176.5, 64.5], [177.0, 63.0], [175.0, 65.5]], dtype=torch.float64)
+    names = ("means", "scales", "rotations", "opacities", "features")
+    inputs = tuple(scene[n].clone().requires_grad_(True) for n in names)
+
+    def fn(*args):
+        r = render_gaussians(*args, cam, k, pixels, HW)
+        return r.depth, r.features, r.alpha
+
+    alpha = fn(*inputs)[2]
+    assert (alpha > 1 - 1e-3).all()     # the early stop is active at every pixel
     assert torch.autograd.gradcheck(fn, inputs, eps=1e-6, atol=1e-6, rtol=1e-5)
 
 
