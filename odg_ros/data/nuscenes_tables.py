@@ -18,6 +18,7 @@ from odg_ros.geometry import make_transform
 
 REQUIRED_TABLES = ("scene", "sample", "sample_data", "ego_pose", "calibrated_sensor", "sensor",
                    "sample_annotation", "instance", "category", "log")
+OPTIONAL_TABLES = ("attribute", "visibility", "map")
 
 # nuScenes general category -> detection class (the nuScenes detection benchmark's mapping);
 # every other category has no box class.
@@ -53,6 +54,11 @@ class NuScenesTables:
                 raise FileNotFoundError(f"missing nuScenes table {path}")
             with open(path) as f:
                 self.tables[name] = json.load(f)
+        for name in OPTIONAL_TABLES:
+            path = os.path.join(root, f"{name}.json")
+            if os.path.exists(path):
+                with open(path) as f:
+                    self.tables[name] = json.load(f)
         path = os.path.join(root, "lidarseg.json")
         self.lidarseg = {}
         if os.path.exists(path):

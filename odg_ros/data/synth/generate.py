@@ -35,6 +35,30 @@ ANNOTATION_RANGE = 60.0        # annotate things whose centre is this close to t
 BASE_TIMESTAMP_US = 1_533_000_000_000_000
 
 
+def num_keyframes(seconds: float) -> int:
+    return max(1, int(round(seconds * rig.KEYFRAME_HZ)))
+
+
+def scene_name(index: int) -> str:
+    return f"scene-{index + 1:04d}"
+
+
+def scene_world(seed: int, index: int, seconds: float) -> World:
+    """The world of scene ``index`` exactly as ``generate`` builds it (tests rebuild it)."""
+    duration = (num_keyframes(seconds) - 1) / rig.KEYFRAME_HZ + 0.2
+    return build_world(np.random.SeedSequence([seed, index]), scene_name(index), duration)
+
+
+def keyframe_time(k: int) -> float:
+    """Seconds from the scene start to keyframe k's LiDAR stamp (end of its sweep)."""
+    return (k * rig.SWEEPS_PER_KEYFRAME + 1) / rig.LIDAR_HZ
+
+
+def camera_time(m: int, name: str) -> float:
+    """Seconds from the scene start to camera ``name``'s exposure in camera set m."""
+    return m / rig.CAMERA_HZ + rig.CAMERA_DELAY_S[name]
+
+
 def split_scenes(names: list[str]) -> dict:
     """Every fifth scene (at least one when there are two or more) goes to val."""
     val = [n for i, n in enumerate(names) if i % 5 == 4]
@@ -53,10 +77,9 @@ class _SceneWriter:
     def __init__(self, out, version, tables: Tables, seed, index, seconds, image_hw):
         self.out, self.version, self.tables, self.seed = out, version, tables, seed
         self.index = index
-        self.name = f"scene-{index + 1:04d}"
-        self.keyframes = max(1, int(round(seconds * rig.KEYFRAME_HZ)))
-        duration = (self.keyframes - 1) / rig.KEYFRAME_HZ + 0.2
-        self.world: World = build_world(np.random.SeedSequence([seed, index]), self.name, duration)
+        self.name = scene_name(index)
+        self.keyframes = num_keyframes(seconds)
+        self.world: World = scene_world(seed, index, seconds)
         self.hw = tuple(int(v) for v in image_hw)
         self.cams = rig.cameras(self.hw)
         self.T_ego_lidar = rig.lidar_T_ego_from_lidar()
@@ -113,10 +136,9 @@ class _SceneWriter:
     # -- sensors -------------------------------------------------------------------------------------
     def camera_set(self, m, k, key):
         """Render camera set m (its six images at their own stamps). Returns keyframe data."""
-        base = m / rig.CAMERA_HZ
         out = []
         for ci, cam in enumerate(self.cams):
-            t = base + rig.CAMERA_DELAY_S[cam.name]
+            t = camera_time(m, cam.name)
             prims = self.world.prims_at(t)
             T_global_cam = self.world.ego_pose(t) @ cam.T_ego_from_cam
             hits, dirs = sensors.render_camera(prims, T_global_cam, cam.intrinsics, self.hw)
@@ -163,7 +185,7 @@ class _SceneWriter:
         occupied = sem != occupancy.FREE_LABEL
         dist = np.linalg.norm(points[:, :3].astype(np.float64), axis=1)
         dirs = (points[:, :3] / np.maximum(dist, 1e-9)[:, None]) @ self.T_ego_lidar[:3, :3].T
-        mask_lidar = occupancy.traverse(occupied, self.T_ego_lidar[:3, 3], dirs, dist + 0.3)
+        mask_lidar = occupancy.traverse(occupied, self.T_ego_lidar[:3, 3], dirs, dist, stop_at_occupied=False)
         mask_camera = np.zeros_like(mask_lidar)
         T_ego_global = invert_transform(T_global_ego)
         for cam, t_cam, _, _ in cam_data:
@@ -246,7 +268,7 @@ def generate(out: str, scenes: int = 6, seconds: float = 10.0, seed: int = 0, im
     for name in CAMERA_NAMES:
         tables.add("sensor", {"token": token("sensor", name), "channel": name, "modality": "camera"})
     tables.add("sensor", {"token": token("sensor", "LIDAR_TOP"), "channel": "LIDAR_TOP", "modality": "lidar"})
-    keyframes = max(1, int(round(seconds * rig.KEYFRAME_HZ)))
+    keyframes = num_keyframes(seconds)
     bar = tqdm(total=scenes * keyframes, unit="keyframe", desc="odg synth", disable=not progress)
     names = []
     for i in range(scenes):

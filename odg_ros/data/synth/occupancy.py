@@ -7,10 +7,10 @@ Grid (DESIGN.md sec. 3): [-40, -40, -1, 40, 40, 5.4] m in the keyframe's ego fra
   class under the column centre; a primitive labels every voxel whose centre lies in the
   primitive grown by half a voxel (for boxes exactly the voxels the box overlaps). Objects
   overwrite stuff, stuff overwrites the ground.
-* masks: a voxel is observed if a ray reaches or hits it. Rays are traversed through the
-  GT grid (Amanatides-Woo, vectorised over rays) from the sensor origin until the first
-  non-free voxel (included) or the end of the ray: the LiDAR's rays end at their returns,
-  the cameras' pixel rays at the grid boundary.
+* masks: a voxel is observed if a ray reaches or hits it (Amanatides-Woo traversal,
+  vectorised over rays, from the sensor origin). LiDAR rays run to their return (the voxel
+  holding the point included), as in Occ3D; camera rays through the pixels run until the
+  first non-free GT voxel (included) or the grid boundary.
 """
 from __future__ import annotations
 
@@ -75,12 +75,13 @@ def voxelize(world: World, prims: Primitives, T_global_from_ego) -> np.ndarray:
     return sem
 
 
-def traverse(occupied: np.ndarray, origins, dirs, max_t=None, return_hits=False):
+def traverse(occupied: np.ndarray, origins, dirs, max_t=None, return_hits=False, stop_at_occupied=True):
     """Voxels visited by rays (Amanatides-Woo) in a grid of GRID_SHAPE.
 
     occupied: bool [X, Y, Z]; origins [R, 3] or [3] and unit dirs [R, 3] in the grid's (ego)
     frame, metres; max_t [R] metres (None: unbounded). A ray visits voxels from its origin
-    until it has marked the first occupied voxel, passed max_t or left the grid. Rays whose
+    until it has marked the first occupied voxel (only with ``stop_at_occupied``), passed
+    max_t (a voxel counts when the ray enters it at t <= max_t) or left the grid. Rays whose
     origin is outside the grid are ignored. Returns bool [X, Y, Z]; with ``return_hits`` also
     float64 [R]: the distance (metres) at which each ray enters its first occupied voxel (inf
     if it has none before max_t / the grid boundary).
@@ -115,7 +116,7 @@ def traverse(occupied: np.ndarray, origins, dirs, max_t=None, return_hits=False)
         reach = t_entry <= t_max
         visited[flat[reach]] = True
         stop = occ_flat[flat]
-        alive = reach & ~stop
+        alive = reach & ~stop if stop_at_occupied else reach
         if return_hits:
             h = reach & stop
             t_hit[rid[h]] = t_entry[h] * VOXEL
