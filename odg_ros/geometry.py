@@ -14,6 +14,8 @@ from __future__ import annotations
 
 import numpy as np
 
+RIGID_TOL = 1e-3   # rotations from float32 data or rounded calibration files pass
+
 
 def quaternion_to_matrix(q) -> np.ndarray:
     """(w, x, y, z) -> 3x3 rotation. Normalises; raises on a zero or non-finite quaternion."""
@@ -30,8 +32,12 @@ def quaternion_to_matrix(q) -> np.ndarray:
 
 
 def matrix_to_quaternion(R) -> np.ndarray:
-    """3x3 rotation -> (w, x, y, z) with w >= 0 (Shepperd's method, stable for all angles)."""
+    """3x3 rotation -> (w, x, y, z) with w >= 0 (Shepperd's method, stable for all angles).
+    Raises ValueError on a matrix that is not a finite rotation (within RIGID_TOL): its
+    "quaternion" would be NaN or a silently different rotation."""
     R = np.asarray(R, dtype=np.float64)
+    if not _is_rotation(R, RIGID_TOL):
+        raise ValueError(f"not a rotation matrix (finite, orthonormal, det +1): {R.tolist()}")
     trace = np.trace(R)
     if trace > 0:
         s = 2.0 * np.sqrt(trace + 1.0)
@@ -60,22 +66,31 @@ def make_transform(rotation, translation) -> np.ndarray:
 
 
 def invert_transform(T) -> np.ndarray:
-    """Inverse of a rigid 4x4 transform (uses R^T, exact for orthonormal R)."""
+    """Inverse of a rigid 4x4 transform (uses R^T, exact for orthonormal R). Raises
+    ValueError on anything else (NaN, a scaled or sheared rotation): R^T would silently be
+    the wrong inverse."""
     T = np.asarray(T, dtype=np.float64)
+    if not is_rigid(T):
+        raise ValueError(f"not a rigid transform (finite 4x4, orthonormal rotation with "
+                         f"det +1, last row 0 0 0 1): {T.tolist()}")
     inv = np.eye(4)
     inv[:3, :3] = T[:3, :3].T
     inv[:3, 3] = -T[:3, :3].T @ T[:3, 3]
     return inv
 
 
-def is_rigid(T, tol: float = 1e-3) -> bool:
+def is_rigid(T, tol: float = RIGID_TOL) -> bool:
     """True if T is a finite 4x4 rigid transform (orthonormal rotation with det +1)."""
     T = np.asarray(T, dtype=np.float64)
     if T.shape != (4, 4) or not np.all(np.isfinite(T)):
         return False
-    R = T[:3, :3]
-    return (np.allclose(R @ R.T, np.eye(3), atol=tol) and abs(np.linalg.det(R) - 1) < tol
-            and np.allclose(T[3], [0, 0, 0, 1]))
+    return _is_rotation(T[:3, :3], tol) and np.allclose(T[3], [0, 0, 0, 1])
+
+
+def _is_rotation(R: np.ndarray, tol: float) -> bool:
+    if R.shape != (3, 3) or not np.all(np.isfinite(R)):
+        return False
+    return bool(np.allclose(R @ R.T, np.eye(3), atol=tol) and abs(np.linalg.det(R) - 1) < tol)
 
 
 def ego_to_image(intrinsics, T_ego_from_cam) -> np.ndarray:
