@@ -1,8 +1,9 @@
 """Rolling history of the last k frames for the temporal decoder (OPUS-style feature cache).
 
 Each frame's backbone features are computed once, when it is the newest frame, and reused
-by the next k-1 decodes. A frame also keeps what the decoder needs to look back at it: its
-ego pose, its ego->image matrices and its stamp. The history starts over when time runs
+by the next k-1 decodes (the predictor keeps them in the model's FeatureRing). A frame keeps
+what the decoder needs to look back at it: its ego pose, its ego->image matrices and its
+stamp. The history starts over when time runs
 backwards (a bag loop, a replayed set) or jumps forward by more than ``max_gap`` seconds
 (dropped input): frames across such a break would be warped with a meaningless ego motion.
 """
@@ -19,13 +20,14 @@ import torch
 class Frame:
     """One processed camera set.
 
-    features  list of L tensors [1, N, C, H_l, W_l] (model.extract_features of this set)
+    features  list of L tensors [1, N, C, H_l, W_l] (model.extract_features of this set),
+              or None where a network.feature_ring.FeatureRing holds them (the predictor)
     pose      float64 [4, 4] T_global_from_ego at the set's reference stamp
     ego2img   float64 [N, 4, 4] this frame's ego -> network-input pixels
     stamp     seconds (the set's reference stamp)
     """
 
-    features: list[torch.Tensor]
+    features: list[torch.Tensor] | None
     pose: np.ndarray
     ego2img: np.ndarray
     stamp: float

@@ -1,8 +1,10 @@
 """Streaming inference: one camera set in, one occupancy grid + box list out.
 
-The backbone runs on the newest set only; its features go into the rolling history
-(history.py) and the decoder looks at the cached features of the last k sets, with the ego
-motion between them (ego_warp = P_t^-1 P_0) and their time differences. This gives the
+The backbone runs on the newest set only; its features are written once into the model's
+FeatureRing (already in the sampling layout) and the rolling history (history.py) keeps each
+set's pose, ego->image matrices and stamp. The decoder looks at the cached features of the
+last k sets, with the ego motion between them (ego_warp = P_t^-1 P_0) and their time
+differences. This gives the
 same result as running the model offline over the same k sets (test_online_predictor.py),
 at the cost of one backbone pass per set instead of k.
 """
@@ -16,6 +18,7 @@ import torch
 
 from ..config import ModelConfig
 from ..geometry import ego_warp
+from ..network.feature_ring import FeatureRing
 from ..network.outputs import ODGOutput
 from ..network.postprocess import box_list, occupancy_grid
 from ..preprocess import normalize
@@ -52,10 +55,12 @@ class OnlinePredictor:
         self.cfg = cfg
         self.device = torch.device(device)
         self.history = FrameHistory(k, max_gap)
+        self.ring = FeatureRing(k, cfg.num_groups)     # same capacity: slots follow history
         self.keep_output = keep_output   # tests compare the raw network output
 
     def reset(self) -> None:
         self.history.clear()
+        self.ring.clear()
 
     def _sync(self) -> None:
         if self.device.type == "cuda":
@@ -81,16 +86,20 @@ class OnlinePredictor:
         t2 = time.perf_counter()
         timings["backbone"] = t2 - t1
 
-        reset = self.history.push(Frame(features=features, pose=np.asarray(pose, np.float64),
+        reset = self.history.push(Frame(features=None, pose=np.asarray(pose, np.float64),
                                         ego2img=np.asarray(ego2img, np.float64),
                                         stamp=float(stamp)))
+        if reset is not None:
+            self.ring.clear()
+        self.ring.push(features)
         frames = self.history.frames()
+        assert len(frames) == len(self.ring)
         current = frames[0]
         warps = np.stack([ego_warp(current.pose, f.pose) for f in frames])
         deltas = np.array([current.stamp - f.stamp for f in frames])
         as_tensor = lambda a: torch.as_tensor(a, dtype=torch.float32, device=self.device)  # noqa: E731
-        output = self.model.decode(
-            [f.features for f in frames],
+        output = self.model.decode_ring(
+            self.ring,
             as_tensor(np.stack([f.ego2img for f in frames]))[None],       # [1, T, N, 4, 4]
             as_tensor(warps)[None],                                       # [1, T, 4, 4]
             as_tensor(deltas)[None])                                      # [1, T]
