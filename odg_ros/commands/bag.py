@@ -19,7 +19,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     synth = sub.add_parser("synth", help="bag the synthetic world of `odg synth`")
     synth.add_argument("--world", required=True, type=Path, help="the world folder (a dataroot)")
     nusc = sub.add_parser("nuscenes", help="bag scenes of a nuScenes dataroot")
-    nusc.add_argument("--dataroot", required=True, type=Path)
+    nusc.add_argument("--dataroot", required=True, type=Path,
+                      help="nuScenes dataroot (holds v1.0-*/, samples/, sweeps/)")
     for p in (synth, nusc):
         p.add_argument("--out", required=True, type=Path, help="bag folder to create")
         p.add_argument("--version", default=None,
