@@ -39,7 +39,6 @@ opened and closed inside ``__getitem__``; the random interval uses torch's per-w
 """
 from __future__ import annotations
 
-import pickle
 from pathlib import Path
 
 import numpy as np
@@ -51,6 +50,7 @@ from ..config import ModelConfig
 from . import lidar, occ_io
 from .batch import CAMERA_NAMES
 from .lidarseg import lidarseg_to_occ
+from .prepare import load_infos
 
 EVAL_INTERVAL = 6          # SparseBEV/OPUS test_interval (12 Hz sets -> 0.5 s)
 TRAIN_INTERVAL = (4, 8)    # SparseBEV/OPUS train_interval, inclusive
@@ -79,10 +79,8 @@ def select_history(num_sets: int, num_history: int, train: bool = False,
 
 
 def load_infos_file(path) -> dict:
-    """Read an infos pickle (format in data/batch.py) and check its top level."""
-    with open(path, "rb") as f:
-        infos = pickle.load(f)
-    return check_infos(infos, source=str(path))
+    """Read an infos pickle (format in data/batch.py, ``odg prepare``) and check it."""
+    return check_infos(load_infos(path), source=str(path))
 
 
 def check_infos(infos, source: str = "infos") -> dict:
