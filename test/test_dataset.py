@@ -450,3 +450,32 @@ def test_occ_root_resolution(tmp_path):
     assert OccDataset(world, cfg(), occ_root=tmp_path / "occ3d")[0]["has_occ"]
     world["occ_root"] = "occ3d"                     # relative to dataroot, as odg score reads it
     assert OccDataset(world, cfg())[0]["has_occ"]
+
+
+def test_waymo_layout(tmp_path):
+    """A Waymo-style infos: 5 cameras in their stored order, Occ3D-Waymo GT (free 15)."""
+    world = build_world(tmp_path, with_lidar=False, occ=False)
+    names = ("FRONT", "FRONT_LEFT", "FRONT_RIGHT", "SIDE_LEFT", "SIDE_RIGHT")
+    source = ("CAM_FRONT", "CAM_FRONT_LEFT", "CAM_FRONT_RIGHT", "CAM_BACK_LEFT", "CAM_BACK_RIGHT")
+    for info in world["infos"]:
+        info["cams"] = {w: info["cams"][c] for w, c in zip(names, source)}
+        info["sweeps"] = [{w: s[c] for w, c in zip(names, source)} for s in info["sweeps"]]
+    world["dataset"] = "waymo"
+    label = np.full((200, 200, 16), 23, np.uint8)
+    label[100, 100, 3] = 13                        # road
+    state = np.ones((200, 200, 16), np.uint8)
+    (tmp_path / "gts" / "000").mkdir(parents=True)
+    np.savez_compressed(tmp_path / "gts" / "000" / "002_04.npz", voxel_label=label,
+                        origin_voxel_state=state, final_voxel_state=state, infov=state)
+    world["infos"][2]["occ_path"] = "000/002_04.npz"
+    s = OccDataset(world, cfg().replace(num_cams=5, num_classes=15))[2]
+    assert s["images"].shape == (3, 5, 3, *INPUT_HW) and s["ego2img"].shape == (3, 5, 4, 4)
+    assert s["has_occ"] and s["occ_semantics"][100, 100, 3] == 13
+    assert (s["occ_semantics"] == 15).sum() == 200 * 200 * 16 - 1
+    assert s["occ_mask_camera"].all() and len(s["render_targets"]) == 5
+    # camera 1 is CAM_FRONT_LEFT's images (colour encodes the camera index 2)
+    mean = torch.tensor(preprocess.IMAGENET_MEAN).view(3, 1, 1)
+    std = torch.tensor(preprocess.IMAGENET_STD).view(3, 1, 1)
+    rgb = ((s["images"][0, 1] * std + mean) * 255).mean(dim=(1, 2))
+    torch.testing.assert_close(rgb, torch.tensor(colour(12, 2), dtype=torch.float32), rtol=0, atol=3.0)
+    assert OccDataset(world, cfg().replace(num_cams=5))[0]["occ_semantics"].unique().tolist() == [15]

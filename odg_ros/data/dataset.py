@@ -32,7 +32,11 @@ masks and ``has_occ = False`` in the sample (an extra key next to the contract's
 
 Render targets: the keyframe's LiDAR points (``lidar2ego``, keyframe ego) with their lidarseg
 labels mapped to Occ3D classes, projected with ``ego2img[0]`` (data/lidar.py). Keyframes
-without a lidarseg file (``lidarseg_path`` missing or "") get N empty [0, 4] tensors.
+without a lidarseg file (``lidarseg_path`` missing or "") get N empty [0, 4] tensors, and so do
+Waymo keyframes (their LiDAR labels are not read).
+
+Waymo infos (``dataset: "waymo"``): the cameras are the keyframe's ``cams`` in their stored
+order (5), the GT is loaded with occ_io.load_occ3d_waymo (free = 15).
 
 Works with DataLoader workers: ``__init__`` keeps only the infos in memory, every file is
 opened and closed inside ``__getitem__``; the random interval uses torch's per-worker RNG.
@@ -242,8 +246,9 @@ class OccDataset(torch.utils.data.Dataset):
         seg_path = info.get("lidarseg_path", "")
         lidar_path = info.get("lidar_path", "")
         empty = [torch.zeros((0, 4), dtype=torch.float32) for _ in self.camera_names]
-        if not seg_path or not lidar_path or not (self.dataroot / seg_path).is_file():
-            return empty
+        if (self.dataset != "nuscenes" or not seg_path or not lidar_path
+                or not (self.dataroot / seg_path).is_file()):
+            return empty  # Waymo's LiDAR segmentation labels are not read (yet)
         points = lidar.load_points(self.dataroot / lidar_path)
         labels = lidarseg_to_occ(lidar.load_lidarseg(self.dataroot / seg_path, len(points)))
         points_ego = lidar.transform_points(_pose(info["lidar2ego"], "lidar2ego"), points[:, :3])
