@@ -16,7 +16,6 @@ setup(
         ("share/" + package_name + "/config", glob("config/*")),
         ("share/" + package_name + "/model", glob("model/*.yaml") + glob("model/*.md")
          + glob("model/*.pt")),
-        ("share/" + package_name + "/msg", glob("msg/*.msg")),
     ],
     install_requires=["numpy", "scipy", "pyyaml", "tqdm", "pillow", "matplotlib"],
     zip_safe=True,
