@@ -7,6 +7,7 @@ a pickle of ``{"version": str, "dataset": "nuscenes" | "waymo", "dataroot": str,
     token, scene_token, scene_name, timestamp (int, microseconds), frame_index (in scene)
     ego_pose        4x4 T_global_from_ego at the LiDAR stamp
     lidar_path      path relative to dataroot; lidar2ego 4x4
+    lidarseg_path   per-point labels (nuScenes-lidarseg) relative to dataroot, "" when none
     cams            {CAM_NAME: camera}, the keyframe's set, CAM_NAME in CAMERA_NAMES order
     sweeps          [{CAM_NAME: camera}, ...] earlier camera sets, newest first (12 Hz sweeps)
     occ_path        labels.npz path relative to the occ root ("" when there is no GT)
@@ -31,6 +32,7 @@ Model-ready sample (``OccDataset.__getitem__``), T frames (0 = current, then old
     render_targets  list of N float32 [P_n, 4]  (u, v, depth, occ label) LiDAR points in each
                                              current-frame camera, input pixels, depth in m
     token           str
+    has_occ         bool                     False when the keyframe has no GT file (all free)
 ``collate`` stacks the tensors into a leading batch dim B and keeps the rest as lists.
 """
 from __future__ import annotations
