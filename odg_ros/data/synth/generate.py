@@ -9,6 +9,7 @@ Layout under ``out``::
     gts/<scene name>/<sample token>/labels.npz   (semantics, mask_lidar, mask_camera)
     maps/<token>.png                      placeholder semantic-prior map (1 x 1 px)
     splits.json                           {"train": [scene names], "val": [...]}
+    preview_cameras.png, preview_bev.png  the first scene's second keyframe, to look at
 
 Every byte is a function of the seed (tokens are hashes, zips have fixed dates).
 """
@@ -23,16 +24,28 @@ from PIL import Image
 from tqdm import tqdm
 
 from odg_ros.data.batch import CAMERA_NAMES
-from odg_ros.data.synth import occupancy, rig, sensors, shading
+from odg_ros.data.synth import occupancy, pictures, rig, sensors, shading
 from odg_ros.data.synth.city import build_world
 from odg_ros.data.synth.tables import Tables, link_chain, quaternion_yaw, save_npz, token, visibility_token
 from odg_ros.data.synth.world import World
 from odg_ros.geometry import invert_transform, matrix_to_quaternion
 
 DEFAULT_IMAGE_HW = (198, 352)
-MASK_RAYS_HW = (66, 118)       # camera rays per camera for mask_camera (~1 ray per voxel at 40 m)
+MASK_RAY_STEP = 0.01           # rad between camera rays for mask_camera (one ray per voxel at 40 m)
 ANNOTATION_RANGE = 60.0        # annotate things whose centre is this close to the ego (xy, m)
 BASE_TIMESTAMP_US = 1_533_000_000_000_000
+
+
+def mask_ray_grid(cam: rig.Camera):
+    """(intrinsics, (h, w)) of the pixel-ray grid cast for mask_camera: the camera's field of
+    view sampled every MASK_RAY_STEP radians, independent of the image size."""
+    h, w = cam.image_hw
+    cols = max(8, int(round(w / (cam.intrinsics[0, 0] * MASK_RAY_STEP))))
+    rows = max(8, int(round(h / (cam.intrinsics[1, 1] * MASK_RAY_STEP))))
+    K = cam.intrinsics.copy()
+    K[0] *= cols / w
+    K[1] *= rows / h
+    return K, (rows, cols)
 
 
 def num_keyframes(seconds: float) -> int:
@@ -60,8 +73,8 @@ def camera_time(m: int, name: str) -> float:
 
 
 def split_scenes(names: list[str]) -> dict:
-    """Every fifth scene (at least one when there are two or more) goes to val."""
-    val = [n for i, n in enumerate(names) if i % 5 == 4]
+    """Every fourth scene (at least one when there are two or more) goes to val."""
+    val = [n for i, n in enumerate(names) if i % 4 == 3]
     if not val and len(names) >= 2:
         val = [names[-1]]
     return {"train": [n for n in names if n not in val], "val": val}
@@ -190,10 +203,8 @@ class _SceneWriter:
         T_ego_global = invert_transform(T_global_ego)
         for cam, t_cam, _, _ in cam_data:
             T = T_ego_global @ self.world.ego_pose(t_cam) @ cam.T_ego_from_cam
-            K = cam.intrinsics.copy()
-            K[0] *= MASK_RAYS_HW[1] / self.hw[1]
-            K[1] *= MASK_RAYS_HW[0] / self.hw[0]
-            d = sensors.pixel_rays(K, MASK_RAYS_HW) @ T[:3, :3].T
+            K, hw = mask_ray_grid(cam)
+            d = sensors.pixel_rays(K, hw) @ T[:3, :3].T
             mask_camera |= occupancy.traverse(occupied, T[:3, 3], d)
         save_npz(os.path.join(self.out, "gts", self.name, sample_token, "labels.npz"), semantics=sem,
                  mask_lidar=mask_lidar.astype(np.uint8), mask_camera=mask_camera.astype(np.uint8))
@@ -237,6 +248,18 @@ class _SceneWriter:
             return ["vehicle.parked" if parked else "vehicle.stopped"]
         return []
 
+    def write_previews(self, k):
+        """preview_cameras.png and preview_bev.png of keyframe k, next to the tables."""
+        sample_token = token(self.seed, "sample", self.index, k)
+        images = {}
+        for name in CAMERA_NAMES:
+            rec = next(r for r in self.chains[name] if r["is_key_frame"] and r["sample_token"] == sample_token)
+            images[name] = np.asarray(Image.open(os.path.join(self.out, rec["filename"])).convert("RGB"))
+        pictures.camera_mosaic(images).save(os.path.join(self.out, "preview_cameras.png"))
+        gt = np.load(os.path.join(self.out, "gts", self.name, sample_token, "labels.npz"))
+        pictures.bev_image(gt["semantics"], gt["mask_camera"].astype(bool)).save(
+            os.path.join(self.out, "preview_bev.png"))
+
     def finish(self):
         T = self.tables
         link_chain(self.samples)
@@ -255,7 +278,7 @@ class _SceneWriter:
                         "name": self.name, "description": f"synthetic city, seed {self.seed}"})
 
 
-def generate(out: str, scenes: int = 6, seconds: float = 10.0, seed: int = 0, image_hw=DEFAULT_IMAGE_HW,
+def generate(out: str, scenes: int = 8, seconds: float = 8.0, seed: int = 0, image_hw=DEFAULT_IMAGE_HW,
              version: str = "v1.0-trainval", progress: bool = True) -> dict:
     """Generate the dataset. Returns a summary (counts, seconds, bytes)."""
     if scenes < 1 or seconds <= 0:
@@ -286,6 +309,8 @@ def generate(out: str, scenes: int = 6, seconds: float = 10.0, seed: int = 0, im
             bar.set_postfix_str(w.name)
             bar.update(1)
         w.finish()
+        if i == 0:
+            w.write_previews(min(1, w.keyframes - 1))
     bar.close()
     tables.write(out, version)
     split = split_scenes(names)

@@ -48,18 +48,26 @@ def rect_pairs(r0, r1, c0, c1, width, wrap=False):
     return rows * width + cols, prim
 
 
-def _intersect(prims: Primitives, origin, dirs, ray, prim):
+def _intersect(prims: Primitives, origin, dirs, ray, prim, pair_origins=None):
     """Ray parameter of the first entry into primitive ``prim[q]`` along ray ``ray[q]``
-    (inf when missed or when the origin is inside). float32 [Q], same order as the input."""
+    (inf when missed or when the origin is inside). float32 [Q], same order as the input.
+    Rays start at ``origin`` [3], or at ``pair_origins`` [Q, 3] (one per pair) when given."""
     t = np.full(len(ray), np.inf, np.float32)
     if len(ray) == 0:
         return t
-    # per primitive: the shared origin in its unit frame, its rotation and inverse scale
     cp, sp = np.cos(prims.yaw), np.sin(prims.yaw)
-    oc = origin[None, :] - prims.center
     inv_half = (1.0 / prims.half).astype(np.float32)
-    o_p = (np.stack([cp * oc[:, 0] + sp * oc[:, 1], -sp * oc[:, 0] + cp * oc[:, 1], oc[:, 2]], -1)
-           * inv_half).astype(np.float32)
+    if pair_origins is None:
+        # the shared origin in every primitive's unit frame, then gathered per pair
+        oc = origin[None, :] - prims.center
+        o_p = (np.stack([cp * oc[:, 0] + sp * oc[:, 1], -sp * oc[:, 0] + cp * oc[:, 1], oc[:, 2]], -1)
+               * inv_half).astype(np.float32)
+        o_all = o_p[prim]
+    else:
+        oc = pair_origins - prims.center[prim]
+        c, s = cp[prim], sp[prim]
+        o_all = (np.stack([c * oc[:, 0] + s * oc[:, 1], -s * oc[:, 0] + c * oc[:, 1], oc[:, 2]], -1)
+                 * inv_half[prim]).astype(np.float32)
     cp, sp = cp.astype(np.float32), sp.astype(np.float32)
     dirs32 = dirs.astype(np.float32)
     kind = prims.kind[prim]
@@ -75,7 +83,7 @@ def _intersect(prims: Primitives, origin, dirs, ray, prim):
             d0 = (c * dw[:, 0] + s * dw[:, 1]) * ih[:, 0]
             d1 = (c * dw[:, 1] - s * dw[:, 0]) * ih[:, 1]
             d2 = dw[:, 2] * ih[:, 2]
-            o = o_p[p]
+            o = o_all[sel]
             o0, o1, o2 = o[:, 0], o[:, 1], o[:, 2]
             if k == BOX:
                 tn = np.full(len(sel), -np.inf, np.float32)
@@ -183,3 +191,44 @@ def cast(prims: Primitives, origin, dirs, pair_ray, pair_prim, max_t=np.inf) -> 
         pts = origin[None] + tbuf[obj, None] * dirs[obj]
         normal[obj], local[obj] = surface(prims, prim[obj], pts)
     return Hits(tbuf, prim, normal, local, pr, pp)
+
+
+def shadowed(prims: Primitives, points, normals, sun, cell=2.0) -> np.ndarray:
+    """Whether surface points [M, 3] (global, with unit normals [M, 3]) are in the shadow of any
+    primitive for the directional light towards unit ``sun``. bool [M].
+
+    Candidates: a primitive can only shade points whose xy lies in the xy bounding box of the
+    primitive swept along -sun down to the ground. Points are binned into ``cell``-metre
+    cells; a (primitive, cell) overlap test picks the pairs to intersect."""
+    m = len(points)
+    out = np.zeros(m, bool)
+    if m == 0 or len(prims) == 0 or sun[2] <= 0.02:
+        return out
+    origins = points + 0.03 * normals
+    corners = prims.corners()                                             # [P, 8, 3]
+    drop = corners[..., :2] - (np.maximum(corners[..., 2:3], 0) / sun[2]) * sun[None, None, :2]
+    allxy = np.concatenate([corners[..., :2], drop], 1)
+    lo, hi = allxy.min(1), allxy.max(1)                                   # [P, 2]
+    keep = np.all((lo <= origins[:, :2].max(0)) & (hi >= origins[:, :2].min(0)), axis=1)
+    keep_idx = np.flatnonzero(keep)
+    lo, hi = lo[keep_idx], hi[keep_idx]
+    key_xy = np.floor(origins[:, :2] / cell).astype(np.int64)
+    key = key_xy[:, 0] * 1_000_003 + key_xy[:, 1]
+    order = np.argsort(key, kind="stable")
+    key_sorted = key[order]
+    cells, start = np.unique(key_sorted, return_index=True)
+    end = np.append(start[1:], m)
+    cxy = key_xy[order[start]]                                            # [U, 2] cell indices
+    c_lo, c_hi = cxy * cell, (cxy + 1) * cell
+    over = ((lo[:, None, 0] <= c_hi[None, :, 0]) & (hi[:, None, 0] >= c_lo[None, :, 0])
+            & (lo[:, None, 1] <= c_hi[None, :, 1]) & (hi[:, None, 1] >= c_lo[None, :, 1]))
+    pp, cc = np.nonzero(over)                                             # (primitive, cell) pairs
+    pp = keep_idx[pp]
+    counts = end[cc] - start[cc]
+    prim = np.repeat(pp, counts).astype(np.int32)
+    first = np.repeat(start[cc] - (np.cumsum(counts) - counts), counts)
+    recv = order[np.arange(counts.sum()) + first]
+    dirs = np.broadcast_to(np.asarray(sun, float), (1, 3))
+    t = _intersect(prims, None, dirs, np.zeros(len(recv), np.int64), prim, pair_origins=origins[recv])
+    out[recv[np.isfinite(t)]] = True
+    return out

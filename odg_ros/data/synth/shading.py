@@ -8,7 +8,7 @@ import numpy as np
 
 from odg_ros.data.synth import materials as M
 from odg_ros.data.synth.primitives import Primitives
-from odg_ros.data.synth.raycast import GROUND, SKY, Hits
+from odg_ros.data.synth.raycast import GROUND, SKY, Hits, shadowed
 from odg_ros.data.synth.world import WHITE, YELLOW, World
 
 
@@ -269,7 +269,7 @@ def sky_color(dirs, lighting, seed):
     with np.errstate(divide="ignore", invalid="ignore"):
         px = dirs[:, 0] / np.maximum(dirs[:, 2], 0.03)
         py = dirs[:, 1] / np.maximum(dirs[:, 2], 0.03)
-    cloud = fbm2(px * 300, py * 300, 400.0, 3, seed + 21) + 0.5
+    cloud = fbm2(px.astype(np.float32), py.astype(np.float32), 1.3, 2, seed + 21) + 0.5
     cover = np.clip((cloud - (0.75 - 0.6 * lighting.cloudiness)) * 3, 0, 1)[:, None]
     col = col * (1 - cover) + cover * np.array([0.9, 0.9, 0.92]) * (0.75 + 0.25 * up)
     glow = np.clip(dirs @ lighting.sun, 0, 1)[:, None]
@@ -320,6 +320,17 @@ def shade(world: World, prims: Primitives, hits: Hits, origin, dirs, hw, seed, c
     sun = L.sun.astype(np.float32)
     sun_rgb = L.sun_color.astype(np.float32)[None]
     lam = np.clip(normal @ sun, 0, 1)
+    # cast shadows: traced for one pixel of every 2 x 2 block (the cost of a shadow ray grows
+    # with the pixel density), shared by the lit pixels of the block
+    h, w = hw
+    rep = (np.arange(h)[:, None] // 2 * 2 * w + np.arange(w)[None, :] // 2 * 2).ravel()
+    probe = np.flatnonzero(lam[rep[np.unique(rep)]] > 0)
+    probe = np.unique(rep)[probe]
+    if len(probe):
+        pts = origin[None] + hits.t[probe, None] * dirs[probe]
+        dark = np.zeros(n, bool)
+        dark[probe] = shadowed(prims, pts, normal[probe].astype(np.float64), L.sun)
+        lam[dark[rep]] = 0.0
     amb = L.ambient.astype(np.float32)[None] * (0.55 + 0.45 * normal[:, 2:3])
     col = albedo * (amb + sun_rgb * lam[:, None])
     half_vec = sun[None] - d32
