@@ -111,10 +111,12 @@ class OnlinePipeline:
         """Feed one camera message (not decoded yet). ``now``: node clock (s), 0 if not
         running yet. Returns True if it completed a set (now waiting for the worker)."""
         if camera not in self.camera_names:
-            raise self.count_bad_input(BadInput("unknown_camera", f"camera {camera!r} is not configured"))
+            raise self.count_bad_input(
+                BadInput("unknown_camera", f"camera {camera!r} is not configured"))
         if not np.isfinite(stamp) or (now > 0 and stamp > now + self.settings.max_future):
-            raise self.count_bad_input(BadInput("future_stamp", f"{camera} stamp {stamp:.3f} is "
-                                     f"{stamp - now:.3f} s ahead of the clock ({now:.3f})"))
+            raise self.count_bad_input(BadInput(
+                "future_stamp", f"{camera} stamp {stamp:.3f} is {stamp - now:.3f} s ahead of "
+                f"the clock ({now:.3f})"))
         with self._input_lock:
             complete = self.sync.add(camera, stamp, (image, header))
         for camera_set in complete:
@@ -124,7 +126,8 @@ class OnlinePipeline:
     def on_camera_info(self, camera: str, K, height: int, width: int, frame_id: str) -> None:
         """Store a camera's intrinsics and image size (the last valid CameraInfo wins)."""
         if camera not in self.camera_names:
-            raise self.count_bad_input(BadInput("unknown_camera", f"camera {camera!r} is not configured"))
+            raise self.count_bad_input(
+                BadInput("unknown_camera", f"camera {camera!r} is not configured"))
         try:
             calibration = check_intrinsics(K, height, width, frame_id)
         except BadInput as error:

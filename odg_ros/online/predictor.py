@@ -97,7 +97,10 @@ class OnlinePredictor:
         current = frames[0]
         warps = np.stack([ego_warp(current.pose, f.pose) for f in frames])
         deltas = np.array([current.stamp - f.stamp for f in frames])
-        as_tensor = lambda a: torch.as_tensor(a, dtype=torch.float32, device=self.device)  # noqa: E731
+
+        def as_tensor(array):
+            return torch.as_tensor(array, dtype=torch.float32, device=self.device)
+
         output = self.model.decode_ring(
             self.ring,
             as_tensor(np.stack([f.ego2img for f in frames]))[None],       # [1, T, N, 4, 4]

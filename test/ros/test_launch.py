@@ -25,7 +25,8 @@ def expanded(node, name):
     """launch_ros exposes expanded values as properties on recent releases."""
     if hasattr(node, name):
         return getattr(node, name)
-    return getattr(node, f"_Node__{name.replace('expanded_remapping_rules', 'expanded_remappings')}")
+    private = name.replace("expanded_remapping_rules", "expanded_remappings")
+    return getattr(node, f"_Node__{private}")
 
 
 def test_launch_description_node_parameters_and_remappings():
