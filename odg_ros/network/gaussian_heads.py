@@ -51,12 +51,19 @@ class PointHead(nn.Module):
 
 
 def safe_normalize_quaternion(q: torch.Tensor, eps: float = 1e-12) -> torch.Tensor:
-    """Unit quaternions (w, x, y, z); a zero / denormal quaternion becomes the identity."""
-    norm = q.norm(dim=-1, keepdim=True)
+    """Unit quaternions (w, x, y, z); a zero / denormal quaternion becomes the identity.
+
+    Divided by its largest component first, so that the norm of a huge quaternion cannot
+    overflow (float32 squares overflow from ~1.8e19: q / inf would be a zero "unit" one)."""
+    with torch.no_grad():    # the output does not depend on the scale: no gradient through it
+        largest = q.abs().amax(dim=-1, keepdim=True)
+        scale = torch.where(largest > 0, largest, torch.ones_like(largest))
+        tiny = largest * (q / scale).norm(dim=-1, keepdim=True) < eps
+        scale = torch.where(tiny, torch.ones_like(scale), scale)   # no 1 / denormal
     identity = torch.zeros_like(q)
     identity[..., 0] = 1.0
-    tiny = norm < eps
-    return torch.where(tiny, identity, q / torch.where(tiny, torch.ones_like(norm), norm))
+    safe = torch.where(tiny, identity, q / scale)           # norm in [1, 2]
+    return safe / safe.norm(dim=-1, keepdim=True)
 
 
 class GaussianAttributeMLP(nn.Module):

@@ -33,13 +33,19 @@ def normalise_quaternions(rotations: torch.Tensor) -> torch.Tensor:
     """[G, 4] (w, x, y, z), any length -> unit quaternions [G, 4].
 
     A quaternion shorter than 1e-12 (zero, denormal) becomes the identity and gets a zero
-    gradient, instead of a NaN or a gradient of ~1/|q|.
+    gradient, instead of a NaN or a gradient of ~1/|q|. Each quaternion is divided by its
+    largest component first, so a huge one cannot overflow the norm (float32 squares
+    overflow from ~1.8e19, and q / inf would be the zero quaternion, i.e. the identity).
     """
     with torch.no_grad():
-        tiny = torch.linalg.vector_norm(rotations, dim=-1, keepdim=True) <= QUAT_NORM_MIN
+        largest = rotations.abs().amax(dim=-1, keepdim=True)
+        scale = torch.where(largest > 0, largest, torch.ones_like(largest))
+        tiny = largest * torch.linalg.vector_norm(rotations / scale, dim=-1,
+                                                  keepdim=True) <= QUAT_NORM_MIN
+        scale = torch.where(tiny, torch.ones_like(scale), scale)   # no 1 / denormal
     identity = torch.zeros_like(rotations)
     identity[..., 0] = 1.0
-    safe = torch.where(tiny, identity, rotations)
+    safe = torch.where(tiny, identity, rotations / scale)
     return safe / torch.linalg.vector_norm(safe, dim=-1, keepdim=True)
 
 
