@@ -1,18 +1,35 @@
 """Latency of one online step: backbone on the newest frame, decoder over K cached frames,
-post-processing. Random weights and random images at the preset's resolution."""
+post-processing; per decoder layer and per part of a layer; peak memory; the fast paths
+against the plain path they replace.
+
+Timing: medians over repeated steps after warm-up; on CUDA with events (no host sync inside
+a step; one synchronise after it). Peak memory: on CUDA ``torch.cuda.max_memory_allocated``
+over the timed steps; on CPU the process's peak resident set size (``ru_maxrss``), which
+includes the interpreter, torch and the weights (the sweep runs every configuration in a
+fresh process so each gets its own figure).
+"""
 from __future__ import annotations
 
+import resource
 import statistics
+import sys
 import time
-from contextlib import contextmanager
+from contextlib import contextmanager, nullcontext
 
 import torch
 from tqdm import tqdm
 
 from .config import ModelConfig
 from .network import ODG
+from .network.feature_ring import FeatureRing
 from .network.postprocess import box_list, occupancy_grid
 from .rig import ring_ego2img
+
+STAGES = ("backbone", "decoder", "postprocess", "total")
+# the parts of a decoder layer, in execution order (attributes of decoder.DecoderLayer)
+LAYER_PARTS = ("position", "box_position", "attention", "sampling", "mixing", "ffn", "points",
+               "boxes")
+PRECISIONS = ("fp32", "bf16", "fp16")
 
 
 def online_inputs(cfg: ModelConfig, frames: int, device, seed: int = 0):
@@ -28,25 +45,37 @@ def online_inputs(cfg: ModelConfig, frames: int, device, seed: int = 0):
 
 
 class StageTimer:
-    """Wall-clock per stage; on CUDA with events so no host sync sits inside a stage."""
+    """Wall-clock per stage; on CUDA with events so no host sync sits inside a stage.
+    Stages may nest (``total`` around the others) and be opened and closed by hooks."""
 
     def __init__(self, device):
         self.cuda = torch.device(device).type == "cuda"
         self.times: dict[str, list[float]] = {}
         self._pending = []
+        self._open = {}
+
+    def start(self, name: str) -> None:
+        if self.cuda:
+            event = torch.cuda.Event(enable_timing=True)
+            event.record()
+            self._open[name] = event
+        else:
+            self._open[name] = time.perf_counter()
+
+    def stop(self, name: str) -> None:
+        begin = self._open.pop(name)
+        if self.cuda:
+            end = torch.cuda.Event(enable_timing=True)
+            end.record()
+            self._pending.append((name, begin, end))
+        else:
+            self.times.setdefault(name, []).append((time.perf_counter() - begin) * 1e3)
 
     @contextmanager
     def stage(self, name: str):
-        if self.cuda:
-            start, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
-            start.record()
-            yield
-            end.record()
-            self._pending.append((name, start, end))
-        else:
-            t0 = time.perf_counter()
-            yield
-            self.times.setdefault(name, []).append((time.perf_counter() - t0) * 1e3)
+        self.start(name)
+        yield
+        self.stop(name)
 
     def flush(self):
         if self._pending:
@@ -60,33 +89,216 @@ class StageTimer:
         return {k: statistics.median(v) for k, v in self.times.items()}
 
 
+class DecoderHooks:
+    """Times every decoder layer (``layer1`` ..) and its parts (``layer1.sampling`` ..) with
+    forward hooks into a ``StageTimer``; ``with DecoderHooks(model, timer):`` installs them.
+    The time between layers (pruning, Phi MLPs) is the decoder stage minus the layers."""
+
+    def __init__(self, model: ODG, timer: StageTimer):
+        self.model, self.timer, self.handles = model, timer, []
+
+    def _hook(self, module, name):
+        def pre(*_):
+            self.timer.start(name)
+
+        def post(*_):
+            self.timer.stop(name)
+        self.handles += [module.register_forward_pre_hook(pre), module.register_forward_hook(post)]
+
+    def __enter__(self):
+        for index, layer in enumerate(self.model.decoder.layers):
+            self._hook(layer, f"layer{index + 1}")
+            for part in LAYER_PARTS:
+                if getattr(layer, part, None) is not None:
+                    self._hook(getattr(layer, part), f"layer{index + 1}.{part}")
+        return self
+
+    def __exit__(self, *exc):
+        for handle in self.handles:
+            handle.remove()
+        self.handles.clear()
+
+
+def layer_table(medians: dict[str, float], num_layers: int) -> list[dict]:
+    """Per layer: total ms, ms per part, and ``other`` (norms, residuals, adds)."""
+    rows = []
+    for index in range(1, num_layers + 1):
+        total = medians.get(f"layer{index}")
+        if total is None:
+            continue
+        parts = {p: round(medians[f"layer{index}.{p}"], 3) for p in LAYER_PARTS
+                 if f"layer{index}.{p}" in medians}
+        rows.append({"layer": index, "total": round(total, 3), "parts": parts,
+                     "other": round(total - sum(parts.values()), 3)})
+    return rows
+
+
+def precision_context(precision: str, device):
+    """fp32: nothing; bf16 / fp16: autocast on the device (fp16 only on CUDA)."""
+    device_type = torch.device(device).type
+    if precision not in PRECISIONS:
+        raise ValueError(f"precision {precision!r}: expected one of {PRECISIONS}")
+    if precision == "fp32":
+        return nullcontext()
+    if precision == "fp16" and device_type != "cuda":
+        raise ValueError("fp16 autocast is for CUDA; use bf16 on CPU")
+    dtype = torch.bfloat16 if precision == "bf16" else torch.float16
+    return torch.autocast(device_type=device_type, dtype=dtype)
+
+
+def peak_memory_mb(device) -> tuple[float, str]:
+    """(peak MB, how it was measured) -- see the module docstring."""
+    if torch.device(device).type == "cuda":
+        return torch.cuda.max_memory_allocated(device) / 2 ** 20, "torch.cuda.max_memory_allocated"
+    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss  # KiB on Linux, bytes on macOS
+    return (rss / 2 ** 20 if sys.platform == "darwin" else rss / 2 ** 10), "process ru_maxrss"
+
+
+class OnlineStep:
+    """One online step as the node runs it: the backbone on the newest camera set, its
+    features written into the ring (``ring=True``, ``ODG.decode_ring``) or kept in a list
+    (``ODG.decode``), the decoder over the cached history, then the grid and the box list.
+
+    ``prime(history)`` fills the cache with the older frames' features (untimed), newest
+    first, as earlier steps would have; ``__call__`` runs and times the step.
+    """
+
+    def __init__(self, model: ODG, cfg: ModelConfig, device, ring: bool = True, prune=None,
+                 precision: str = "fp32"):
+        self.model, self.cfg, self.device = model, cfg, torch.device(device)
+        self.ring = FeatureRing(cfg.num_frames, cfg.num_groups) if ring else None
+        self.prune = prune
+        self.precision = precision
+        self.history: list[list[torch.Tensor]] = []
+
+    @torch.no_grad()
+    def prime(self, history_features: list[list[torch.Tensor]]) -> None:
+        """history_features: older frames, newest first (each L levels [1, N, C, h, w])."""
+        self.history = list(history_features)
+        if self.ring is not None:
+            self.ring.clear()
+            for feats in reversed(self.history):      # oldest first, like the node
+                self.ring.push(feats)
+
+    @torch.no_grad()
+    def features(self, images: torch.Tensor) -> list[torch.Tensor]:
+        with precision_context(self.precision, self.device):
+            return self.model.extract_features(images)
+
+    @torch.no_grad()
+    def __call__(self, images, ego2img, ego_warp, time_delta, timer: StageTimer):
+        """images [1, N, 3, H, W] of the newest set; geometry [1, T, ...] of the T frames
+        (newest first) -> (output, grid labels [1, X, Y, Z], box list)."""
+        with precision_context(self.precision, self.device), timer.stage("total"):
+            with timer.stage("backbone"):
+                current = self.model.extract_features(images)
+                if self.ring is not None:
+                    self.ring.push(current)
+            with timer.stage("decoder"):
+                if self.ring is not None:
+                    output = self.model.decode_ring(self.ring, ego2img, ego_warp, time_delta,
+                                                    prune=self.prune)
+                else:
+                    output = self.model.decode([current] + self.history, ego2img, ego_warp,
+                                               time_delta, prune=self.prune)
+            with timer.stage("postprocess"):
+                grid, _ = occupancy_grid(output, self.cfg)
+                boxes = box_list(output, self.cfg)
+        return output, grid, boxes
+
+
+def summarise(timer: StageTimer, num_layers: int) -> dict:
+    medians = timer.medians()
+    latency = {k: round(medians[k], 3) for k in STAGES if k in medians}
+    layers = layer_table(medians, num_layers)
+    if layers and "decoder" in medians:
+        latency["decoder_between_layers"] = round(
+            medians["decoder"] - sum(r["total"] for r in layers), 3)
+    return {"latency_ms": latency, "decoder_layers_ms": layers,
+            "fps": round(1000.0 / medians["total"], 3) if "total" in medians else None}
+
+
 @torch.no_grad()
 def bench_online_step(cfg: ModelConfig, device="cpu", frames: int | None = None, iters: int = 5,
-                      warmup: int = 1, progress: bool = True) -> dict:
+                      warmup: int = 1, progress: bool = True, model: ODG | None = None,
+                      ring: bool = True, prune=None, precision: str = "fp32",
+                      layers: bool = True) -> dict:
+    """Random inputs at the preset's resolution; random weights unless ``model`` is given."""
     frames = frames or cfg.num_frames
     if not 1 <= frames <= cfg.num_frames:
         raise ValueError(f"--frames must be in 1..{cfg.num_frames} for {cfg.name}")
-    model = ODG(cfg).to(device).eval()
+    model = (model or ODG(cfg)).to(device).eval()
     images, ego2img, ego_warp, time_delta = online_inputs(cfg, frames, device)
-    cached = model.extract_features(images)  # stands in for the k-1 cached history frames
+    step = OnlineStep(model, cfg, device, ring=ring, prune=prune, precision=precision)
+    cached = step.features(images)  # stands in for the k-1 cached history frames
+    cuda = torch.device(device).type == "cuda"
     timer = StageTimer(device)
     for i in tqdm(range(warmup + iters), desc=f"bench {cfg.name}", disable=not progress):
         if i == warmup:
             timer = StageTimer(device)
-        with timer.stage("total"):
-            with timer.stage("backbone"):
-                current = model.extract_features(images)
-            with timer.stage("decoder"):
-                output = model.decode([current] + [cached] * (frames - 1), ego2img, ego_warp,
-                                      time_delta)
-            with timer.stage("postprocess"):
-                occupancy_grid(output, cfg)
-                box_list(output, cfg)
+            if cuda:
+                torch.cuda.reset_peak_memory_stats(device)
+        step.prime([cached] * (frames - 1))
+        with DecoderHooks(model, timer) if layers else nullcontext():
+            step(images, ego2img, ego_warp, time_delta, timer)
         timer.flush()
-    latency = timer.medians()
+    memory, method = peak_memory_mb(device)
     return {"preset": cfg.name, "device": str(device), "frames": frames, "iters": iters,
             "input": [cfg.num_cams, 3, *cfg.image_size], "threads": torch.get_num_threads(),
-            "torch": torch.__version__,
-            "latency_ms": {k: round(latency[k], 2)
-                           for k in ("backbone", "decoder", "postprocess", "total")},
-            "fps": round(1000.0 / latency["total"], 2)}
+            "torch": torch.__version__, "precision": precision, "ring": ring,
+            "fast_sampling": bool(model.fast_sampling),
+            **summarise(timer, cfg.num_layers),
+            "peak_memory_mb": round(memory, 1), "memory_method": method}
+
+
+FAST_PATH_VARIANTS = {
+    # name: (fast_sampling, ring, precision)
+    "plain": (False, False, "fp32"),
+    "camera_rows": (True, False, "fp32"),
+    "camera_rows+ring": (True, True, "fp32"),
+    "camera_rows+ring+bf16": (True, True, "bf16"),
+}
+
+
+@torch.no_grad()
+def bench_fast_paths(cfg: ModelConfig, device="cpu", iters: int = 5, warmup: int = 1,
+                     variants=tuple(FAST_PATH_VARIANTS), progress: bool = True) -> dict:
+    """Each fast path against the plain path, interleaved step by step (a busy machine slows
+    all variants alike), on one random-weights model and input; with the largest difference
+    of the last layer's outputs from the plain path's."""
+    torch.manual_seed(0)
+    model = ODG(cfg).to(device).eval()
+    images, ego2img, ego_warp, time_delta = online_inputs(cfg, cfg.num_frames, device)
+    steps, timers, outputs = {}, {}, {}
+    for name in variants:
+        fast, ring, precision = FAST_PATH_VARIANTS[name]
+        model.fast_sampling = fast
+        steps[name] = OnlineStep(model, cfg, device, ring=ring, precision=precision)
+        timers[name] = StageTimer(device)
+    history = None
+    for i in tqdm(range(warmup + iters), desc=f"fast paths {cfg.name}", disable=not progress):
+        for name in variants:
+            step = steps[name]
+            model.fast_sampling = FAST_PATH_VARIANTS[name][0]
+            if history is None:
+                history = [step.features(images)] * (cfg.num_frames - 1)
+            if i == warmup:
+                timers[name] = StageTimer(device)
+            step.prime(history)
+            outputs[name], _, _ = step(images, ego2img, ego_warp, time_delta, timers[name])
+            timers[name].flush()
+    model.fast_sampling = True
+    reference = outputs[variants[0]].last
+    result = {"preset": cfg.name, "device": str(device), "iters": iters,
+              "threads": torch.get_num_threads(), "reference": variants[0], "variants": {}}
+    for name in variants:
+        last = outputs[name].last
+        medians = timers[name].medians()
+        result["variants"][name] = {
+            "latency_ms": {k: round(medians[k], 3) for k in STAGES},
+            "speedup_total": round(timers[variants[0]].medians()["total"] / medians["total"], 3),
+            "max_abs_diff": {"means": float((last.means.float() - reference.means.float())
+                                            .abs().max()),
+                             "logits": float((last.logits.float() - reference.logits.float())
+                                             .abs().max())}}
+    return result

@@ -1,35 +1,143 @@
-"""``odg bench --preset NAME --device cpu|cuda [--frames K] [--iters N] [--json]``."""
+"""``odg bench``: latency of the online step, the fast paths, and the speed-vs-error sweep.
+
+    odg bench --preset NAME [--device cpu|cuda] [--frames K] [--iters N] [--json]
+              [--checkpoint CKPT] [--precision fp32|bf16|fp16] [--prune T] [--no-ring]
+    odg bench --fast-paths --preset NAME        each fast path against the plain path
+    odg bench --sweep --data INFOS [--checkpoint CKPT] --out DIR [--limit N] [--configs ...]
+"""
 from __future__ import annotations
 
 import json
 
 import torch
 
-from ..benchmark import bench_online_step
+from ..benchmark import PRECISIONS, bench_fast_paths, bench_online_step
 from ..config import load_preset
 
 
 def add_arguments(parser):
-    parser.add_argument("--preset", default="odg_t")
+    parser.add_argument("--preset", default="odg_t",
+                        help="model preset (ignored where --checkpoint gives the model)")
     parser.add_argument("--device", default="cpu", choices=("cpu", "cuda"))
     parser.add_argument("--frames", type=int, default=None,
                         help="history frames K incl. the current one (default: the preset's)")
-    parser.add_argument("--iters", type=int, default=5, help="timed iterations (median)")
+    parser.add_argument("--iters", type=int, default=None,
+                        help="timed iterations, median (default 5; --sweep: 3 per sample)")
+    parser.add_argument("--warmup", type=int, default=1, help="untimed steps first")
+    parser.add_argument("--threads", type=int, default=None, help="torch CPU threads")
     parser.add_argument("--json", action="store_true")
+    parser.add_argument("--checkpoint", default=None,
+                        help="weights (default: random weights of --preset)")
+    parser.add_argument("--precision", default="fp32", choices=PRECISIONS,
+                        help="autocast precision (fp16 only on CUDA)")
+    parser.add_argument("--prune", type=float, default=None, metavar="T",
+                        help="adaptive inference: PruneRule threshold")
+    parser.add_argument("--prune-after", type=int, default=2, help="first layer pruned after")
+    parser.add_argument("--no-ring", action="store_true",
+                        help="re-lay out the cached history every step (no FeatureRing)")
+    parser.add_argument("--fast-paths", action="store_true",
+                        help="compare each fast path with the plain path (random weights)")
+    parser.add_argument("--sweep", action="store_true",
+                        help="speed vs error over configurations on a split (see sweep.py)")
+    parser.add_argument("--data", default=None, help="--sweep: infos of the split")
+    parser.add_argument("--occ-root", default=None, help="--sweep: GT root")
+    parser.add_argument("--out", default="docs", help="--sweep: folder for the JSON and PNG")
+    parser.add_argument("--limit", type=int, default=8, help="--sweep: first N samples")
+    parser.add_argument("--configs", default=None,
+                        help="--sweep: comma-separated names of default configurations, or a "
+                             "JSON file with a list of sweep.SweepConfig fields")
+    parser.add_argument("--list-configs", action="store_true",
+                        help="--sweep: print the default configurations and exit")
+    parser.add_argument("--no-isolate", action="store_true",
+                        help="--sweep: run every configuration in this process (CPU peak "
+                             "memory is then the running maximum, not per configuration)")
 
 
 def run(args) -> int:
     if args.device == "cuda" and not torch.cuda.is_available():
         raise SystemExit("odg bench: --device cuda but CUDA is not available here")
-    result = bench_online_step(load_preset(args.preset), args.device, args.frames, args.iters,
-                               progress=not args.json)
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    if args.iters is None:
+        args.iters = 3 if args.sweep else 5
+    if args.sweep:
+        return run_sweep_command(args)
+    if args.fast_paths:
+        result = bench_fast_paths(load_preset(args.preset), args.device, args.iters,
+                                  args.warmup, progress=not args.json)
+        if args.json:
+            print(json.dumps(result, indent=2))
+            return 0
+        print(f"{result['preset']} on {result['device']} ({result['threads']} threads): "
+              f"median of {result['iters']} interleaved steps; max |difference| of the last "
+              f"layer from '{result['reference']}'")
+        print(f"  {'variant':<24}{'backbone':>9}{'decoder':>9}{'post':>7}{'total':>9}"
+              f"{'speedup':>8}  {'d means':>9} {'d logits':>9}")
+        for name, v in result["variants"].items():
+            lat, diff = v["latency_ms"], v["max_abs_diff"]
+            print(f"  {name:<24}{lat['backbone']:9.1f}{lat['decoder']:9.1f}"
+                  f"{lat['postprocess']:7.1f}{lat['total']:9.1f}{v['speedup_total']:8.2f}"
+                  f"  {diff['means']:9.2e} {diff['logits']:9.2e}")
+        return 0
+    from ..network.checkpoint import load_model
+    from ..network.decoder import PruneRule
+    model, cfg = load_model(args.checkpoint, preset=args.preset, device=args.device)
+    prune = PruneRule(args.prune, args.prune_after) if args.prune is not None else None
+    result = bench_online_step(cfg, args.device, args.frames, args.iters, args.warmup,
+                               progress=not args.json, model=model, ring=not args.no_ring,
+                               prune=prune, precision=args.precision)
+    result["weights"] = args.checkpoint or "random"
     if args.json:
         print(json.dumps(result, indent=2))
         return 0
     lat = result["latency_ms"]
     print(f"{result['preset']} on {result['device']} ({result['threads']} threads), "
-          f"{result['frames']} frames, input {result['input']}: median of {result['iters']}")
+          f"{result['frames']} frames, input {result['input']}, {result['precision']}, "
+          f"{'ring' if result['ring'] else 'no ring'}, weights {result['weights']}: "
+          f"median of {result['iters']}")
     for stage in ("backbone", "decoder", "postprocess", "total"):
         print(f"  {stage:<12} {lat[stage]:9.1f} ms")
     print(f"  FPS          {result['fps']:9.2f}")
+    print(f"  peak memory  {result['peak_memory_mb']:9.0f} MB ({result['memory_method']})")
+    layers = result["decoder_layers_ms"]
+    if layers:
+        parts = [p for p in ("position", "box_position", "attention", "sampling", "mixing",
+                             "ffn", "points", "boxes") if any(p in r["parts"] for r in layers)]
+        print("  decoder per layer (ms): " + " ".join(f"{p:>9}" for p in parts)
+              + f" {'other':>7} {'total':>7}")
+        for r in layers:
+            print(f"    layer {r['layer']:<15}" + " ".join(
+                f"{r['parts'].get(p, 0.0):9.2f}" for p in parts)
+                + f" {r['other']:7.2f} {r['total']:7.2f}")
+        print(f"    between layers (pruning, Phi MLPs): {lat['decoder_between_layers']:.2f}")
+    return 0
+
+
+def run_sweep_command(args) -> int:
+    from ..sweep import format_table, run_sweep, select_configs
+    if args.checkpoint is None:
+        cfg = load_preset(args.preset)
+    else:
+        from ..network.checkpoint import load_model
+        _, cfg = load_model(args.checkpoint)
+    configs = select_configs(args.configs, cfg.num_frames, args.device)
+    if args.list_configs:
+        for c in configs:
+            print(c)
+        return 0
+    if not args.data:
+        raise SystemExit("odg bench --sweep needs --data INFOS")
+    if args.checkpoint is None:
+        print(f"odg bench --sweep: no --checkpoint, random weights of {args.preset}: the "
+              f"timings are real, the scores are not")
+    report = run_sweep(args.data, args.checkpoint, args.preset, args.device, configs,
+                       limit=args.limit, repeats=args.iters, warmup=args.warmup,
+                       threads=args.threads, isolate=False if args.no_isolate else None,
+                       out=args.out, occ_root=args.occ_root, progress=not args.json)
+    if args.json:
+        print(json.dumps(report, indent=1))
+        return 0
+    print(format_table(report))
+    for path in report.get("files", []):
+        print(f"wrote {path}")
     return 0

@@ -145,7 +145,8 @@ class PruneRule:
     """Adaptive inference: after layer ``after_layer``, drop the queries whose best point
     score is below ``threshold`` (empty space) and the dynamic queries whose box score is
     also below it (no object), so later, denser layers only refine what the scene has.
-    A query is kept if any sample of the batch needs it (tensors stay dense)."""
+    A query is kept if any sample of the batch needs it (tensors stay dense); the best
+    query is always kept, so an empty scene never leaves the later layers with no query."""
 
     def __init__(self, threshold: float = 0.05, after_layer: int = 2):
         self.threshold = threshold
@@ -159,4 +160,6 @@ class PruneRule:
             box_score = box_logits.float().amax(dim=-1).sigmoid()          # [B, D]
             score = torch.cat([torch.maximum(score[:, :num_dynamic], box_score),
                                score[:, num_dynamic:]], dim=1)
-        return (score > self.threshold).any(dim=0).nonzero().squeeze(1)
+        keep = score > self.threshold
+        keep[:, score.amax(dim=0).argmax()] = True
+        return keep.any(dim=0).nonzero().squeeze(1)

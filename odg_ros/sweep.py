@@ -1,0 +1,559 @@
+"""``odg bench --sweep``: speed against error, in one run, on one device.
+
+For each configuration (history length, adaptive pruning threshold, query budget, precision,
+sampling path) the online step of the node runs over the first ``limit`` samples of a split:
+the older frames' features are computed first (the node has them cached), then the step --
+backbone on the newest set, decoder over the cached history, grid + boxes -- is timed
+``repeats`` times after ``warmup`` steps; its grid is scored (mIoU with the camera mask,
+RayIoU, mIoU over the moving classes). Reported per configuration: median latency per stage,
+per decoder layer and per part of a layer, FPS, peak memory, the scores, and the same on the
+quietest and the busiest quarter of the samples (fewest / most occupied GT voxels in the
+camera mask), so adaptive inference can be judged where it should help.
+
+Peak memory: on CPU every configuration runs in a fresh process (``isolate``) and reports its
+peak resident set size (``ru_maxrss``: interpreter + torch + weights + data + inference); on
+CUDA ``torch.cuda.max_memory_allocated`` over the timed steps.
+
+Configurations derived from one checkpoint need no retraining: the history length is an
+input, pruning is an inference rule, and a query budget keeps an evenly spaced subset of the
+learned queries (their decoder weights are shared). Writes ``<out>/bench_<device>.json`` and
+``.png`` (FPS against mIoU and RayIoU with the Pareto front, and the latency breakdown).
+"""
+from __future__ import annotations
+
+import dataclasses
+import datetime
+import json
+import multiprocessing
+import os
+import platform
+import subprocess
+import traceback
+from contextlib import nullcontext
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from .benchmark import DecoderHooks, OnlineStep, StageTimer, peak_memory_mb, summarise
+from .train.evaluate import dynamic_class_miou
+
+PRUNE_THRESHOLDS = (0.05, 0.1, 0.2)
+SUBSETS = ("all", "quiet", "busy")
+
+
+@dataclass(frozen=True)
+class SweepConfig:
+    """One point of the sweep. frames: history length k incl. the current set (None: the
+    model's); prune: ``PruneRule`` threshold after layer ``prune_after`` (None: full model);
+    queries: fraction of the learned queries kept; precision: fp32 | bf16 | fp16 (autocast);
+    ring: cached history in a ``FeatureRing`` (else re-laid out every step);
+    fast_sampling: camera-rows sampling (else the plain 3-D path); compile: torch.compile
+    the decoder (per-layer timing is then off: hooks would break the graph)."""
+
+    name: str
+    frames: int | None = None
+    prune: float | None = None
+    prune_after: int = 2
+    queries: float = 1.0
+    precision: str = "fp32"
+    ring: bool = True
+    fast_sampling: bool = True
+    compile: bool = False
+
+    def __post_init__(self):
+        if not 0 < self.queries <= 1:
+            raise ValueError(f"{self.name}: queries must be a fraction in (0, 1]")
+        if self.frames is not None and self.frames < 1:
+            raise ValueError(f"{self.name}: frames must be >= 1")
+
+
+def default_configs(num_frames: int, device: str = "cpu") -> list[SweepConfig]:
+    """History 1, 2, .., k; pruning at PRUNE_THRESHOLDS; query budgets 1/2 and 1/4 (the tiny
+    variants); bf16 autocast; the plain path; on CUDA also fp16 and torch.compile."""
+    k = num_frames
+    histories = sorted({h for h in (1, 2, 4, 8) if h < k})
+    configs = [SweepConfig(f"full-h{k}", frames=k)]
+    configs += [SweepConfig(f"full-h{h}", frames=h) for h in histories]
+    configs += [SweepConfig(f"prune{t:g}-h{k}", frames=k, prune=t) for t in PRUNE_THRESHOLDS]
+    configs += [SweepConfig(f"q50-h{k}", frames=k, queries=0.5),
+                SweepConfig(f"q25-h{k}", frames=k, queries=0.25),
+                SweepConfig(f"bf16-h{k}", frames=k, precision="bf16"),
+                SweepConfig(f"plain-h{k}", frames=k, ring=False, fast_sampling=False)]
+    if torch.device(device).type == "cuda":
+        configs += [SweepConfig(f"fp16-h{k}", frames=k, precision="fp16"),
+                    SweepConfig(f"compile-h{k}", frames=k, compile=True),
+                    SweepConfig(f"compile-bf16-h{k}", frames=k, compile=True,
+                                precision="bf16")]
+    return configs
+
+
+def select_configs(spec: str | None, num_frames: int, device: str = "cpu") -> list[SweepConfig]:
+    """None: the defaults; a ``.json`` path: a list of SweepConfig fields; else
+    comma-separated names of default configurations."""
+    defaults = default_configs(num_frames, device)
+    if spec is None:
+        return defaults
+    if spec.endswith(".json"):
+        with open(spec) as f:
+            items = json.load(f)
+        if not isinstance(items, list) or not items:
+            raise ValueError(f"{spec}: expected a non-empty JSON list of configurations")
+        known = {f.name for f in dataclasses.fields(SweepConfig)}
+        for item in items:
+            unknown = set(item) - known
+            if unknown:
+                raise ValueError(f"{spec}: unknown keys {sorted(unknown)} (known: {sorted(known)})")
+        return [SweepConfig(**item) for item in items]
+    by_name = {c.name: c for c in defaults}
+    names = [n.strip() for n in spec.split(",") if n.strip()]
+    unknown = [n for n in names if n not in by_name]
+    if unknown or not names:
+        raise ValueError(f"unknown configurations {unknown}; known: {list(by_name)}")
+    return [by_name[n] for n in names]
+
+
+# ------------------------------------------------------------------------ model variants
+def query_budget(model, cfg, fraction: float):
+    """A model that keeps an evenly spaced ``fraction`` of the learned dynamic and static
+    queries (at least one of each kind the model has); every other weight is shared."""
+    from .network import ODG
+
+    D = model.num_dynamic
+    S = cfg.num_queries - D if cfg.dual_queries else cfg.num_queries
+    d = max(1, round(D * fraction)) if D else 0
+    s = max(1, round(S * fraction))
+    keep_d = torch.linspace(0, D - 1, d).round().long() if d else torch.zeros(0, dtype=torch.long)
+    keep_s = D + torch.linspace(0, S - 1, s).round().long()
+    keep = torch.cat([keep_d, keep_s])
+    new_cfg = cfg.replace(num_dynamic=d, num_static=s) if cfg.dual_queries else \
+        cfg.replace(num_dynamic=0, num_static=s)
+    state = model.state_dict()
+    state["queries.features"] = state["queries.features"][keep]
+    state["queries.init_points"] = state["queries.init_points"][keep]
+    state["queries.init_box"] = state["queries.init_box"][keep_d]
+    smaller = ODG(new_cfg)
+    smaller.load_state_dict(state)
+    smaller.fast_sampling = model.fast_sampling
+    return smaller.to(next(model.parameters()).device).eval(), new_cfg
+
+
+def prepare_model(checkpoint, preset: str, device: str, config: SweepConfig):
+    """-> (model on device in eval mode, its config) for one configuration."""
+    from .network.checkpoint import load_model
+
+    model, cfg = load_model(checkpoint, preset=preset, device="cpu")
+    if config.frames is not None and config.frames > cfg.num_frames:
+        raise ValueError(f"{config.name}: {config.frames} frames, the model takes at most "
+                         f"{cfg.num_frames}")
+    if config.queries < 1:
+        model, cfg = query_budget(model, cfg, config.queries)
+    model.fast_sampling = config.fast_sampling
+    model = model.to(device).eval()
+    if config.compile:
+        model.decoder = torch.compile(model.decoder)
+    return model, cfg
+
+
+# ------------------------------------------------------------------------ the split
+def scene_load(infos_path, cfg, occ_root, indices) -> list[dict]:
+    """Per sample: occupied GT voxels inside the camera mask, all occupied voxels, GT boxes."""
+    from .data.dataset import OccDataset
+    from .data.occ_io import free_label_of
+
+    dataset = OccDataset(infos_path, cfg, occ_root=occ_root)
+    rows = []
+    for index in indices:
+        info = dataset.infos[index]
+        semantics, _, mask_camera, has_occ = dataset.load_occupancy(info)
+        occupied = semantics != free_label_of(dataset.dataset)
+        rows.append({"index": index, "token": info["token"], "has_occ": bool(has_occ),
+                     "occupied_camera": int((occupied & mask_camera).sum()),
+                     "occupied": int(occupied.sum()), "boxes": int(len(info["gt_labels"]))})
+    return rows
+
+
+def quiet_and_busy(load: list[dict]) -> tuple[list[int], list[int]]:
+    """The quarter of the samples (at least one) with the fewest / most occupied GT voxels
+    in the camera mask (ties: fewer / more boxes), among samples with GT."""
+    scored = [r for r in load if r["has_occ"]]
+    if not scored:
+        return [], []
+    order = sorted(scored, key=lambda r: (r["occupied_camera"], r["boxes"], r["index"]))
+    k = max(1, len(order) // 4)
+    return [r["index"] for r in order[:k]], [r["index"] for r in order[-k:]]
+
+
+# ------------------------------------------------------------------------ one configuration
+@torch.no_grad()
+def measure_config(job: dict) -> dict:
+    """Time and score one configuration (``job`` from ``run_sweep``); runs in a fresh
+    process on CPU so the peak memory is its own."""
+    from .data.batch import collate
+    from .data.dataset import OccDataset
+    from .metrics.rayiou import LidarOrigins
+    from .metrics.score import OccScore
+    from .network.decoder import PruneRule
+    from .train.trainer import to_device
+
+    if job.get("threads"):
+        torch.set_num_threads(job["threads"])
+    config = SweepConfig(**job["config"])
+    device = job["device"]
+    cuda = torch.device(device).type == "cuda"
+    model, cfg = prepare_model(job["checkpoint"], job["preset"], device, config)
+    rss_after_load, _ = peak_memory_mb("cpu")
+    frames = config.frames or cfg.num_frames
+    dataset = OccDataset(job["data"], cfg.replace(num_frames=frames), occ_root=job["occ_root"])
+    prune = PruneRule(config.prune, config.prune_after) if config.prune is not None else None
+    step = OnlineStep(model, cfg, device, ring=config.ring, prune=prune,
+                      precision=config.precision)
+    rayiou = job.get("rayiou", True)
+    scores = {name: OccScore(dataset.dataset, rayiou=rayiou) for name in SUBSETS}
+    members = {"all": set(job["indices"]), "quiet": set(job["quiet"]), "busy": set(job["busy"])}
+    origins = LidarOrigins(dataset.infos) if rayiou else None
+    timer, per_sample, warm = StageTimer(device), [], False
+    for index in tqdm(job["indices"], desc=config.name, disable=not job.get("progress", True),
+                      leave=False):
+        batch = to_device(collate([dataset[index]]), device)
+        images, T = batch["images"], batch["images"].shape[1]
+        geometry = (batch["ego2img"], batch["ego_warp"], batch["time_delta"])
+        history = [step.features(images[:, t]) for t in range(1, T)]   # cached by the node
+        if not warm:
+            for _ in range(job["warmup"]):
+                step.prime(history)
+                step(images[:, 0], *geometry, StageTimer(device))
+            if cuda:
+                torch.cuda.synchronize(device)
+                torch.cuda.reset_peak_memory_stats(device)
+            warm = True
+        sample_timer = StageTimer(device)
+        for _ in range(job["repeats"]):
+            step.prime(history)
+            with DecoderHooks(model, sample_timer) if not config.compile else nullcontext():
+                output, grid, _ = step(images[:, 0], *geometry, sample_timer)
+            sample_timer.flush()
+        for name, values in sample_timer.times.items():
+            timer.times.setdefault(name, []).extend(values)
+        medians = sample_timer.medians()
+        per_sample.append({"index": index, "token": batch["token"][0],
+                           "total_ms": round(medians["total"], 3),
+                           "decoder_ms": round(medians["decoder"], 3),
+                           "queries_last_layer": int(output.last.means.shape[1]),
+                           "gaussians_last_layer": int(output.last.means.shape[1]
+                                                       * output.last.means.shape[2])})
+        if batch["has_occ"][0]:
+            pred = grid[0].cpu().numpy()
+            gt = batch["occ_semantics"][0].cpu().numpy()
+            mask = batch["occ_mask_camera"][0].cpu().numpy().astype(bool)
+            ray_origins = origins(index) if origins is not None else None
+            for name in SUBSETS:
+                if index in members[name]:
+                    scores[name].add(pred, gt, mask, ray_origins)
+    memory, method = peak_memory_mb(device)
+    result = {"config": dataclasses.asdict(config), "model": cfg.name,
+              "queries": cfg.num_queries, "frames": frames, **summarise(timer, cfg.num_layers),
+              "peak_memory_mb": round(memory, 1), "memory_method": method,
+              "rss_after_load_mb": round(rss_after_load, 1) if not cuda else None,
+              "per_sample": per_sample}
+    for name in SUBSETS:
+        result[name if name != "all" else "scores"] = subset_result(
+            scores[name], per_sample, members[name])
+    return result
+
+
+def subset_result(score, per_sample, members) -> dict:
+    rows = [r for r in per_sample if r["index"] in members]
+    out = {"samples": len(rows)}
+    if rows:
+        out["latency_ms"] = round(float(np.median([r["total_ms"] for r in rows])), 3)
+        out["queries_last_layer"] = round(float(np.mean([r["queries_last_layer"]
+                                                          for r in rows])), 1)
+    if score.miou.samples:
+        res = score.result()
+        out.update({k: res.get(k) for k in ("mIoU", "RayIoU", "IoU_geometry")})
+        out["mIoU_dynamic"] = dynamic_class_miou(res)
+    return out
+
+
+def _isolated(job: dict) -> dict:
+    """Run ``measure_config`` in a fresh interpreter (spawn), errors as a result."""
+    context = multiprocessing.get_context("spawn")
+    with context.Pool(1, maxtasksperchild=1) as pool:
+        return pool.apply(_guarded, (job,))
+
+
+def _guarded(job: dict) -> dict:
+    try:
+        return measure_config(job)
+    except Exception as error:  # one failing configuration must not lose the others
+        return {"config": job["config"], "error": f"{type(error).__name__}: {error}",
+                "traceback": traceback.format_exc()}
+
+
+# ------------------------------------------------------------------------ the whole sweep
+def pareto_front(points: list[tuple[float, float]]) -> list[int]:
+    """Indices of the points no other point beats in both coordinates (higher is better in
+    both, e.g. (FPS, mIoU)); equal points are all kept; None / NaN coordinates are out."""
+    valid = [i for i, p in enumerate(points)
+             if p[0] is not None and p[1] is not None and np.isfinite(p).all()]
+    front = []
+    for i in valid:
+        xi, yi = points[i]
+        dominated = any(points[j][0] >= xi and points[j][1] >= yi and
+                        (points[j][0] > xi or points[j][1] > yi) for j in valid)
+        if not dominated:
+            front.append(i)
+    return sorted(front, key=lambda i: points[i][0])
+
+
+def adaptive_tradeoff(results: list[dict]) -> list[dict]:
+    """Each pruned configuration against the full one with the same other settings: ms saved,
+    mIoU / RayIoU points lost, and points lost per ms saved, on all / quiet / busy samples."""
+    rows = []
+    ok = [r for r in results if "error" not in r]
+    for r in ok:
+        c = r["config"]
+        if c["prune"] is None:
+            continue
+        full = next((f for f in ok if f["config"]["prune"] is None and
+                     all(f["config"][k] == c[k] for k in c if k not in ("name", "prune",
+                                                                       "prune_after"))), None)
+        if full is None:
+            continue
+        row = {"config": c["name"], "full": full["config"]["name"], "threshold": c["prune"]}
+        for subset in SUBSETS:
+            key = "scores" if subset == "all" else subset
+            a, b = full.get(key, {}), r.get(key, {})
+            if "latency_ms" not in a or "latency_ms" not in b:
+                continue
+            saved = a["latency_ms"] - b["latency_ms"]
+            entry = {"ms_saved": round(saved, 2),
+                     "queries_last_layer": b.get("queries_last_layer")}
+            for metric in ("mIoU", "RayIoU"):
+                if a.get(metric) is not None and b.get(metric) is not None:
+                    lost = a[metric] - b[metric]
+                    entry[f"{metric}_lost"] = round(lost, 3)
+                    entry[f"{metric}_lost_per_ms"] = round(lost / saved, 5) if saved > 0 else None
+            row[subset] = entry
+        rows.append(row)
+    return rows
+
+
+def git_commit() -> str:
+    root = Path(__file__).resolve().parent.parent
+    try:
+        sha = subprocess.run(["git", "-C", str(root), "rev-parse", "--short", "HEAD"],
+                             capture_output=True, text=True, timeout=10).stdout.strip()
+        dirty = subprocess.run(["git", "-C", str(root), "status", "--porcelain",
+                                "--untracked-files=no", "--", "odg_ros"],
+                               capture_output=True, text=True, timeout=10).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+    return (sha + ("+local changes" if dirty else "")) if sha else "unknown"
+
+
+def device_name(device: str) -> str:
+    if torch.device(device).type == "cuda":
+        return torch.cuda.get_device_name(device)
+    try:
+        with open("/proc/cpuinfo") as f:
+            model = next((line.split(":", 1)[1].strip() for line in f
+                          if line.startswith("model name")), platform.processor())
+    except OSError:
+        model = platform.processor() or "CPU"
+    return f"{model} ({os.cpu_count()} cores)"
+
+
+def run_sweep(data, checkpoint=None, preset: str = "odg_cpu", device: str = "cpu",
+              configs: list[SweepConfig] | None = None, limit: int = 8, repeats: int = 3,
+              warmup: int = 1, threads: int | None = None, isolate: bool | None = None,
+              out=None, occ_root=None, rayiou: bool = True, progress: bool = True) -> dict:
+    """Measure every configuration; write ``<out>/bench_<cpu|cuda>.json`` and ``.png`` when
+    ``out`` is given. checkpoint None: random weights of ``preset`` (scores meaningless,
+    flagged in the JSON and on the plot)."""
+    from .config import load_preset
+    from .data.dataset import load_infos_file
+
+    if torch.device(device).type == "cuda" and not torch.cuda.is_available():
+        raise SystemExit("odg bench --sweep: --device cuda but CUDA is not available here")
+    if limit < 1 or repeats < 1 or warmup < 0:
+        raise ValueError("limit and repeats must be >= 1, warmup >= 0")
+    if checkpoint is None:
+        cfg = load_preset(preset)
+    else:
+        from .config import ModelConfig
+        cfg = ModelConfig(**torch.load(checkpoint, map_location="cpu", weights_only=False)["config"])
+    configs = configs or default_configs(cfg.num_frames, device)
+    isolate = torch.device(device).type == "cpu" if isolate is None else isolate
+    infos = load_infos_file(data)
+    indices = list(range(min(limit, len(infos["infos"]))))
+    if not indices:
+        raise ValueError(f"{data}: no samples")
+    load = scene_load(data, cfg, occ_root, indices)
+    quiet, busy = quiet_and_busy(load)
+    meta = {"device": device, "device_name": device_name(device),
+            "date": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
+            "commit": git_commit(), "torch": torch.__version__,
+            "threads": threads or torch.get_num_threads(),
+            "checkpoint": str(checkpoint) if checkpoint else None,
+            "random_weights": checkpoint is None, "preset": cfg.name,
+            "data": str(data), "samples": len(indices), "repeats": repeats, "warmup": warmup,
+            "isolated_processes": isolate, "load_average_before": list(os.getloadavg()),
+            "memory_method": "torch.cuda.max_memory_allocated over the timed steps"
+            if torch.device(device).type == "cuda" else
+            "ru_maxrss of a fresh process per configuration (interpreter, torch, weights, "
+            "data and inference together)",
+            "latency": "median over samples x repeats of the online step (backbone on the "
+                       "newest set, decoder over the cached history, grid + boxes)",
+            "scene_load": load, "quiet_samples": quiet, "busy_samples": busy}
+    base = {"checkpoint": str(checkpoint) if checkpoint else None, "preset": preset,
+            "device": device, "data": str(data), "occ_root": occ_root, "indices": indices,
+            "quiet": quiet, "busy": busy, "repeats": repeats, "warmup": warmup,
+            "threads": threads, "rayiou": rayiou, "progress": progress}
+    results = []
+    for config in tqdm(configs, desc="sweep", disable=not progress):
+        job = {**base, "config": dataclasses.asdict(config)}
+        result = _isolated(job) if isolate else _guarded(job)
+        if "error" in result:
+            tqdm.write(f"sweep: {config.name} failed: {result['error']}")
+        results.append(result)
+    meta["load_average_after"] = list(os.getloadavg())
+    ok = [r for r in results if "error" not in r]
+    if not ok:
+        raise RuntimeError("every sweep configuration failed: "
+                           + "; ".join(r["error"] for r in results))
+    report = {"meta": meta, "configs": results, "pareto": {}, "adaptive": adaptive_tradeoff(results)}
+    for metric in ("mIoU", "RayIoU"):
+        points = [(r["fps"], r["scores"].get(metric)) for r in ok]
+        report["pareto"][metric] = [ok[i]["config"]["name"] for i in pareto_front(points)]
+    if out is not None:
+        out = Path(out)
+        out.mkdir(parents=True, exist_ok=True)
+        stem = f"bench_{torch.device(device).type}"
+        with open(out / f"{stem}.json", "w") as f:
+            json.dump(report, f, indent=1)
+        plot_sweep(report, out / f"{stem}.png")
+        report["files"] = [str(out / f"{stem}.json"), str(out / f"{stem}.png")]
+    return report
+
+
+# ------------------------------------------------------------------------ report
+def format_table(report: dict) -> str:
+    lines = [f"{'config':<16} {'FPS':>6} {'total':>8} {'backbone':>8} {'decoder':>8} "
+             f"{'post':>6} {'mem MB':>7} {'mIoU':>6} {'RayIoU':>6} {'mIoU_dyn':>8} "
+             f"{'quiet ms':>8} {'busy ms':>8} {'Q last':>6}"]
+    cell = lambda v, f="{:.2f}": "-" if v is None else f.format(v)  # noqa: E731
+    for r in report["configs"]:
+        name = r["config"]["name"]
+        if "error" in r:
+            lines.append(f"{name:<16} FAILED: {r['error']}")
+            continue
+        lat, s = r["latency_ms"], r["scores"]
+        lines.append(
+            f"{name:<16} {cell(r['fps']):>6} {cell(lat['total'], '{:.1f}'):>8} "
+            f"{cell(lat['backbone'], '{:.1f}'):>8} {cell(lat['decoder'], '{:.1f}'):>8} "
+            f"{cell(lat['postprocess'], '{:.1f}'):>6} {cell(r['peak_memory_mb'], '{:.0f}'):>7} "
+            f"{cell(s.get('mIoU')):>6} {cell(s.get('RayIoU')):>6} "
+            f"{cell(s.get('mIoU_dynamic')):>8} "
+            f"{cell(r['quiet'].get('latency_ms'), '{:.1f}'):>8} "
+            f"{cell(r['busy'].get('latency_ms'), '{:.1f}'):>8} "
+            f"{cell(s.get('queries_last_layer'), '{:.0f}'):>6}")
+    for metric, names in report["pareto"].items():
+        lines.append(f"Pareto front (FPS, {metric}): {', '.join(names)}")
+    for row in report["adaptive"]:
+        parts = []
+        for subset in SUBSETS:
+            e = row.get(subset)
+            if e:
+                parts.append(f"{subset}: {e['ms_saved']:+.1f} ms, mIoU "
+                             f"{-e.get('mIoU_lost', float('nan')):+.2f}, "
+                             f"{e.get('mIoU_lost_per_ms')} mIoU lost/ms")
+        lines.append(f"{row['config']} vs {row['full']}: " + "; ".join(parts))
+    return "\n".join(lines)
+
+
+def plot_sweep(report: dict, path) -> None:
+    """PNG: FPS against mIoU and against RayIoU (Pareto front as a line), and the latency
+    of each configuration split into backbone, decoder layers, between layers, post."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    meta = report["meta"]
+    ok = [r for r in report["configs"] if "error" not in r]
+    fig, axes = plt.subplots(1, 3, figsize=(19, 6.2),
+                             gridspec_kw={"width_ratios": [1, 1, 1.25]})
+    for ax, metric in zip(axes[:2], ("mIoU", "RayIoU")):
+        front = set(report["pareto"].get(metric, []))
+        xs, ys = [], []
+        for r in ok:
+            value = r["scores"].get(metric)
+            if value is None:
+                continue
+            name = r["config"]["name"]
+            on_front = name in front
+            ax.scatter(r["fps"], value, s=60 if on_front else 35, zorder=3,
+                       color="tab:red" if on_front else "tab:blue",
+                       marker="*" if r["config"]["prune"] is not None else "o")
+            ax.annotate(name, (r["fps"], value), textcoords="offset points", xytext=(4, 4),
+                        fontsize=7)
+            if on_front:
+                xs.append(r["fps"])
+                ys.append(value)
+        if xs:
+            order = np.argsort(xs)
+            ax.plot(np.array(xs)[order], np.array(ys)[order], "--", color="tab:red",
+                    label="Pareto front", zorder=2)
+            ax.legend(loc="best", fontsize=8)
+        ax.set_xlabel("FPS (online step: backbone + decoder + post-processing)")
+        ax.set_ylabel(f"{metric} (%)")
+        ax.grid(alpha=0.3)
+        ax.set_title(f"FPS vs {metric} ({meta['samples']} samples; * = adaptive pruning)",
+                     fontsize=9)
+    ax = axes[2]
+    names = [r["config"]["name"] for r in ok]
+    left = np.zeros(len(ok))
+    segments = [("backbone", "tab:gray")]
+    num_layers = max((len(r["decoder_layers_ms"]) for r in ok), default=0)
+    cmap = plt.get_cmap("viridis")
+    for i in range(num_layers):
+        segments.append((f"layer{i + 1}", cmap(i / max(1, num_layers - 1))))
+    segments += [("between layers", "tab:orange"), ("postprocess", "tab:brown")]
+    for label, colour in segments:
+        widths = []
+        for r in ok:
+            lat = r["latency_ms"]
+            if label == "backbone":
+                widths.append(lat["backbone"])
+            elif label == "postprocess":
+                widths.append(lat["postprocess"])
+            elif label == "between layers":
+                widths.append(lat.get("decoder_between_layers",
+                                      lat["decoder"] if not r["decoder_layers_ms"] else 0.0))
+            else:
+                index = int(label[5:])
+                row = next((x for x in r["decoder_layers_ms"] if x["layer"] == index), None)
+                widths.append(row["total"] if row else 0.0)
+        widths = np.maximum(np.array(widths), 0.0)
+        ax.barh(names, widths, left=left, color=colour, label=label, height=0.7)
+        left += widths
+    ax.invert_yaxis()
+    ax.set_xlabel("median latency per online step (ms)")
+    ax.legend(fontsize=7, ncol=2, loc="lower right")
+    ax.grid(axis="x", alpha=0.3)
+    ax.set_title("where the time goes (decoder per layer)", fontsize=9)
+    weights = ("RANDOM WEIGHTS (no trained checkpoint): the scores are meaningless"
+               if meta["random_weights"] else f"checkpoint {meta['checkpoint']}")
+    fig.suptitle(
+        f"odg bench --sweep: {meta['preset']} on {meta['device_name']}, "
+        f"{meta['threads']} threads, torch {meta['torch']} | {meta['date']} | "
+        f"commit {meta['commit']}\n{weights} | data {meta['data']} | median of "
+        f"{meta['repeats']} runs per sample after {meta['warmup']} warm-up | load average "
+        f"{meta['load_average_before'][0]:.1f} -> {meta['load_average_after'][0]:.1f}",
+        fontsize=9, color="darkred" if meta["random_weights"] else "black")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)

@@ -1,0 +1,224 @@
+"""``odg bench --sweep`` (odg_ros/sweep.py): the Pareto front and the adaptive trade-off on
+hand-made numbers, query budgets, the never-empty pruning rule, and a whole sweep of a tiny
+random-weights checkpoint on a tiny hand-made world (JSON keys, PNG, scores equal to
+``evaluate``)."""
+import json
+import math
+import pickle
+
+import numpy as np
+import pytest
+import torch
+
+from odg_ros.benchmark import LAYER_PARTS, bench_online_step
+from odg_ros.network import ODG
+from odg_ros.network.checkpoint import load_model, save_checkpoint
+from odg_ros.network.decoder import PruneRule
+from odg_ros.sweep import (SweepConfig, adaptive_tradeoff, pareto_front, query_budget,
+                           quiet_and_busy, run_sweep, select_configs)
+from odg_ros.train.evaluate import evaluate
+
+from helpers import tiny_config
+from test_dataset import build_world
+
+
+def tiny_cfg():
+    return tiny_config(image_size=(32, 88), num_frames=3)
+
+
+# ------------------------------------------------------------------------ pure functions
+def test_pareto_front_on_hand_made_points():
+    points = [(1.0, 5.0), (2.0, 4.0), (3.0, 4.0), (0.5, 6.0), (2.0, 1.0), (3.0, 4.0),
+              (9.0, None), (4.0, float("nan")), (0.4, 6.0)]
+    # (2, 4) is beaten by (3, 4); (2, 1) by everything to its right; (0.4, 6) by (0.5, 6);
+    # the two equal (3, 4) both stay; None / NaN are out; sorted by FPS
+    assert pareto_front(points) == [3, 0, 2, 5]
+    assert pareto_front([]) == []
+    assert pareto_front([(1.0, 1.0)]) == [0]
+
+
+def test_quiet_and_busy_quarters():
+    load = [{"index": i, "has_occ": True, "occupied_camera": v, "boxes": b}
+            for i, (v, b) in enumerate([(50, 1), (10, 9), (30, 2), (90, 0), (10, 1), (70, 5),
+                                        (20, 3), (60, 1)])]
+    load.append({"index": 8, "has_occ": False, "occupied_camera": 0, "boxes": 0})
+    quiet, busy = quiet_and_busy(load)
+    assert quiet == [4, 1] and busy == [5, 3]          # ties on voxels: fewer boxes first
+    assert quiet_and_busy(load[:1]) == ([0], [0])
+    assert quiet_and_busy([]) == ([], [])
+
+
+def result(name, total, miou, prune=None, quiet=(0, 0), busy=(0, 0), frames=4):
+    config = {"name": name, "frames": frames, "prune": prune, "prune_after": 2,
+              "queries": 1.0, "precision": "fp32", "ring": True, "fast_sampling": True,
+              "compile": False}
+    return {"config": config, "fps": 1000 / total,
+            "scores": {"latency_ms": total, "mIoU": miou, "RayIoU": miou / 2},
+            "quiet": {"latency_ms": quiet[0], "mIoU": quiet[1], "RayIoU": None},
+            "busy": {"latency_ms": busy[0], "mIoU": busy[1], "RayIoU": None}}
+
+
+def test_adaptive_tradeoff_is_points_lost_per_millisecond_saved():
+    rows = adaptive_tradeoff([
+        result("full", 100.0, 30.0, quiet=(90.0, 20.0), busy=(110.0, 40.0)),
+        result("p0.1", 80.0, 29.0, prune=0.1, quiet=(50.0, 20.0), busy=(105.0, 38.0)),
+        result("p0.2-h2", 60.0, 25.0, prune=0.2, frames=2),     # no full model at 2 frames
+        result("slower", 120.0, 30.0, prune=0.01),
+        {"config": {"name": "broken"}, "error": "RuntimeError: x"}])
+    assert [r["config"] for r in rows] == ["p0.1", "slower"]
+    p = rows[0]
+    assert p["full"] == "full" and p["threshold"] == 0.1
+    assert p["all"]["ms_saved"] == 20.0 and p["all"]["mIoU_lost"] == 1.0
+    assert math.isclose(p["all"]["mIoU_lost_per_ms"], 0.05)
+    assert math.isclose(p["all"]["RayIoU_lost_per_ms"], 0.025)
+    assert p["quiet"]["ms_saved"] == 40.0 and p["quiet"]["mIoU_lost_per_ms"] == 0.0
+    assert p["busy"]["ms_saved"] == 5.0 and math.isclose(p["busy"]["mIoU_lost_per_ms"], 0.4)
+    assert "RayIoU_lost" not in p["quiet"]                  # None scores are not compared
+    assert rows[1]["all"]["ms_saved"] == -20.0 and rows[1]["all"]["mIoU_lost_per_ms"] is None
+
+
+def test_select_configs_by_name_and_from_json(tmp_path):
+    defaults = select_configs(None, 4)
+    names = [c.name for c in defaults]
+    assert names[:3] == ["full-h4", "full-h1", "full-h2"]
+    assert {"prune0.05-h4", "q50-h4", "q25-h4", "bf16-h4", "plain-h4"} <= set(names)
+    assert not any("fp16" in n or "compile" in n for n in names)   # CUDA only
+    assert [c.name for c in select_configs("q25-h4,full-h1", 4)] == ["q25-h4", "full-h1"]
+    with pytest.raises(ValueError, match="unknown configurations"):
+        select_configs("full-h9", 4)
+    path = tmp_path / "c.json"
+    path.write_text(json.dumps([{"name": "mine", "frames": 2, "prune": 0.3}]))
+    assert select_configs(str(path), 4) == [SweepConfig("mine", frames=2, prune=0.3)]
+    path.write_text(json.dumps([{"name": "bad", "speed": 3}]))
+    with pytest.raises(ValueError, match="unknown keys"):
+        select_configs(str(path), 4)
+    with pytest.raises(ValueError):
+        SweepConfig("x", queries=0.0)
+
+
+# ------------------------------------------------------------------------ model variants
+def test_query_budget_keeps_evenly_spaced_learned_queries():
+    cfg = tiny_cfg()                      # 6 dynamic + 20 static queries
+    model = ODG(cfg).eval()
+    small, small_cfg = query_budget(model, cfg, 0.5)
+    assert (small_cfg.num_dynamic, small_cfg.num_static) == (3, 10)
+    q, s = model.queries.features.detach(), small.queries.features.detach()
+    torch.testing.assert_close(s[:3], q[[0, 2, 5]])          # linspace(0, 5, 3).round()
+    torch.testing.assert_close(s[3], q[6])
+    torch.testing.assert_close(s[-1], q[-1])
+    torch.testing.assert_close(small.queries.init_box.detach(),
+                               model.queries.init_box.detach()[[0, 2, 5]])
+    # every other weight is shared
+    torch.testing.assert_close(small.decoder.layers[3].mixing.generator.weight,
+                               model.decoder.layers[3].mixing.generator.weight)
+    tiny, tiny_c = query_budget(model, cfg, 0.01)            # never zero of a kind
+    assert (tiny_c.num_dynamic, tiny_c.num_static) == (1, 1)
+
+
+def test_pruning_above_every_score_keeps_the_best_query_and_runs():
+    cfg = tiny_cfg()
+    model = ODG(cfg).eval()
+    rule = PruneRule(threshold=1.1, after_layer=2)           # no score can pass
+    images = torch.randn(1, 3, 6, 3, *cfg.image_size)
+    from odg_ros.rig import ring_ego2img
+    e2i = ring_ego2img(cfg.image_size, 3, 6)
+    warp, dt = torch.eye(4).repeat(1, 3, 1, 1), torch.tensor([[0.0, 0.5, 1.0]])
+    with torch.no_grad():
+        out = model(images, e2i, warp, dt, prune=rule)
+    assert out.last.means.shape[1] == 1 and torch.isfinite(out.last.means).all()
+
+
+def test_bench_online_step_reports_layers_parts_and_memory():
+    cfg = tiny_cfg()
+    r = bench_online_step(cfg, iters=2, warmup=1, progress=False)
+    assert set(r["latency_ms"]) >= {"backbone", "decoder", "postprocess", "total"}
+    assert len(r["decoder_layers_ms"]) == cfg.num_layers
+    for row in r["decoder_layers_ms"]:
+        assert set(row["parts"]) <= set(LAYER_PARTS) and {"attention", "sampling",
+                                                           "mixing"} <= set(row["parts"])
+        assert row["total"] >= sum(row["parts"].values()) - 1e-6
+    assert sum(r["total"] for r in r["decoder_layers_ms"]) <= r["latency_ms"]["decoder"]
+    assert r["peak_memory_mb"] > 50 and r["memory_method"] == "process ru_maxrss"
+    assert r["fps"] > 0
+
+
+# ------------------------------------------------------------------------ a whole sweep
+@pytest.fixture(scope="module")
+def tiny_split(tmp_path_factory):
+    root = tmp_path_factory.mktemp("world")
+    infos = build_world(root, num_keyframes=3)
+    path = root / "infos.pkl"
+    with open(path, "wb") as f:
+        pickle.dump(infos, f)
+    torch.manual_seed(0)
+    checkpoint = root / "tiny.pt"
+    save_checkpoint(checkpoint, ODG(tiny_cfg()))
+    return path, checkpoint
+
+
+def test_sweep_writes_json_and_png_with_every_measure(tiny_split, tmp_path):
+    data, checkpoint = tiny_split
+    configs = [SweepConfig("full-h3", frames=3), SweepConfig("prune-h3", frames=3, prune=0.5),
+               SweepConfig("q50-h2", frames=2, queries=0.5)]
+    report = run_sweep(data, checkpoint, configs=configs, limit=2, repeats=1, warmup=0,
+                       isolate=False, out=tmp_path, progress=False)
+    saved = json.loads((tmp_path / "bench_cpu.json").read_text())
+    png = tmp_path / "bench_cpu.png"
+    assert png.stat().st_size > 10_000 and png.read_bytes()[:4] == b"\x89PNG"
+    assert set(saved) == {"meta", "configs", "pareto", "adaptive"}
+    meta = saved["meta"]
+    assert meta["random_weights"] is False and meta["checkpoint"] == str(checkpoint)
+    assert meta["samples"] == 2 and meta["commit"] and meta["date"]
+    assert len(meta["scene_load"]) == 2 and meta["quiet_samples"] and meta["busy_samples"]
+    assert [c["config"]["name"] for c in saved["configs"]] == ["full-h3", "prune-h3", "q50-h2"]
+    for c in saved["configs"]:
+        assert "error" not in c, c.get("traceback")
+        assert set(c["latency_ms"]) >= {"backbone", "decoder", "postprocess", "total"}
+        assert len(c["decoder_layers_ms"]) == 6 and c["fps"] > 0 and c["peak_memory_mb"] > 0
+        for key in ("mIoU", "RayIoU", "mIoU_dynamic", "IoU_geometry", "latency_ms"):
+            assert key in c["scores"]
+        assert c["quiet"]["samples"] == 1 and c["busy"]["samples"] == 1
+        assert len(c["per_sample"]) == 2
+    full, pruned, budget = saved["configs"]
+    assert full["frames"] == 3 and budget["frames"] == 2 and budget["queries"] == 13
+    assert pruned["scores"]["queries_last_layer"] < full["scores"]["queries_last_layer"] == 26
+    assert saved["adaptive"][0]["config"] == "prune-h3" and "all" in saved["adaptive"][0]
+    assert set(saved["pareto"]) == {"mIoU", "RayIoU"} and saved["pareto"]["mIoU"]
+    assert report["files"] == [str(tmp_path / "bench_cpu.json"), str(png)]
+
+
+def test_sweep_scores_equal_offline_evaluation(tiny_split):
+    """The sweep scores the timed online step (cached history); it must match ``evaluate``
+    (the offline model over all frames) on the same samples."""
+    data, checkpoint = tiny_split
+    report = run_sweep(data, checkpoint, configs=[SweepConfig("full-h2", frames=2)], limit=3,
+                       repeats=1, warmup=0, isolate=False, progress=False)
+    model, cfg = load_model(checkpoint)
+    expected = evaluate(model, cfg, str(data), limit=3, frames=2, progress=False)
+    got = report["configs"][0]["scores"]
+    for key in ("mIoU", "RayIoU", "IoU_geometry"):
+        assert got[key] == expected[key], key
+
+
+def test_sweep_in_a_fresh_process_reports_its_own_peak_memory(tiny_split):
+    data, checkpoint = tiny_split
+    report = run_sweep(data, checkpoint, configs=[SweepConfig("full-h1", frames=1)], limit=1,
+                       repeats=1, warmup=0, isolate=True, progress=False)
+    c = report["configs"][0]
+    assert "error" not in c, c.get("traceback")
+    assert report["meta"]["isolated_processes"] is True
+    # the child's peak covers torch + the model, and is at least its after-load figure
+    assert c["peak_memory_mb"] >= c["rss_after_load_mb"] > 50
+    assert np.isfinite(c["fps"])
+
+
+def test_a_failing_configuration_is_reported_not_fatal(tiny_split):
+    data, checkpoint = tiny_split
+    report = run_sweep(data, checkpoint, configs=[SweepConfig("ok", frames=1),
+                                                  SweepConfig("too-long", frames=9)],
+                       limit=1, repeats=1, warmup=0, isolate=False, progress=False)
+    assert "error" not in report["configs"][0]
+    assert "at most 3" in report["configs"][1]["error"]
+    with pytest.raises(RuntimeError, match="every sweep configuration failed"):
+        run_sweep(data, checkpoint, configs=[SweepConfig("too-long", frames=9)], limit=1,
+                  repeats=1, warmup=0, isolate=False, progress=False)
