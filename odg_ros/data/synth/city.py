@@ -352,8 +352,16 @@ def _sidewalk_furniture(layout, rng, road: Road, intersections, near):
                                       "static", None))
             elif r < 0.024:
                 shape = shapes.bicycle_rack(rng)
+                group = ("rack", road.axis, road.c, s, u)   # the rack and its bicycles stay or go together
                 layout.things.append((shape, Path((x, y), road.heading(1), [("line", 0.01)]), np.zeros(2), 0.0,
-                                      "static", None))
+                                      "static", group))
+                for k in range(int(rng.integers(0, 4))):
+                    along = -shape.wlh[1] / 2 + 0.5 + 0.9 * k
+                    if along > shape.wlh[1] / 2:
+                        break
+                    bx, by = (x + along, y - s * 0.45) if a == 0 else (x - s * 0.45, y + along)
+                    layout.things.append((shapes.bicycle(rng, rider=False), Path((bx, by), road.heading(1),
+                                          [("line", 0.01)]), np.zeros(2), 0.0, "cycle", group))
                 u += shape.wlh[1]
             elif r < 0.027:
                 away = np.array((0.0, s)) if a == 0 else np.array((float(s), 0.0))
@@ -364,8 +372,40 @@ def _sidewalk_furniture(layout, rng, road: Road, intersections, near):
 # ---------------------------------------------------------------------------------------
 # traffic
 
-VEHICLE_MIX = (("car", 0.68), ("truck", 0.08), ("bus", 0.06), ("semi", 0.05), ("motorcycle", 0.08),
-               ("construction", 0.02), ("bicycle", 0.03))
+def _static(layout, shape, xy, yaw, kind="static"):
+    layout.things.append((shape, Path(xy, yaw, [("line", 0.01)]), np.zeros(2), 0.0, kind, None))
+
+
+def _construction_zone(layout, rng, road: Road, direction, u0, zlen):
+    """Close the outer lane of ``road``'s carriageway heading ``direction`` over [u0, u0 + zlen]:
+    barriers along the lane's inner edge, a cone taper upstream, a construction vehicle and
+    workers inside."""
+    s = side(road.axis, direction)
+    lane = road.lanes - 1
+    lat = road.c + road.lane_offset(lane, s)
+    inner = lat - s * road.lane_w / 2
+
+    def xy(u, v):
+        return (u, v) if road.axis == 0 else (v, u)
+
+    yaw = road.heading(1)
+    for u in np.arange(u0, u0 + zlen, 2.7):
+        _static(layout, shapes.barrier(rng), xy(u, inner + s * 0.4), yaw)
+    upstream, step = (u0 - 2.0, -2.5) if direction > 0 else (u0 + zlen + 2.0, 2.5)
+    for k in range(6):
+        _static(layout, shapes.traffic_cone(rng), xy(upstream + step * k, inner + s * road.lane_w * k / 7), 0.0)
+    machine = shapes.construction_vehicle(rng)
+    u_m = u0 + zlen / 2
+    _static(layout, machine, xy(u_m, lat + s * 0.3), yaw + np.pi * (rng.random() < 0.5), "vehicle")
+    for _ in range(int(rng.integers(1, 4))):
+        u = u0 + rng.uniform(1, zlen - 1)
+        if abs(u - u_m) > machine.wlh[1] / 2 + 1.5:
+            _static(layout, shapes.pedestrian(rng, "construction_worker"), xy(u, lat + s * rng.uniform(-0.6, 0.8)),
+                    rng.uniform(-np.pi, np.pi), "pedestrian")
+
+
+VEHICLE_MIX = (("car", 0.60), ("truck", 0.09), ("bus", 0.07), ("semi", 0.06), ("motorcycle", 0.08),
+               ("construction", 0.03), ("bicycle", 0.07))
 
 
 def _vehicle_shapes(rng, kind):
@@ -548,10 +588,14 @@ def build_world(seed_seq: np.random.SeedSequence, name: str, duration: float) ->
         for s in (-1, 1):
             curb = road.c + s * road.half(s)
             a0, a1 = sorted((curb, curb + s * road.sidewalk))
+            # half the sidewalks have a paved furniture strip (other_flat) along the curb
+            b0, b1 = sorted((curb, curb + s * 1.5)) if rng.random() < 0.5 else (curb, curb)
             if road.axis == 0:
                 ground.fill(road.lo, road.hi, a0, a1, M.TILES)
+                ground.fill(road.lo, road.hi, b0, b1, M.COBBLE)
             else:
                 ground.fill(a0, a1, road.lo, road.hi, M.TILES)
+                ground.fill(b0, b1, road.lo, road.hi, M.COBBLE)
     for road in h_roads + v_roads:
         _paint_road(ground, road, rng)
     inter = [(h, v) for h in h_roads for v in v_roads]
@@ -589,35 +633,31 @@ def build_world(seed_seq: np.random.SeedSequence, name: str, duration: float) ->
                     arm = (0.0, -sy) if rng.random() < 0.5 else None
                     traffic_light(layout, rng, px, py, np.arctan2(-sy, -sx), arm, h.lanes * h.lane_w * 0.8)
 
-    # -- construction zone on the main road's opposite carriageway ------------------------------
-    if rng.random() < 0.55:
-        zx = rng.uniform(0.2, 0.8) * travel + 20
-        if not any(abs(zx - v.c) < v.half(1) + 25 for v in v_roads):
-            s = side(0, -1)
-            lane = main.lanes - 1
-            lat = main.c + main.lane_offset(lane, s)
-            zlen = rng.uniform(18, 35)
-            for k, u in enumerate(np.arange(zx, zx + zlen, 2.6)):
-                shape = shapes.barrier(rng)
-                layout.things.append((shape, Path((u, lat - s * main.lane_w / 2 + s * 0.4), 0.0, [("line", 0.01)]),
-                                      np.zeros(2), 0.0, "static", None))
-            for k in range(6):  # cone taper before the zone (seen by traffic heading -x)
-                u = zx + zlen + 2 + 2.5 * k
-                lateral = lat - s * main.lane_w / 2 * (1 - k / 6)
-                shape = shapes.traffic_cone(rng)
-                layout.things.append((shape, Path((u, lateral), 0.0, [("line", 0.01)]), np.zeros(2), 0.0,
-                                      "static", None))
-            cv = shapes.construction_vehicle(rng)
-            cvx = zx + zlen / 2
-            layout.things.append((cv, Path((cvx, lat + s * 0.3), rng.choice([0.0, np.pi]), [("line", 0.01)]),
-                                  np.zeros(2), 0.0, "vehicle", None))
-            for k in range(int(rng.integers(1, 4))):
-                p = shapes.pedestrian(rng, "construction_worker")
-                wx = zx + rng.uniform(1, zlen - 1)
-                if abs(wx - cvx) < cv.wlh[1] / 2 + 1.5:
-                    continue
-                layout.things.append((p, Path((wx, lat + s * rng.uniform(-0.8, 0.8)), rng.uniform(-np.pi, np.pi),
-                                                [("line", 0.01)]), np.zeros(2), 0.0, "pedestrian", None))
+    # -- construction zones: a closed outer lane with barriers, a cone taper, a machine, workers -----
+    if rng.random() < 0.7:
+        # on the main road's opposite carriageway (the ego keeps its lane) somewhere ahead
+        free = [u for u in np.arange(-20, travel + 60, 4.0)
+                if all(abs(w - v.c) > v.half(1) + 14 for v in v_roads for w in (u - 10, u + 45))]
+        if free:
+            _construction_zone(layout, rng, main, -1, float(rng.choice(free)), rng.uniform(18, 35))
+    crossing_near = [v for v in v_roads if near(v.c, 0.0, 60.0)]
+    if crossing_near and rng.random() < 0.5:
+        road = crossing_near[int(rng.integers(len(crossing_near)))]
+        end = int(rng.choice([-1, 1]))
+        u0 = main.c + end * (main.half(end) + rng.uniform(12, 20))
+        _construction_zone(layout, rng, road, int(rng.choice([-1, 1])), u0 if end > 0 else u0 - 30, 25.0)
+    for road in h_roads + v_roads:  # loose cones on parking lanes / road edges
+        for _ in range(int(rng.poisson(2.0))):
+            u = rng.uniform(road.lo, road.hi)
+            s_side = int(rng.choice([-1, 1]))
+            lat = road.c + s_side * (road.half(s_side) - 0.5)
+            xy = (u, lat) if road.axis == 0 else (lat, u)
+            if not near(*xy, dist=70.0):
+                continue
+            for k in range(int(rng.integers(1, 5))):
+                off = (k * 1.3, 0.0) if road.axis == 0 else (0.0, k * 1.3)
+                layout.things.append((shapes.traffic_cone(rng), Path((xy[0] + off[0], xy[1] + off[1]), 0.0,
+                                      [("line", 0.01)]), np.zeros(2), 0.0, "static", None))
 
     # -- moving traffic ---------------------------------------------------------------------------
     span = duration + 1.0
@@ -633,8 +673,10 @@ def build_world(seed_seq: np.random.SeedSequence, name: str, duration: float) ->
                     if not near(*xy, dist=120.0):
                         continue
                     kind = str(rng.choice(kinds, p=np.array(probs) / sum(probs)))
-                    if kind == "bicycle" and lane != road.lanes - 1:
-                        kind = "car"
+                    if kind == "bicycle":  # cyclists keep to the outer lane, near the curb
+                        lane_k = road.lanes - 1
+                    else:
+                        lane_k = lane
                     v_max = {"car": 14, "truck": 11, "bus": 10, "semi": 10, "motorcycle": 16, "construction": 6,
                              "bicycle": 6}[kind]
                     cruise = rng.uniform(0.45, 1.0) * v_max
@@ -645,14 +687,14 @@ def build_world(seed_seq: np.random.SeedSequence, name: str, duration: float) ->
                     ahead = [c for c in crossing if 15 < direction * (c.c - start_u) < 120]
                     members = _vehicle_shapes(rng, kind)
                     lateral = 1.0 if kind == "bicycle" else rng.uniform(-0.25, 0.25)
-                    if ahead and rng.random() < 0.3 and kind != "semi":
+                    if ahead and rng.random() < 0.3 and kind not in ("semi", "bicycle"):
                         cross = ahead[0] if direction > 0 else ahead[-1]
                         t_dir = int(rng.choice([-1, 1]))
-                        lane_out = min(lane, cross.lanes - 1) if t_dir > 0 else cross.lanes - 1
-                        sxy, yaw, pieces, _ = _turn_pieces(road, direction, lane, cross, t_dir, lane_out, start_u, 300)
+                        lane_out = min(lane_k, cross.lanes - 1) if t_dir > 0 else cross.lanes - 1
+                        sxy, yaw, pieces, _ = _turn_pieces(road, direction, lane_k, cross, t_dir, lane_out, start_u, 300)
                         path = Path(sxy, yaw, pieces)
                     else:
-                        path = _lane_path(road, direction, lane, start_u - direction * 30, 500, lateral)
+                        path = _lane_path(road, direction, lane_k, start_u - direction * 30, 500, lateral)
                     s_start = 0.0 if path.length < 400 else 30.0
                     gid = None
                     if len(members) > 1:

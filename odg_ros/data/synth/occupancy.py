@@ -3,10 +3,12 @@
 Grid (DESIGN.md sec. 3): [-40, -40, -1, 40, 40, 5.4] m in the keyframe's ego frame,
 200 x 200 x 16 voxels of 0.4 m indexed [x, y, z], 17 = free.
 
-* semantics: the flat ground (z = 0) labels the voxel layer that contains it with the ground
-  class under the column centre; a primitive labels every voxel whose centre lies in the
-  primitive grown by half a voxel (for boxes exactly the voxels the box overlaps). Objects
-  overwrite stuff, stuff overwrites the ground.
+* semantics: surfaces, as Occ3D builds them from accumulated LiDAR returns. The flat ground
+  (z = 0) labels the voxel layer that contains it with the ground class under the column
+  centre; a primitive labels every voxel its surface passes through: the voxel centre lies
+  within half a voxel of the solid but not deeper than half a voxel inside it (for boxes
+  exactly the voxels the box boundary overlaps). Solid interiors (inside buildings, trucks)
+  stay free, and unobserved. Objects overwrite stuff, stuff overwrites the ground.
 * masks: a voxel is observed if a ray reaches or hits it (Amanatides-Woo traversal,
   vectorised over rays, from the sensor origin). LiDAR rays run to their return (the voxel
   holding the point included), as in Occ3D; camera rays through the pixels run until the
@@ -70,8 +72,14 @@ def voxelize(world: World, prims: Primitives, T_global_from_ego) -> np.ndarray:
         j = lo[prim, 1] + (off // sz[:, 2]) % sz[:, 1]
         k = lo[prim, 2] + off % sz[:, 2]
         centres = voxel_centres_ego(np.stack([i, j, k], 1)) @ T[:3, :3].T + T[:3, 3]
-        inside = contains(prims, centres, prim, inflate=VOXEL / 2)
-        sem[i[inside], j[inside], k[inside]] = prims.label[prim[inside]]
+        # the voxel overlaps the surface: its centre is within half a voxel of the solid but
+        # not deeper than half a voxel inside it (primitives thinner than a voxel are all surface)
+        near = contains(prims, centres, prim, inflate=VOXEL / 2)
+        thick = np.flatnonzero(near & (prims.half[prim].min(1) > VOXEL / 2))
+        deep = np.zeros(len(prim), bool)
+        deep[thick] = contains(prims, centres[thick], prim[thick], inflate=-VOXEL / 2)
+        surface = near & ~deep
+        sem[i[surface], j[surface], k[surface]] = prims.label[prim[surface]]
     return sem
 
 

@@ -82,7 +82,8 @@ def make(kind, center, half, yaw, label, seg, material, color, inst=-1, taper=1.
 
 def contains(prims: Primitives, points, index, inflate: float = 0.0) -> np.ndarray:
     """Whether global points [Q, 3] lie in primitive ``index[q]`` grown by ``inflate`` metres
-    along its local axes (boxes: exact Minkowski growth by a cube; round kinds: radii + inflate)."""
+    along its local axes (boxes: exact Minkowski growth by a cube; round kinds: radii + inflate).
+    A negative ``inflate`` shrinks; it must stay above minus the smallest half extent."""
     half = prims.half[index] + inflate
     d = points - prims.center[index]
     c, s = np.cos(prims.yaw[index]), np.sin(prims.yaw[index])
@@ -101,7 +102,7 @@ def contains(prims: Primitives, points, index, inflate: float = 0.0) -> np.ndarr
         # same absolute margin, so interpolate the grown radii
         hx = prims.half[index][fru, 0]
         r_bot = (hx + inflate) / (hx + inflate)
-        r_top = (hx * taper + inflate) / (hx + inflate)
+        r_top = np.maximum(hx * taper + inflate, 0) / (hx + inflate)
         r = r_bot + (r_top - r_bot) * (uf[:, 2] + 1) / 2
         inside[fru] = (np.abs(uf[:, 2]) <= 1.0) & (uf[:, 0] ** 2 + uf[:, 1] ** 2 <= r ** 2)
     return inside
