@@ -225,3 +225,21 @@ def test_feature_ring_rejects_bad_input_clearly():
         ring.push([f[..., :-1] for f in feats])
     with pytest.raises(ValueError):
         FeatureRing(0, 4)
+
+
+def test_half_precision_features_are_laid_out_in_float32_exactly():
+    """A bf16 grid over N*(h+1) stacked rows would put points up to ~0.4 px off; the layout
+    (and the ring) keep float32, which holds every bf16 value exactly."""
+    g = torch.Generator().manual_seed(0)
+    frames = [[torch.randn(1, 6, 8, 4, 11, generator=g).bfloat16()] for _ in range(2)]
+    rows = camera_rows_layout([f[0] for f in frames], 2)
+    assert rows.dtype == torch.float32
+    back = rows.permute(0, 2, 3, 1).reshape(2, 1, 2, 6, 5, 11, 4)[:, :, :, :, 1:]
+    expected = torch.stack([f[0].float().view(1, 6, 2, 4, 4, 11).permute(0, 2, 1, 3, 4, 5)
+                            .permute(0, 1, 2, 4, 5, 3) for f in frames])
+    assert torch.equal(back, expected)
+    ring = FeatureRing(2, 2)
+    ring.push([f.float() for f in frames[0]])          # float32 first, then bf16: one ring
+    ring.push(frames[1])
+    assert ring.levels()[0].dtype == torch.float32
+    assert torch.equal(ring.levels()[0], rows)

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import torch
 
-from .sampling import camera_rows_layout, camera_rows_view
+from .sampling import camera_rows_layout, camera_rows_view, layout_dtype
 
 
 class FeatureRing:
@@ -36,9 +36,11 @@ class FeatureRing:
         shapes = [tuple(f.shape) for f in features]
         if self._memory is None:
             self._allocate(features)
-        elif shapes != self._shapes or features[0].device != self._memory[0].device:
-            raise ValueError(f"feature shapes {shapes} on {features[0].device} differ from the "
-                             f"ring's {self._shapes} on {self._memory[0].device}")
+        elif shapes != self._shapes or features[0].device != self._memory[0].device or \
+                layout_dtype(features[0].dtype) != self._memory[0].dtype:
+            raise ValueError(f"feature shapes {shapes} ({features[0].dtype} on "
+                             f"{features[0].device}) differ from the ring's {self._shapes} "
+                             f"({self._memory[0].dtype} on {self._memory[0].device})")
         self._head = (self._head + 1) % self.capacity
         for f, memory in zip(features, self._memory):
             per_slot = memory.shape[0] // self.capacity
@@ -68,4 +70,5 @@ class FeatureRing:
             B, N, C, h, w = f.shape
             if C % G:
                 raise ValueError(f"{C} channels do not split into {G} groups")
-            self._memory.append(f.new_zeros(self.capacity * B * G, N * (h + 1), w, C // G))
+            self._memory.append(f.new_zeros(self.capacity * B * G, N * (h + 1), w, C // G,
+                                            dtype=layout_dtype(f.dtype)))

@@ -34,6 +34,7 @@ class ODG(nn.Module):
         # True: sample the camera-rows layout (2-D grid_sample); False: the plain per-camera
         # 3-D layout, kept as the reference the fast path is tested and benchmarked against
         self.fast_sampling = True
+        self._index_cache: dict[tuple, torch.Tensor] = {}   # see _index_tensor
 
     def extract_features(self, images: torch.Tensor) -> list[torch.Tensor]:
         """images [B, N, 3, H, W] (normalised) -> L levels [B, N, C, H_l, W_l].
@@ -106,7 +107,7 @@ class ODG(nn.Module):
             raise ValueError(f"{T} frames cached, the model takes at most {self.cfg.num_frames}")
         slots = ring.slots()                       # slots[t]: storage slot of time step t
         order = sorted(range(T), key=lambda t: slots[t])   # time step of each stored slot
-        index = torch.tensor(order, device=ego2img.device)
+        index = self._index_tensor(order, ego2img.device)
         return self._decode_stored(ring.levels(), ego2img.index_select(1, index),
                                    ego_warp.index_select(1, index),
                                    time_delta.index_select(1, index),
@@ -119,7 +120,15 @@ class ODG(nn.Module):
         index = slots + [slots[-1]] * (self.cfg.num_frames - len(slots))
         if index == list(range(self.cfg.num_frames)):
             return None
-        return torch.tensor(index, device=device)
+        return self._index_tensor(index, device)
+
+    def _index_tensor(self, index: list[int], device) -> torch.Tensor:
+        """A cached device copy of a small index list: no host-to-device copy (a host sync
+        on CUDA) inside a step once the ring has cycled through its slot orders."""
+        key = (tuple(index), str(device))
+        if key not in self._index_cache:
+            self._index_cache[key] = torch.tensor(index, device=device)
+        return self._index_cache[key]
 
     def _decode_stored(self, mlvl, ego2img, ego_warp, time_delta, frame_index,
                        gaussian_attributes, prune) -> ODGOutput:

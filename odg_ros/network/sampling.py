@@ -19,7 +19,7 @@ view, frame and group: no Python loop, no 5-D blow-up):
   channels-last memory: the cameras stacked along the image rows, each below one zero row.
   A 2-D bilinear read there equals the per-camera read with zero padding, borders included
   (the zero row stands in for the padding above a camera and below the one before it), and
-  on CPU it is several times faster than the 3-D read (measured in ``odg bench --profile``).
+  on CPU it is several times faster than the 3-D read (``odg bench --fast-paths``).
 Either layout may hold F distinct frames in any order (a ring buffer of cached history, or a
 history still filling up); ``frame_index`` [T] says which of them each time step reads.
 """
@@ -105,14 +105,23 @@ def project_to_cameras(points: torch.Tensor, ego2img: torch.Tensor, image_hw):
     return grid, any_visible
 
 
+def layout_dtype(dtype: torch.dtype) -> torch.dtype:
+    """The sampling layout is never half precision: grid_sample needs the grid in the
+    features' dtype, and a bf16 grid over N*(h+1) rows is up to ~0.4 px off (autocast runs
+    grid_sample in float32 anyway, by copying half-precision features at every call)."""
+    return torch.float32 if dtype in (torch.float16, torch.bfloat16) else dtype
+
+
 def camera_rows_layout(frames: list[torch.Tensor], num_groups: int,
                        out: torch.Tensor | None = None) -> torch.Tensor:
     """F frames of one level, each [B, N, C, h, w] -> [F*B*G, C/G, N*(h+1), w], channels-last
-    memory ([F, B, G, N, h+1, w, C/G]), each camera's rows below one zero row.
+    memory ([F, B, G, N, h+1, w, C/G]), each camera's rows below one zero row; float32 for
+    half-precision input (``layout_dtype``).
     ``out``: write into this tensor (a preallocated ring buffer slot range) instead."""
     F_, (B, N, C, h, w), G = len(frames), frames[0].shape, num_groups
     if out is None:   # only the zero rows need filling: the rest is overwritten
-        out = frames[0].new_empty(F_, B, G, N, h + 1, w, C // G)
+        out = frames[0].new_empty(F_, B, G, N, h + 1, w, C // G,
+                                  dtype=layout_dtype(frames[0].dtype))
         out[:, :, :, :, 0] = 0
     else:
         out = out.view(F_, B, G, N, h + 1, w, C // G)
