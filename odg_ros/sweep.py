@@ -4,15 +4,18 @@ For each configuration (history length, adaptive pruning threshold, query budget
 sampling path) the online step of the node runs over the first ``limit`` samples of a split:
 the older frames' features are computed first (the node has them cached), then the step --
 backbone on the newest set, decoder over the cached history, grid + boxes -- is timed
-``repeats`` times after ``warmup`` steps; its grid is scored (mIoU with the camera mask,
-RayIoU, mIoU over the moving classes). Reported per configuration: median latency per stage,
-per decoder layer and per part of a layer, FPS, peak memory, the scores, and the same on the
-quietest and the busiest quarter of the samples (fewest / most occupied GT voxels in the
-camera mask), so adaptive inference can be judged where it should help.
+``repeats`` times per sample after ``warmup`` steps, and its grid is scored (mIoU with the
+camera mask, RayIoU, mIoU over the moving classes). The configurations take turns step by
+step in one process (rotating order), so a shared machine that gets busier during the sweep
+slows all of them alike. Reported per configuration: median latency per stage, per decoder
+layer and per part of a layer, FPS, peak memory, the scores, and the same on the quietest
+and the busiest quarter of the samples (fewest / most occupied GT voxels in the camera
+mask), so adaptive inference can be judged where it should help.
 
-Peak memory: on CPU every configuration runs in a fresh process (``isolate``) and reports its
-peak resident set size (``ru_maxrss``: interpreter + torch + weights + data + inference); on
-CUDA ``torch.cuda.max_memory_allocated`` over the timed steps.
+Peak memory: every configuration also runs alone in a fresh process (``isolate``: model,
+first sample, its history, warm-up + 1 step) and reports its peak resident set size
+(``ru_maxrss``: interpreter + torch + weights + data + inference) on CPU, or
+``torch.cuda.max_memory_allocated`` on CUDA.
 
 Configurations derived from one checkpoint need no retraining: the history length is an
 input, pruning is an inference rule, and a query budget keeps an evenly spaced subset of the
@@ -186,82 +189,165 @@ def quiet_and_busy(load: list[dict]) -> tuple[list[int], list[int]]:
     return [r["index"] for r in order[:k]], [r["index"] for r in order[-k:]]
 
 
-# ------------------------------------------------------------------------ one configuration
+# ------------------------------------------------------------------------ measuring
+class ConfigRun:
+    """One configuration during the measurement: its model, online step, timers, scores."""
+
+    def __init__(self, config: SweepConfig, job: dict):
+        from .metrics.score import OccScore
+        from .network.decoder import PruneRule
+
+        self.config, self.device = config, job["device"]
+        self.model, self.cfg = prepare_model(job["checkpoint"], job["preset"], self.device,
+                                             config)
+        self.frames = config.frames or self.cfg.num_frames
+        prune = PruneRule(config.prune, config.prune_after) if config.prune is not None else None
+        self.step = OnlineStep(self.model, self.cfg, self.device, ring=config.ring,
+                               prune=prune, precision=config.precision)
+        self.scores = {name: OccScore(job["dataset"], rayiou=job.get("rayiou", True))
+                       for name in SUBSETS}
+        self.timer, self.per_sample, self.error = StageTimer(self.device), [], None
+        self.history = self.sample_timer = self.output = self.grid = None
+
+    def begin_sample(self, batch) -> None:
+        """The older frames' features (the node has them cached): untimed."""
+        images = batch["images"]
+        self.batch = batch
+        self.history = [self.step.features(images[:, t]) for t in range(1, images.shape[1])]
+        self.sample_timer = StageTimer(self.device)
+
+    def run_step(self, timer: StageTimer | None = None) -> None:
+        b = self.batch
+        self.step.prime(self.history)
+        timer = timer or self.sample_timer
+        with DecoderHooks(self.model, timer) if not self.config.compile else nullcontext():
+            self.output, self.grid, _ = self.step(b["images"][:, 0], b["ego2img"],
+                                                  b["ego_warp"], b["time_delta"], timer)
+        timer.flush()
+
+    def end_sample(self, index: int, members: dict, origins) -> None:
+        for name, values in self.sample_timer.times.items():
+            self.timer.times.setdefault(name, []).extend(values)
+        medians = self.sample_timer.medians()
+        last = self.output.last
+        self.per_sample.append({"index": index, "token": self.batch["token"][0],
+                                "total_ms": round(medians["total"], 3),
+                                "decoder_ms": round(medians["decoder"], 3),
+                                "queries_last_layer": int(last.means.shape[1]),
+                                "gaussians_last_layer": int(last.means.shape[1]
+                                                            * last.means.shape[2])})
+        if self.batch["has_occ"][0]:
+            pred = self.grid[0].cpu().numpy()
+            gt = self.batch["occ_semantics"][0].cpu().numpy()
+            mask = self.batch["occ_mask_camera"][0].cpu().numpy().astype(bool)
+            ray_origins = origins(index) if origins is not None else None
+            for name in SUBSETS:
+                if index in members[name]:
+                    self.scores[name].add(pred, gt, mask, ray_origins)
+        self.history = self.batch = self.output = self.grid = None
+
+    def result(self, members: dict) -> dict:
+        out = {"config": dataclasses.asdict(self.config), "model": self.cfg.name,
+               "queries": self.cfg.num_queries, "frames": self.frames,
+               **summarise(self.timer, self.cfg.num_layers), "per_sample": self.per_sample}
+        for name in SUBSETS:
+            out["scores" if name == "all" else name] = subset_result(
+                self.scores[name], self.per_sample, members[name])
+        return out
+
+
 @torch.no_grad()
-def measure_config(job: dict) -> dict:
-    """Time and score one configuration (``job`` from ``run_sweep``); runs in a fresh
-    process on CPU so the peak memory is its own."""
+def measure_interleaved(configs: list[SweepConfig], job: dict) -> list[dict]:
+    """Time and score every configuration in one process, interleaved: for each sample and
+    repeat the configurations take turns (in a rotating order), so a machine that gets
+    busier or quieter during the sweep slows every configuration alike."""
     from .data.batch import collate
     from .data.dataset import OccDataset
     from .metrics.rayiou import LidarOrigins
-    from .metrics.score import OccScore
-    from .network.decoder import PruneRule
+    from .train.trainer import to_device
+
+    device = job["device"]
+    members = {"all": set(job["indices"]), "quiet": set(job["quiet"]),
+               "busy": set(job["busy"])}
+    runs, results = [], {}
+    for config in configs:
+        try:
+            runs.append(ConfigRun(config, job))
+        except Exception as error:  # one failing configuration must not lose the others
+            results[config.name] = failure(config, error)
+    datasets = {}
+    origins = None
+    progress = tqdm(total=len(job["indices"]) * job["repeats"] * len(runs),
+                    desc="sweep (interleaved steps)", disable=not job.get("progress", True))
+    for sample_number, index in enumerate(job["indices"]):
+        batches = {}
+        for run in runs:
+            if run.error is not None:
+                continue
+            try:
+                if run.frames not in batches:
+                    if run.frames not in datasets:
+                        datasets[run.frames] = OccDataset(
+                            job["data"], run.cfg.replace(num_frames=run.frames),
+                            occ_root=job["occ_root"])
+                        origins = origins or (LidarOrigins(datasets[run.frames].infos)
+                                              if job.get("rayiou", True) else None)
+                    batches[run.frames] = to_device(
+                        collate([datasets[run.frames][index]]), device)
+                run.begin_sample(batches[run.frames])
+                if sample_number == 0:
+                    for _ in range(job["warmup"]):
+                        run.run_step(StageTimer(device))
+            except Exception as error:
+                run.error = failure(run.config, error)
+        for repeat in range(job["repeats"]):
+            active = [run for run in runs if run.error is None]
+            shift = (repeat + sample_number) % max(1, len(active))
+            for run in active[shift:] + active[:shift]:
+                try:
+                    run.run_step()
+                except Exception as error:
+                    run.error = failure(run.config, error)
+                progress.update()
+        for run in runs:
+            if run.error is None:
+                run.end_sample(index, members, origins)
+    progress.close()
+    for run in runs:
+        results[run.config.name] = run.error or run.result(members)
+    return [results[c.name] for c in configs]
+
+
+def failure(config: SweepConfig, error: Exception) -> dict:
+    return {"config": dataclasses.asdict(config), "error": f"{type(error).__name__}: {error}",
+            "traceback": traceback.format_exc()}
+
+
+@torch.no_grad()
+def probe_memory(job: dict) -> dict:
+    """Peak memory of one configuration: model, the first sample, its cached history,
+    ``warmup`` + 1 steps -- run in a fresh process (``isolate``) so the figure is its own."""
+    from .data.batch import collate
+    from .data.dataset import OccDataset
     from .train.trainer import to_device
 
     if job.get("threads"):
         torch.set_num_threads(job["threads"])
     config = SweepConfig(**job["config"])
-    device = job["device"]
-    cuda = torch.device(device).type == "cuda"
-    model, cfg = prepare_model(job["checkpoint"], job["preset"], device, config)
-    rss_after_load, _ = peak_memory_mb("cpu")
-    frames = config.frames or cfg.num_frames
-    dataset = OccDataset(job["data"], cfg.replace(num_frames=frames), occ_root=job["occ_root"])
-    prune = PruneRule(config.prune, config.prune_after) if config.prune is not None else None
-    step = OnlineStep(model, cfg, device, ring=config.ring, prune=prune,
-                      precision=config.precision)
-    rayiou = job.get("rayiou", True)
-    scores = {name: OccScore(dataset.dataset, rayiou=rayiou) for name in SUBSETS}
-    members = {"all": set(job["indices"]), "quiet": set(job["quiet"]), "busy": set(job["busy"])}
-    origins = LidarOrigins(dataset.infos) if rayiou else None
-    timer, per_sample, warm = StageTimer(device), [], False
-    for index in tqdm(job["indices"], desc=config.name, disable=not job.get("progress", True),
-                      leave=False):
-        batch = to_device(collate([dataset[index]]), device)
-        images, T = batch["images"], batch["images"].shape[1]
-        geometry = (batch["ego2img"], batch["ego_warp"], batch["time_delta"])
-        history = [step.features(images[:, t]) for t in range(1, T)]   # cached by the node
-        if not warm:
-            for _ in range(job["warmup"]):
-                step.prime(history)
-                step(images[:, 0], *geometry, StageTimer(device))
-            if cuda:
-                torch.cuda.synchronize(device)
-                torch.cuda.reset_peak_memory_stats(device)
-            warm = True
-        sample_timer = StageTimer(device)
-        for _ in range(job["repeats"]):
-            step.prime(history)
-            with DecoderHooks(model, sample_timer) if not config.compile else nullcontext():
-                output, grid, _ = step(images[:, 0], *geometry, sample_timer)
-            sample_timer.flush()
-        for name, values in sample_timer.times.items():
-            timer.times.setdefault(name, []).extend(values)
-        medians = sample_timer.medians()
-        per_sample.append({"index": index, "token": batch["token"][0],
-                           "total_ms": round(medians["total"], 3),
-                           "decoder_ms": round(medians["decoder"], 3),
-                           "queries_last_layer": int(output.last.means.shape[1]),
-                           "gaussians_last_layer": int(output.last.means.shape[1]
-                                                       * output.last.means.shape[2])})
-        if batch["has_occ"][0]:
-            pred = grid[0].cpu().numpy()
-            gt = batch["occ_semantics"][0].cpu().numpy()
-            mask = batch["occ_mask_camera"][0].cpu().numpy().astype(bool)
-            ray_origins = origins(index) if origins is not None else None
-            for name in SUBSETS:
-                if index in members[name]:
-                    scores[name].add(pred, gt, mask, ray_origins)
-    memory, method = peak_memory_mb(device)
-    result = {"config": dataclasses.asdict(config), "model": cfg.name,
-              "queries": cfg.num_queries, "frames": frames, **summarise(timer, cfg.num_layers),
-              "peak_memory_mb": round(memory, 1), "memory_method": method,
-              "rss_after_load_mb": round(rss_after_load, 1) if not cuda else None,
-              "per_sample": per_sample}
-    for name in SUBSETS:
-        result[name if name != "all" else "scores"] = subset_result(
-            scores[name], per_sample, members[name])
-    return result
+    try:
+        run = ConfigRun(config, job)
+        after_load, _ = peak_memory_mb("cpu")
+        dataset = OccDataset(job["data"], run.cfg.replace(num_frames=run.frames),
+                             occ_root=job["occ_root"])
+        run.begin_sample(to_device(collate([dataset[job["indices"][0]]]), job["device"]))
+        for _ in range(job["warmup"] + 1):
+            run.run_step(StageTimer(job["device"]))
+    except Exception as error:
+        return failure(config, error)
+    memory, method = peak_memory_mb(job["device"])
+    return {"peak_memory_mb": round(memory, 1), "memory_method": method,
+            "rss_after_load_mb": round(after_load, 1)
+            if torch.device(job["device"]).type == "cpu" else None}
 
 
 def subset_result(score, per_sample, members) -> dict:
@@ -278,19 +364,11 @@ def subset_result(score, per_sample, members) -> dict:
     return out
 
 
-def _isolated(job: dict) -> dict:
-    """Run ``measure_config`` in a fresh interpreter (spawn), errors as a result."""
+def _isolated(function, job: dict) -> dict:
+    """Run ``function(job)`` in a fresh interpreter (spawn)."""
     context = multiprocessing.get_context("spawn")
     with context.Pool(1, maxtasksperchild=1) as pool:
-        return pool.apply(_guarded, (job,))
-
-
-def _guarded(job: dict) -> dict:
-    try:
-        return measure_config(job)
-    except Exception as error:  # one failing configuration must not lose the others
-        return {"config": job["config"], "error": f"{type(error).__name__}: {error}",
-                "traceback": traceback.format_exc()}
+        return pool.apply(function, (job,))
 
 
 # ------------------------------------------------------------------------ the whole sweep
@@ -387,7 +465,7 @@ def run_sweep(data, checkpoint=None, preset: str = "odg_cpu", device: str = "cpu
         from .config import ModelConfig
         cfg = ModelConfig(**torch.load(checkpoint, map_location="cpu", weights_only=False)["config"])
     configs = configs or default_configs(cfg.num_frames, device)
-    isolate = torch.device(device).type == "cpu" if isolate is None else isolate
+    isolate = True if isolate is None else isolate
     infos = load_infos_file(data)
     indices = list(range(min(limit, len(infos["infos"]))))
     if not indices:
@@ -402,21 +480,34 @@ def run_sweep(data, checkpoint=None, preset: str = "odg_cpu", device: str = "cpu
             "random_weights": checkpoint is None, "preset": cfg.name,
             "data": str(data), "samples": len(indices), "repeats": repeats, "warmup": warmup,
             "isolated_processes": isolate, "load_average_before": list(os.getloadavg()),
-            "memory_method": "torch.cuda.max_memory_allocated over the timed steps"
-            if torch.device(device).type == "cuda" else
-            "ru_maxrss of a fresh process per configuration (interpreter, torch, weights, "
-            "data and inference together)",
+            "memory_method": ("torch.cuda.max_memory_allocated" if torch.device(device).type
+                              == "cuda" else "ru_maxrss (interpreter, torch, weights, data "
+                              "and inference together)")
+            + (" of a fresh process per configuration (model, first sample, its history, "
+               "warm-up + 1 step)" if isolate else
+               " of this process: a RUNNING MAXIMUM over the configurations, not their own"),
             "latency": "median over samples x repeats of the online step (backbone on the "
-                       "newest set, decoder over the cached history, grid + boxes)",
+                       "newest set, decoder over the cached history, grid + boxes); the "
+                       "configurations take turns step by step in one process",
             "scene_load": load, "quiet_samples": quiet, "busy_samples": busy}
     base = {"checkpoint": str(checkpoint) if checkpoint else None, "preset": preset,
+            "dataset": infos["dataset"],
             "device": device, "data": str(data), "occ_root": occ_root, "indices": indices,
             "quiet": quiet, "busy": busy, "repeats": repeats, "warmup": warmup,
             "threads": threads, "rayiou": rayiou, "progress": progress}
-    results = []
-    for config in tqdm(configs, desc="sweep", disable=not progress):
+    memory = {}
+    for config in tqdm(configs, desc="sweep: peak memory, one process each" if isolate else
+                       "sweep: memory", disable=not progress):
         job = {**base, "config": dataclasses.asdict(config)}
-        result = _isolated(job) if isolate else _guarded(job)
+        memory[config.name] = _isolated(probe_memory, job) if isolate else probe_memory(job)
+    if threads:
+        torch.set_num_threads(threads)
+    runnable = [c for c in configs if "error" not in memory[c.name]]
+    measured = iter(measure_interleaved(runnable, base) if runnable else [])
+    results = []
+    for config in configs:
+        result = memory[config.name] if config not in runnable else \
+            {**next(measured), **memory[config.name]}
         if "error" in result:
             tqdm.write(f"sweep: {config.name} failed: {result['error']}")
         results.append(result)
@@ -542,7 +633,7 @@ def plot_sweep(report: dict, path) -> None:
         left += widths
     ax.invert_yaxis()
     ax.set_xlabel("median latency per online step (ms)")
-    ax.legend(fontsize=7, ncol=2, loc="lower right")
+    ax.legend(fontsize=7, ncol=5, loc="upper center", bbox_to_anchor=(0.5, -0.12))
     ax.grid(axis="x", alpha=0.3)
     ax.set_title("where the time goes (decoder per layer)", fontsize=9)
     weights = ("RANDOM WEIGHTS (no trained checkpoint): the scores are meaningless"
