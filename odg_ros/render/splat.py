@@ -39,6 +39,12 @@ import torch
 from .projection import ALPHA_MAX, ALPHA_MIN, Splats, project_gaussians, splat_power
 
 TRANSMITTANCE_MIN = 1e-4         # a pixel is done once T would reach this (exclusive)
+# Two splats at the alpha cap leave T = (1 - 0.99)^2 = 1e-4, exactly the cut, a common case
+# (opacity saturates). T is compared in log space after a segmented cumsum whose rounding
+# (~1e-9 over a million pairs) would decide that tie differently from pixel to pixel; this
+# margin resolves it, and anything within a relative 1e-7 of the cut, as exact arithmetic
+# and gsplat do (T <= 1e-4: stop).
+STOP_LOG_MARGIN = 1e-7
 TILE_SIZE = 16                   # pixel tile edge for culling (as gsplat)
 CANDIDATE_CHUNK = 1_000_000      # candidate (splat, pixel) pairs per depth batch
 CHECK_CSR = False                # the CSR matrices are valid by construction (a test checks)
@@ -190,7 +196,8 @@ def _composite(splats: Splats, pixel_uv: torch.Tensor, pixel_camera: torch.Tenso
             log_transmittance = (running - running[segment_first[pair_pixel]]
                                  + log_t[pair_pixel])
             with torch.no_grad():
-                include = (log_transmittance + log_one_minus) > math.log(TRANSMITTANCE_MIN)
+                include = ((log_transmittance + log_one_minus)
+                           > math.log(TRANSMITTANCE_MIN) + STOP_LOG_MARGIN)
                 stopped = pair_pixel[~include]
             weight = alpha * torch.exp(log_transmittance).to(alpha.dtype)
             weights.append(weight[include])
