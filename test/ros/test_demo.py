@@ -1,0 +1,132 @@
+"""odg demo end to end, small: a 1.5 s synthetic scene at 72 x 128, a tiny random-weights
+checkpoint, the node and the replay in their own processes over loopback DDS, this test
+reading the JSON the command prints. Also the ROS-free pieces the numbers are made of."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+
+from odg_ros import demo
+from odg_ros.classes import OCC_CLASSES
+from helpers import tiny_config  # test/helpers.py
+
+REPORT_KEYS = ("frames_in", "frames_out", "dropped", "fps", "latency_ms_p50", "latency_ms_p95",
+               "mIoU", "RayIoU")
+
+
+@pytest.fixture(scope="module")
+def tiny_checkpoint(tmp_path_factory):
+    from odg_ros.network import ODG
+    from odg_ros.network.checkpoint import save_checkpoint
+    torch.manual_seed(0)
+    path = tmp_path_factory.mktemp("ckpt") / "tiny.pt"
+    save_checkpoint(path, ODG(tiny_config()))
+    return path
+
+
+def run_demo(out, checkpoint, *extra, timeout=240):
+    return subprocess.run(
+        [sys.executable, "-m", "odg_ros.cli", "demo", "--out", str(out), "--checkpoint",
+         str(checkpoint), "--seconds", "1.5", "--image-size", "72", "128", "--rate", "0.5",
+         *extra], capture_output=True, text=True, timeout=timeout)
+
+
+def test_demo_runs_the_whole_path_across_processes(rclpy_module, tiny_checkpoint, tmp_path):
+    out = tmp_path / "demo"
+    result = run_demo(out, tiny_checkpoint, "--json")
+    assert result.returncode == 0, result.stderr[-3000:]
+    report = json.loads(result.stdout)                 # --json: nothing but the JSON
+    for key in REPORT_KEYS:
+        assert key in report, key
+    assert report["frames_in"] == 13                   # 1.5 s of 12 Hz camera sets
+    assert 0 < report["frames_out"] <= report["frames_in"]
+    # every set is accounted for: an output, or a drop the node counted (a set whose every
+    # image was lost on the way, best effort, would be 'unaccounted'; at most the first one,
+    # sent while the node's readers were still matching the replay's writers)
+    assert report["lost_in_transport"] == 0
+    assert report["unaccounted"] in (0, 1), report
+    assert report["frames_out"] + report["dropped"] + report["unaccounted"] == report["frames_in"]
+    assert report["keyframes"] == 3 and report["keyframes_scored"] > 0
+    assert 0.0 <= report["mIoU"] <= 100.0 and 0.0 <= report["RayIoU"] <= 100.0
+    assert report["fps"] > 0 and 0 < report["latency_ms_p50"] <= report["latency_ms_p95"]
+    assert report["latency_samples"] == report["frames_out"]
+    assert list(report["per_class"]) == list(OCC_CLASSES[:-1])
+    assert json.loads((out / "demo.json").read_text())["frames_out"] == report["frames_out"]
+    with Image.open(out / "demo.png") as picture:
+        assert picture.width > 600 and picture.height > 600
+    assert "Traceback" not in (out / "node.log").read_text()
+
+    # The world and bag are reused with the same settings, rebuilt with others.
+    spec = demo.WorldSpec(seed=demo.DEFAULT_SEED, seconds=1.5, image_hw=(72, 128))
+    assert demo.build_world(out, spec, progress=False, log=lambda _: None).reused
+    assert not demo.world_is_built(out, demo.WorldSpec(seed=7, seconds=1.5, image_hw=(72, 128)))
+    assert not demo.world_is_built(out, demo.WorldSpec(seed=demo.DEFAULT_SEED, seconds=2.0,
+                                                       image_hw=(72, 128)))
+
+
+def test_folders_the_demo_did_not_make_are_left_alone(tmp_path):
+    (tmp_path / "world").mkdir()
+    (tmp_path / "world" / "precious.txt").write_text("mine")
+    with pytest.raises(demo.DemoError, match="not made by odg demo"):
+        demo.build_world(tmp_path, demo.WorldSpec(seconds=0.5), progress=False,
+                         log=lambda _: None)
+    assert (tmp_path / "world" / "precious.txt").read_text() == "mine"
+
+
+def test_missing_checkpoint_is_a_clear_error(tmp_path):
+    result = subprocess.run([sys.executable, "-m", "odg_ros.cli", "demo", "--out",
+                             str(tmp_path), "--checkpoint", str(tmp_path / "nope.pt")],
+                            capture_output=True, text=True, timeout=60)
+    assert result.returncode == 1
+    assert "checkpoint not found" in result.stderr and "Traceback" not in result.stderr
+
+
+def test_shipped_checkpoint_missing_names_it(monkeypatch):
+    import odg_ros.resources
+    def missing(relative):
+        raise FileNotFoundError(relative)
+    monkeypatch.setattr(odg_ros.resources, "resource_path", missing)
+    with pytest.raises(demo.DemoError, match="model/odg_cpu.pt is missing.*--checkpoint"):
+        demo.resolve_checkpoint(None)
+
+
+def test_camera_sets_and_latency_follow_the_clock():
+    ms = 1_000_000
+    # CAM_FRONT at 0 and 83 ms; the set's last image 35 ms later; a third set lacks a camera
+    sets = demo.CameraSets(np.array([0, 83 * ms, 166 * ms]),
+                           np.array([35 * ms, 118 * ms, -1]))
+    record = demo.SessionRecord(
+        grids=[demo.ReceivedGrid(0, 10.250, np.zeros((1, 1, 1), np.uint8)),
+               demo.ReceivedGrid(83 * ms, 10.900, np.zeros((1, 1, 1), np.uint8))],
+        clock_wall={35 * ms: 10.000, 118 * ms: 10.500})
+    assert demo.grid_latencies_ms(record, sets) == pytest.approx([250.0, 400.0])
+    assert sets.num_complete == 2
+
+
+def test_summary_counts_every_drop_reason_and_scores_only_keyframes():
+    infos = [{"cams": {"CAM_FRONT": {"timestamp": 1000}}, "occ_path": "a"},
+             {"cams": {"CAM_FRONT": {"timestamp": 2000}}, "occ_path": ""}]
+    assert demo.keyframes_by_stamp(infos) == {1_000_000: 0}     # no GT, no keyframe to score
+    sets = demo.CameraSets(np.array([1_000_000, 2_000_000]), np.array([1_035_000, 2_035_000]))
+    record = demo.SessionRecord(
+        grids=[demo.ReceivedGrid(1_000_000, 5.0, np.zeros((1, 1, 1), np.uint8))],
+        clock_wall={1_035_000: 4.9},
+        diagnostics={"outputs": "1", "stale_sets_dropped": "3", "dropped_incomplete_sets": "1",
+                     "corrupt_image": "2", "stage_backbone_ms": "150.0",
+                     "stage_decoder_ms": "50.0", "stage_publish_ms": "n/a"})
+    report = demo.summarize(record, sets, {"infos": infos}, None, [], rate=0.25)
+    assert report["dropped"] == 6
+    assert report["dropped_by_reason"] == {"stale_sets_dropped": 3,
+                                           "dropped_incomplete_sets": 1, "corrupt_image": 2}
+    assert report["node_capacity_fps"] == pytest.approx(5.0)
+    assert report["latency_ms_p50"] == pytest.approx(100.0)
+    assert report["mIoU"] is None and report["keyframes"] == 1
+    assert report["fps"] is None                       # one grid: no rate
+    text = demo.format_summary(report)
+    assert "stale sets dropped 3" in text and "corrupt image 2" in text
