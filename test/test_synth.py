@@ -295,6 +295,35 @@ def test_rendered_depth_matches_gt_voxels(world_dir, tables):
     assert same_label[within].mean() > 0.9
 
 
+def test_camera_mask_covers_what_the_cameras_see_and_not_inside_solids(world_dir, tables):
+    world = scene_world(SEED, 0, SECONDS)
+    sample, gt = _keyframe(tables, world_dir, 0, 1)
+    mask = gt["mask_camera"].astype(bool)
+    T_eg = invert_transform(world.ego_pose(keyframe_time(1)))
+    cam = rig.cameras(HW)[0]
+    t_cam = camera_time(6, cam.name)
+    T = world.ego_pose(t_cam) @ cam.T_ego_from_cam
+    hits, dirs = sensors.render_camera(world.prims_at(t_cam), T, cam.intrinsics, HW)
+    origin_e, dirs_e = (T_eg @ T)[:3, 3], dirs @ T_eg[:3, :3].T
+    ok = np.isfinite(hits.t) & (hits.t < 35)
+    # voxels a ray crosses before reaching the surface, and the voxel of the surface point
+    before = occupancy.traverse(np.zeros_like(mask), origin_e, dirs_e[ok], max_t=hits.t[ok] - 0.5)
+    surf = origin_e + hits.t[ok, None] * dirs_e[ok]
+    idx = np.floor((surf - occupancy.GRID_MIN) / occupancy.VOXEL).astype(int)
+    inside = np.all((idx >= 0) & (idx < occupancy.GRID_SHAPE), axis=1)
+    assert mask[before].mean() > 0.95  # misses: voxels clipped at a corner, centre outside the view
+    assert mask[tuple(idx[inside].T)].mean() > 0.95
+    # deep inside solid primitives (behind walls for every camera) nothing is observed
+    prims = world.prims_at(keyframe_time(1))
+    thick = np.flatnonzero(prims.half.min(1) > 1.5)
+    centres = occupancy.voxel_centres_ego(np.argwhere(mask))
+    centres_g = centres @ invert_transform(T_eg)[:3, :3].T + invert_transform(T_eg)[:3, 3]
+    deep = np.zeros(len(centres), bool)
+    for p in thick:
+        deep |= contains(prims, centres_g, np.full(len(centres), p), inflate=-0.8)
+    assert len(thick) > 5 and deep.mean() < 0.002
+
+
 def test_boxes_contain_their_voxels_and_objects_are_annotated(world_dir, tables):
     world = scene_world(SEED, 0, SECONDS)
     sample, gt = _keyframe(tables, world_dir, 0, 2)

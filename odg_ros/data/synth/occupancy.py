@@ -9,10 +9,13 @@ Grid (DESIGN.md sec. 3): [-40, -40, -1, 40, 40, 5.4] m in the keyframe's ego fra
   within half a voxel of the solid but not deeper than half a voxel inside it (for boxes
   exactly the voxels the box boundary overlaps). Solid interiors (inside buildings, trucks)
   stay free, and unobserved. Objects overwrite stuff, stuff overwrites the ground.
-* masks: a voxel is observed if a ray reaches or hits it (Amanatides-Woo traversal,
-  vectorised over rays, from the sensor origin). LiDAR rays run to their return (the voxel
-  holding the point included), as in Occ3D; camera rays through the pixels run until the
-  first non-free GT voxel (included) or the grid boundary.
+* masks: a voxel is observed if a sensor ray reaches or hits it. LiDAR: every return's ray
+  is traversed through the grid (Amanatides-Woo, vectorised over rays) from the sensor to
+  the voxel holding the point, as in Occ3D. Cameras: each voxel is tested along the camera
+  pixel ray through its centre against that pixel's ray-cast depth (a dense depth map of the
+  true geometry): observed if its centre is no more than half a voxel diagonal behind the
+  first surface. (Traversing the GT grid per pixel instead stops every grazing ray at the
+  first ground voxel and leaves the far road striped with unobserved voxels.)
 """
 from __future__ import annotations
 
@@ -147,3 +150,40 @@ def traverse(occupied: np.ndarray, origins, dirs, max_t=None, return_hits=False,
             flat, t_entry, t_max, fx, fy, rid = flat[k], t_entry[k], t_max[k], fx[k], fy[k], rid[k]
     visited = visited.reshape(occupied.shape)
     return (visited, t_hit) if return_hits else visited
+
+
+def camera_mask(hits_t, hits_normal, pixel_dirs, K, hw, T_ego_from_cam) -> np.ndarray:
+    """bool [200, 200, 16]: voxels one camera observes.
+
+    From a dense ray cast of the camera: ``hits_t`` [H*W] distance along each pixel's unit
+    ray (inf: sky), ``hits_normal`` [H*W, 3] surface normals and ``pixel_dirs`` [H*W, 3] unit
+    ray directions (both in the frame of T_ego_from_cam's target, i.e. rotated like the
+    rays), for intrinsics K and size hw. A voxel centre projecting into pixel p is observed
+    when it lies no more than half a voxel diagonal behind p's surface, measured along the
+    voxel's own ray to the surface's tangent plane (exact for planes such as the ground,
+    where the pixel's neighbouring rays meet the surface metres apart)."""
+    h, w = hw
+    centres = voxel_centres_ego(np.indices(GRID_SHAPE).reshape(3, -1).T)
+    R, o = T_ego_from_cam[:3, :3], T_ego_from_cam[:3, 3]
+    p = (centres - o) @ R                                   # camera frame
+    z = p[:, 2]
+    front = np.flatnonzero(z > 0.05)
+    u = np.floor(K[0, 0] * p[front, 0] / z[front] + K[0, 2]).astype(np.int64)
+    v = np.floor(K[1, 1] * p[front, 1] / z[front] + K[1, 2]).astype(np.int64)
+    inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
+    front, u, v = front[inside], u[inside], v[inside]
+    pix = v * w + u
+    rel = centres[front] - o
+    dist = np.linalg.norm(rel, axis=1)
+    dir_v = rel / dist[:, None]
+    t_pix = np.asarray(hits_t)[pix]
+    n = np.asarray(hits_normal, float)[pix]
+    along = np.einsum("ij,ij->i", np.asarray(pixel_dirs)[pix], n)     # pixel ray . normal
+    denom = np.einsum("ij,ij->i", dir_v, n)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t_plane = np.where(np.abs(denom) > 0.005, t_pix * along / denom, t_pix)
+    t_plane = np.where(np.isfinite(t_pix) & (t_plane > 0), t_plane, t_pix)
+    seen = dist <= t_plane + VOXEL * np.sqrt(3) / 2
+    mask = np.zeros(centres.shape[0], bool)
+    mask[front[seen]] = True
+    return mask.reshape(GRID_SHAPE)

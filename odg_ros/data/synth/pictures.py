@@ -25,29 +25,39 @@ def camera_mosaic(images: dict) -> Image.Image:
     return out
 
 
-def bev_image(semantics: np.ndarray, mask: np.ndarray | None = None, scale: int = 3) -> Image.Image:
-    """Top view of a [X, Y, Z] label grid: per column the highest non-free voxel, coloured with
-    classes.OCC_COLORS; x (forward) points up, y (left) points left; columns outside ``mask``
-    (any voxel observed) are darkened. A legend of the classes present is drawn on the right."""
-    X, Y, Z = semantics.shape
+def _top_view(semantics, keep=None):
+    """[X, Y] label of the highest non-free voxel per column (among ``keep`` voxels)."""
     occupied = semantics != FREE_LABEL
+    if keep is not None:
+        occupied &= keep
+    Z = semantics.shape[2]
     top = np.where(occupied.any(2), Z - 1 - np.argmax(occupied[:, :, ::-1], axis=2), -1)
-    label = np.where(top >= 0, np.take_along_axis(semantics, np.maximum(top, 0)[..., None], 2)[..., 0], FREE_LABEL)
-    rgb = np.asarray(OCC_COLORS, np.uint8)[label]
-    if mask is not None:
-        seen = mask.any(2)
-        rgb = np.where(seen[..., None], rgb, (rgb * 0.45).astype(np.uint8))
-    rgb = rgb[::-1, ::-1]                                  # rows: x descending; cols: y descending
-    img = Image.fromarray(np.ascontiguousarray(rgb)).resize((Y * scale, X * scale), Image.NEAREST)
-    legend_w = 150
-    out = Image.new("RGB", (img.width + legend_w, img.height), (255, 255, 255))
-    out.paste(img, (0, 0))
+    return np.where(top >= 0, np.take_along_axis(semantics, np.maximum(top, 0)[..., None], 2)[..., 0], FREE_LABEL)
+
+
+def bev_image(semantics: np.ndarray, mask: np.ndarray | None = None, scale: int = 3) -> Image.Image:
+    """Top view of a [X, Y, Z] label grid coloured with classes.OCC_COLORS (per column the
+    highest non-free voxel; x = forward points up, y = left points left, the ego is the red
+    triangle). With ``mask`` a second panel shows only the voxels inside it (e.g. mask_camera,
+    what the mIoU counts). A legend of the classes present is drawn on the right."""
+    X, Y, Z = semantics.shape
+    panels = [_top_view(semantics)] + ([_top_view(semantics, mask.astype(bool))] if mask is not None else [])
+    colors = np.asarray(OCC_COLORS, np.uint8)
+    gap, legend_w = 10, 160
+    out = Image.new("RGB", (len(panels) * (Y * scale + gap) + legend_w, X * scale + 18), (255, 255, 255))
     draw = ImageDraw.Draw(out)
-    cx, cy = img.width // 2, img.height // 2
-    draw.polygon([(cx, cy - 8), (cx - 5, cy + 6), (cx + 5, cy + 6)], fill=(255, 0, 0), outline=(0, 0, 0))
-    present = [int(v) for v in np.unique(label) if v != FREE_LABEL]
+    for p, label in enumerate(panels):
+        rgb = colors[label][::-1, ::-1]                    # rows: x descending; cols: y descending
+        img = Image.fromarray(np.ascontiguousarray(rgb)).resize((Y * scale, X * scale), Image.NEAREST)
+        x0 = p * (Y * scale + gap)
+        out.paste(img, (x0, 18))
+        draw.text((x0 + 2, 3), "semantics" if p == 0 else "inside the mask", fill=(0, 0, 0))
+        cx, cy = x0 + img.width // 2, 18 + img.height // 2
+        draw.polygon([(cx, cy - 8), (cx - 5, cy + 6), (cx + 5, cy + 6)], fill=(255, 0, 0), outline=(0, 0, 0))
+    lx = len(panels) * (Y * scale + gap)
+    present = [int(v) for v in np.unique(panels[0]) if v != FREE_LABEL]
     for i, v in enumerate(present):
-        y = 8 + i * 16
-        draw.rectangle([img.width + 8, y, img.width + 20, y + 11], fill=tuple(OCC_COLORS[v]), outline=(0, 0, 0))
-        draw.text((img.width + 26, y), OCC_CLASSES[v], fill=(0, 0, 0))
+        y = 22 + i * 16
+        draw.rectangle([lx + 8, y, lx + 20, y + 11], fill=tuple(OCC_COLORS[v]), outline=(0, 0, 0))
+        draw.text((lx + 26, y), OCC_CLASSES[v], fill=(0, 0, 0))
     return out
