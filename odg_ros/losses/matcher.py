@@ -9,9 +9,10 @@ mmdet ``FocalLossCost``:
 ``linear_sum_assignment`` solves each sample on the CPU; min(D, M) pairs come out.
 
 GT code entries that are not finite (nuScenes boxes without a velocity annotation) add nothing
-to the L1 cost. Any remaining NaN / inf cost (from a diverging prediction) is replaced by
-``NONFINITE_COST``, larger than any real cost, counted and logged -- never passed to scipy,
-which would raise.
+to the L1 cost. Any remaining NaN / inf cost (from a diverging prediction) is replaced by a
+cost so large that every assignment of finite costs is cheaper (at least ``NONFINITE_COST``;
+more when the finite costs themselves are huge, e.g. a diverging box code), counted and
+logged -- never passed to scipy, which would raise.
 """
 from __future__ import annotations
 
@@ -62,7 +63,8 @@ def box_match_cost(codes: torch.Tensor, logits: torch.Tensor, gt_codes: torch.Te
 def hungarian_match(cost: torch.Tensor):
     """cost [D, M] -> (pred_index [K], gt_index [K], num_nonfinite), K = min(D, M).
 
-    Non-finite costs are replaced by NONFINITE_COST (counted, logged)."""
+    Non-finite costs are replaced by a cost larger than any assignment of finite costs can
+    save (at least NONFINITE_COST), counted and logged."""
     if cost.dim() != 2:
         raise ValueError(f"cost must be [D, M], got {tuple(cost.shape)}")
     cost = cost.detach().double().cpu()
@@ -72,8 +74,15 @@ def hungarian_match(cost: torch.Tensor):
     bad = ~torch.isfinite(cost)
     num_bad = int(bad.sum())
     if num_bad:
+        # an assignment using one replaced entry (>= R + (K-1) min) must cost more than any
+        # all-finite one (<= K max): R > K (max - min) + min
+        replacement = NONFINITE_COST
+        if num_bad < cost.numel():
+            finite = cost[~bad]
+            low, high = float(finite.min()), float(finite.max())
+            replacement = max(NONFINITE_COST, min(cost.shape) * (high - low) + abs(low) + 1.0)
         log.warning("Hungarian matching: %d of %d costs are NaN/inf, replaced by %g",
-                    num_bad, cost.numel(), NONFINITE_COST)
-        cost = torch.where(bad, NONFINITE_COST, cost)
+                    num_bad, cost.numel(), replacement)
+        cost = torch.where(bad, replacement, cost)
     rows, cols = linear_sum_assignment(cost.numpy())
     return torch.as_tensor(rows, dtype=torch.long), torch.as_tensor(cols, dtype=torch.long), num_bad
