@@ -246,6 +246,9 @@ def occupancy_loss(points: torch.Tensor, logits: torch.Tensor | None,
                 focal_sum = focal_sum + (fl * cls_w).sum()
                 num_focal += pts.shape[0]
             continue
+        if pts.shape[0] == 0:   # the GT -> pred term has no nearest prediction to pull
+            raise ValueError(f"sample {b}: no predicted points to match its {target.num} "
+                             "occupied voxels")
         centres = target.centres.to(pts.device, pts.dtype)
         pred_to_gt, _ = target.nearest(pts)
         gt_to_pred, _ = NearestNeighbourIndex(pts).query(centres)
