@@ -460,53 +460,88 @@ def pick_keyframe(scored: list[int], infos: list[dict]) -> int:
     return min(scored, key=lambda i: abs(infos[i]["timestamp"] - middle))
 
 
+def bev_rgb(labels: np.ndarray, seen: np.ndarray | None = None) -> np.ndarray:
+    """Top view of a label grid uint8 [X, Y, Z] (17 = free) -> uint8 [X, Y, 3] image.
+
+    Each column shows the class of its highest non-free voxel (classes.OCC_COLORS; white where
+    the column is free). Rows run from +x (forward) at the top to -x, columns from +y (left)
+    on the left to -y, so the picture looks like a map with the car driving up. ``seen``
+    bool [X, Y, Z] (e.g. mask_camera): columns without a seen voxel are drawn darker.
+    """
+    from odg_ros.classes import FREE_LABEL, OCC_COLORS
+
+    labels = np.asarray(labels)
+    occupied = labels != FREE_LABEL
+    top = labels.shape[2] - 1 - np.argmax(occupied[:, :, ::-1], axis=2)          # [X, Y]
+    label = np.where(occupied.any(axis=2),
+                     np.take_along_axis(labels, top[..., None], axis=2)[..., 0], FREE_LABEL)
+    rgb = np.asarray(OCC_COLORS, dtype=np.uint8)[label]
+    if seen is not None:
+        rgb = np.where(np.asarray(seen).any(axis=2)[..., None], rgb,
+                       (rgb * 0.45).astype(np.uint8))
+    return np.ascontiguousarray(rgb[::-1, ::-1])
+
+
 def draw_demo_png(path, meta: dict, index: int, pred: np.ndarray, report: dict,
                   keyframe_miou: float | None) -> None:
-    """demo.png: the six cameras of keyframe ``index`` (mosaic) over its BEV prediction and
-    BEV ground truth side by side (classes.OCC_COLORS; per column the highest non-free voxel;
-    columns no camera sees are darkened), titled with the demo's mIoU / RayIoU."""
+    """demo.png: the six cameras of keyframe ``index`` over its BEV prediction (as the planner
+    stand-in received it) and BEV ground truth side by side (``bev_rgb``; darker columns: no
+    camera sees them, outside what the mIoU counts), titled with the demo's numbers."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.patches import Patch
     from PIL import Image
 
-    from odg_ros.data.batch import CAMERA_NAMES
+    from odg_ros.classes import FREE_LABEL, OCC_CLASSES, OCC_COLORS
     from odg_ros.data.occ_io import load_occ
-    from odg_ros.data.synth.pictures import bev_image, camera_mosaic
     from odg_ros.metrics.score import resolve_occ_root
 
     info = meta["infos"][index]
     dataroot = Path(meta["dataroot"])
-    images = {c: np.asarray(Image.open(dataroot / info["cams"][c]["data_path"]).convert("RGB"))
-              for c in CAMERA_NAMES}
     gt, _, mask_camera = load_occ(resolve_occ_root(meta) / info["occ_path"], meta["dataset"])
-    mosaic = camera_mosaic(images)
-    bev_pred = bev_image(pred, mask_camera)
-    bev_gt = bev_image(gt, mask_camera)
-
-    fig = plt.figure(figsize=(13, 10.5))
-    grid = fig.add_gridspec(2, 2, height_ratios=[mosaic.height / mosaic.width * 2,
-                                                 bev_gt.height / bev_gt.width])
-    ax = fig.add_subplot(grid[0, :])
-    ax.imshow(mosaic)
+    # Cameras as they sit on the car: front row left to right, back row seen from behind.
+    layout = (("CAM_FRONT_LEFT", "CAM_FRONT", "CAM_FRONT_RIGHT"),
+              ("CAM_BACK_RIGHT", "CAM_BACK", "CAM_BACK_LEFT"))
+    h, w = info["cams"]["CAM_FRONT"]["image_hw"]
+    width = 13.0
+    camera_row, bev_row = width / 3 * h / w, width / 2 * 0.9
+    fig = plt.figure(figsize=(width, 2 * camera_row + bev_row + 2.2))
+    grid = fig.add_gridspec(3, 6, height_ratios=[camera_row, camera_row, bev_row],
+                            hspace=0.15, wspace=0.05)
+    for row, names in enumerate(layout):
+        for column, name in enumerate(names):
+            ax = fig.add_subplot(grid[row, 2 * column:2 * column + 2])
+            with Image.open(dataroot / info["cams"][name]["data_path"]) as image:
+                ax.imshow(image.convert("RGB"))
+            ax.set_title(name, fontsize=8, pad=2)
+            ax.axis("off")
+    extent = (40.0, -40.0, -40.0, 40.0)      # lateral y: +40 (left) .. -40; forward x: -40 .. 40
+    for column, (labels, title) in enumerate([
+            (pred, f"prediction (from odg_node), this keyframe: mIoU "
+                   f"{_fmt(keyframe_miou, '.1f')}"),
+            (gt, "ground truth (Occ3D layout)")]):
+        ax = fig.add_subplot(grid[2, 3 * column:3 * column + 3])
+        ax.imshow(bev_rgb(labels, mask_camera), extent=extent, interpolation="nearest")
+        ax.plot([0], [0], marker="^", color="red", markersize=8, markeredgecolor="black")
+        ax.set_title(title, fontsize=10)
+        ax.set_xlabel("y (m, left +)", fontsize=8)
+        if column == 0:
+            ax.set_ylabel("x (m, forward +)", fontsize=8)
+        ax.tick_params(labelsize=7)
+    present = sorted(set(np.unique(pred).tolist()) | set(np.unique(gt).tolist()) - {FREE_LABEL})
+    fig.legend(handles=[Patch(facecolor=np.asarray(OCC_COLORS[c]) / 255, edgecolor="black",
+                              label=OCC_CLASSES[c]) for c in present if c != FREE_LABEL],
+               loc="lower center", ncol=min(9, max(1, len(present))), fontsize=8,
+               frameon=False)
     t = (info["timestamp"] - meta["infos"][0]["timestamp"]) * 1e-6
-    ax.set_title(f"keyframe {info['frame_index']} (t = {t:.1f} s): the six cameras", fontsize=10)
-    ax.axis("off")
-    for column, (image, text) in enumerate([
-            (bev_pred, "prediction (received from odg_node), this keyframe's mIoU "
-                       f"{_fmt(keyframe_miou, '.1f')}"),
-            (bev_gt, "ground truth (Occ3D layout)")]):
-        ax = fig.add_subplot(grid[1, column])
-        ax.imshow(image)
-        ax.set_title(text, fontsize=10)
-        ax.axis("off")
     fig.suptitle(
         f"odg demo: mIoU {_fmt(report['mIoU'])}  RayIoU {_fmt(report['RayIoU'])}  over "
         f"{report['keyframes_scored']} keyframes  |  {report['frames_out']} of "
         f"{report['frames_in']} camera sets out, FPS {_fmt(report['fps'], '.1f')}, latency p50 "
         f"{_fmt(report['latency_ms_p50'], '.0f')} ms\n"
-        "BEV: top view, x forward (up), per column the highest occupied voxel; "
-        "darker = no camera sees it", fontsize=11)
-    fig.tight_layout()
+        f"keyframe {info['frame_index']} (t = {t:.1f} s); top views: per column the highest "
+        "occupied voxel, darker = no camera sees it", fontsize=11)
+    fig.subplots_adjust(left=0.05, right=0.98, top=0.93, bottom=0.07)
     fig.savefig(path, dpi=100)
     plt.close(fig)

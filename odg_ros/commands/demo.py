@@ -17,7 +17,9 @@
 from __future__ import annotations
 
 import argparse
+import signal
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -46,15 +48,31 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args) -> int:
-    from odg_ros import demo
-    from odg_ros.data.synth.generate import DEFAULT_IMAGE_HW
-
     def log(text: str) -> None:
         print(text, file=sys.stderr, flush=True)
 
     if not (args.rate > 0 and args.seconds > 0):
         log("odg demo: --rate and --seconds must be positive")
         return 2
+    # SIGTERM (a CI timeout, kill) ends the demo like Ctrl-C: its children are stopped.
+    previous = None
+    if threading.current_thread() is threading.main_thread():
+        previous = signal.signal(signal.SIGTERM, _interrupt)
+    try:
+        return _run(args, log)
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+
+
+def _interrupt(signum, frame):
+    raise KeyboardInterrupt
+
+
+def _run(args, log) -> int:
+    from odg_ros import demo
+    from odg_ros.data.synth.generate import DEFAULT_IMAGE_HW
+
     started = time.monotonic()
     out = args.out
     timings = {}

@@ -41,6 +41,15 @@ FINAL_DIAGNOSTICS_TIMEOUT_S = 15.0
 STOP_TIMEOUT_S = 10.0
 
 
+def _die_with_parent() -> None:
+    """In the child before exec (Linux): SIGTERM it when the demo process dies, even by
+    SIGKILL, so that no node keeps running orphaned. Elsewhere ``stop`` has to do."""
+    if sys.platform.startswith("linux"):
+        import ctypes
+        PR_SET_PDEATHSIG = 1
+        ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
+
+
 class ChildProcess:
     """A child process whose stdout + stderr go to a log file; ``stop`` always ends it."""
 
@@ -49,7 +58,8 @@ class ChildProcess:
         self.log_path = Path(log_path)
         self._log = open(self.log_path, "w")
         self.process = subprocess.Popen(command, stdout=self._log, stderr=subprocess.STDOUT,
-                                        stdin=subprocess.DEVNULL, env=env)
+                                        stdin=subprocess.DEVNULL, env=env,
+                                        preexec_fn=_die_with_parent)
 
     def poll(self) -> int | None:
         return self.process.poll()

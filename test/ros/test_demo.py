@@ -130,3 +130,18 @@ def test_summary_counts_every_drop_reason_and_scores_only_keyframes():
     assert report["fps"] is None                       # one grid: no rate
     text = demo.format_summary(report)
     assert "stale sets dropped 3" in text and "corrupt image 2" in text
+
+
+def test_bev_shows_the_highest_voxel_with_forward_up_and_left_left():
+    from odg_ros.classes import FREE_LABEL, OCC_COLORS
+    labels = np.full((4, 3, 5), FREE_LABEL, np.uint8)
+    labels[3, 2, 0] = 11        # driveable surface, front-left corner, ground
+    labels[3, 2, 4] = 4         # a car above it: the top view shows the car
+    labels[0, 0, 1] = 16        # vegetation, back-right corner
+    seen = np.zeros(labels.shape, bool)
+    seen[3] = True              # only the front row is seen by a camera
+    rgb = demo.bev_rgb(labels, seen)
+    assert rgb.shape == (4, 3, 3)
+    assert tuple(rgb[0, 0]) == OCC_COLORS[4]                 # top-left: +x (front), +y (left)
+    assert tuple(rgb[3, 2]) == tuple(int(0.45 * c) for c in OCC_COLORS[16])  # unseen: darker
+    assert tuple(rgb[0, 1]) == OCC_COLORS[FREE_LABEL]
