@@ -92,7 +92,8 @@ class StageTimer:
 class DecoderHooks:
     """Times every decoder layer (``layer1`` ..) and its parts (``layer1.sampling`` ..) with
     forward hooks into a ``StageTimer``; ``with DecoderHooks(model, timer):`` installs them.
-    The time between layers (pruning, Phi MLPs) is the decoder stage minus the layers."""
+    The decoder time outside the layers (history layout without a ring, queries, pruning,
+    Phi MLPs) is the decoder stage minus the layers (``decoder_outside_layers``)."""
 
     def __init__(self, model: ODG, timer: StageTimer):
         self.model, self.timer, self.handles = model, timer, []
@@ -212,7 +213,7 @@ def summarise(timer: StageTimer, num_layers: int) -> dict:
     latency = {k: round(medians[k], 3) for k in STAGES if k in medians}
     layers = layer_table(medians, num_layers)
     if layers and "decoder" in medians:
-        latency["decoder_between_layers"] = round(
+        latency["decoder_outside_layers"] = round(
             medians["decoder"] - sum(r["total"] for r in layers), 3)
     return {"latency_ms": latency, "decoder_layers_ms": layers,
             "fps": round(1000.0 / medians["total"], 3) if "total" in medians else None}

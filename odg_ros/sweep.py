@@ -355,6 +355,7 @@ def subset_result(score, per_sample, members) -> dict:
     out = {"samples": len(rows)}
     if rows:
         out["latency_ms"] = round(float(np.median([r["total_ms"] for r in rows])), 3)
+        out["decoder_ms"] = round(float(np.median([r["decoder_ms"] for r in rows])), 3)
         out["queries_last_layer"] = round(float(np.mean([r["queries_last_layer"]
                                                           for r in rows])), 1)
     if score.miou.samples:
@@ -409,6 +410,7 @@ def adaptive_tradeoff(results: list[dict]) -> list[dict]:
                 continue
             saved = a["latency_ms"] - b["latency_ms"]
             entry = {"ms_saved": round(saved, 2),
+                     "decoder_ms_saved": round(a["decoder_ms"] - b["decoder_ms"], 2),
                      "queries_last_layer": b.get("queries_last_layer")}
             for metric in ("mIoU", "RayIoU"):
                 if a.get(metric) is not None and b.get(metric) is not None:
@@ -463,7 +465,8 @@ def run_sweep(data, checkpoint=None, preset: str = "odg_cpu", device: str = "cpu
         cfg = load_preset(preset)
     else:
         from .config import ModelConfig
-        cfg = ModelConfig(**torch.load(checkpoint, map_location="cpu", weights_only=False)["config"])
+        payload = torch.load(checkpoint, map_location="cpu", weights_only=False)
+        cfg = ModelConfig(**payload["config"])
     configs = configs or default_configs(cfg.num_frames, device)
     isolate = True if isolate is None else isolate
     infos = load_infos_file(data)
@@ -516,7 +519,8 @@ def run_sweep(data, checkpoint=None, preset: str = "odg_cpu", device: str = "cpu
     if not ok:
         raise RuntimeError("every sweep configuration failed: "
                            + "; ".join(r["error"] for r in results))
-    report = {"meta": meta, "configs": results, "pareto": {}, "adaptive": adaptive_tradeoff(results)}
+    report = {"meta": meta, "configs": results, "pareto": {},
+              "adaptive": adaptive_tradeoff(results)}
     for metric in ("mIoU", "RayIoU"):
         points = [(r["fps"], r["scores"].get(metric)) for r in ok]
         report["pareto"][metric] = [ok[i]["config"]["name"] for i in pareto_front(points)]
@@ -568,7 +572,7 @@ def format_table(report: dict) -> str:
 
 def plot_sweep(report: dict, path) -> None:
     """PNG: FPS against mIoU and against RayIoU (Pareto front as a line), and the latency
-    of each configuration split into backbone, decoder layers, between layers, post."""
+    of each configuration split into backbone, decoder layers, decoder outside layers, post."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -589,8 +593,8 @@ def plot_sweep(report: dict, path) -> None:
             ax.scatter(r["fps"], value, s=60 if on_front else 35, zorder=3,
                        color="tab:red" if on_front else "tab:blue",
                        marker="*" if r["config"]["prune"] is not None else "o")
-            ax.annotate(name, (r["fps"], value), textcoords="offset points", xytext=(4, 4),
-                        fontsize=7)
+            ax.annotate(name, (r["fps"], value), textcoords="offset points", fontsize=7,
+                        xytext=(4, 4 + 9 * (ok.index(r) % 3)))   # staggered: fewer overlaps
             if on_front:
                 xs.append(r["fps"])
                 ys.append(value)
@@ -612,7 +616,7 @@ def plot_sweep(report: dict, path) -> None:
     cmap = plt.get_cmap("viridis")
     for i in range(num_layers):
         segments.append((f"layer{i + 1}", cmap(i / max(1, num_layers - 1))))
-    segments += [("between layers", "tab:orange"), ("postprocess", "tab:brown")]
+    segments += [("decoder outside layers", "tab:orange"), ("postprocess", "tab:brown")]
     for label, colour in segments:
         widths = []
         for r in ok:
@@ -621,8 +625,8 @@ def plot_sweep(report: dict, path) -> None:
                 widths.append(lat["backbone"])
             elif label == "postprocess":
                 widths.append(lat["postprocess"])
-            elif label == "between layers":
-                widths.append(lat.get("decoder_between_layers",
+            elif label == "decoder outside layers":
+                widths.append(lat.get("decoder_outside_layers",
                                       lat["decoder"] if not r["decoder_layers_ms"] else 0.0))
             else:
                 index = int(label[5:])

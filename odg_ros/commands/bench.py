@@ -109,7 +109,8 @@ def run(args) -> int:
             print(f"    layer {r['layer']:<15}" + " ".join(
                 f"{r['parts'].get(p, 0.0):9.2f}" for p in parts)
                 + f" {r['other']:7.2f} {r['total']:7.2f}")
-        print(f"    between layers (pruning, Phi MLPs): {lat['decoder_between_layers']:.2f}")
+        print(f"    outside the layers (history layout without a ring, pruning, Phi MLPs): "
+              f"{lat['decoder_outside_layers']:.2f}")
     return 0
 
 
