@@ -63,9 +63,9 @@ class DemoError(RuntimeError):
 
 @dataclass(frozen=True)
 class WorldSpec:
+    image_hw: tuple[int, int]        # camera images (odg synth's default in odg demo)
     seed: int = DEFAULT_SEED
     seconds: float = DEFAULT_SECONDS
-    image_hw: tuple[int, int] = (198, 352)
 
     def as_dict(self) -> dict:
         return {"scenes": 1, "seed": int(self.seed), "seconds": float(self.seconds),

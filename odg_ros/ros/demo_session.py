@@ -88,10 +88,9 @@ class ChildProcess:
         return self.process.returncode
 
 
-def node_command(checkpoint: Path, params_file: Path | None = None) -> list[str]:
-    params_file = params_file or resource_path("config/odg.yaml")
+def node_command(checkpoint: Path) -> list[str]:
     return [sys.executable, "-m", "odg_ros.ros.node", "--ros-args",
-            "--params-file", str(params_file),
+            "--params-file", str(resource_path("config/odg.yaml")),
             "-r", f"__node:={NODE_NAME}",
             "-p", f"checkpoint:={checkpoint}",
             "-p", "use_sim_time:=true"]
@@ -133,6 +132,8 @@ class PlannerStandIn:
         n.create_subscription(Float32, f"{NODE}/fps", self.on_fps, reliable)
         n.create_subscription(DiagnosticArray, "/diagnostics", self.on_diagnostics, reliable)
         n.create_subscription(Clock, layout.CLOCK_TOPIC, self.on_clock, reliable)
+        # A planner follows the ego odometry; it is also the one subscriber of the bag's /odom
+        # (the node takes its pose from /tf), which `odg replay --wait-for-subscribers` wants.
         n.create_subscription(Odometry, layout.ODOM_TOPIC, self.on_odometry, reliable)
         self.clock_publisher = n.create_publisher(Clock, layout.CLOCK_TOPIC, 10)
         self._Clock = Clock

@@ -95,18 +95,17 @@ def test_grids_are_matched_to_their_keyframes_by_stamp(demo_run):
 def test_the_world_is_reused_only_with_the_same_settings(demo_run):
     out, _ = demo_run
     # The world and bag are reused with the same settings, rebuilt with others.
-    spec = demo.WorldSpec(seed=demo.DEFAULT_SEED, seconds=1.5, image_hw=(72, 128))
+    spec = demo.WorldSpec((72, 128), seconds=1.5)
     assert demo.build_world(out, spec, progress=False, log=lambda _: None).reused
-    assert not demo.world_is_built(out, demo.WorldSpec(seed=7, seconds=1.5, image_hw=(72, 128)))
-    assert not demo.world_is_built(out, demo.WorldSpec(seed=demo.DEFAULT_SEED, seconds=2.0,
-                                                       image_hw=(72, 128)))
+    assert not demo.world_is_built(out, demo.WorldSpec((72, 128), seed=7, seconds=1.5))
+    assert not demo.world_is_built(out, demo.WorldSpec((72, 128), seconds=2.0))
 
 
 def test_folders_the_demo_did_not_make_are_left_alone(tmp_path):
     (tmp_path / "world").mkdir()
     (tmp_path / "world" / "precious.txt").write_text("mine")
     with pytest.raises(demo.DemoError, match="not made by odg demo"):
-        demo.build_world(tmp_path, demo.WorldSpec(seconds=0.5), progress=False,
+        demo.build_world(tmp_path, demo.WorldSpec((72, 128), seconds=0.5), progress=False,
                          log=lambda _: None)
     assert (tmp_path / "world" / "precious.txt").read_text() == "mine"
 
