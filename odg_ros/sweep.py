@@ -54,7 +54,9 @@ class SweepConfig:
     queries: fraction of the learned queries kept; precision: fp32 | bf16 | fp16 (autocast);
     ring: cached history in a ``FeatureRing`` (else re-laid out every step);
     fast_sampling: camera-rows sampling (else the plain 3-D path); compile: torch.compile
-    the decoder (per-layer timing is then off: hooks would break the graph)."""
+    the decoder (per-layer timing is then off: hooks would break the graph); model: another
+    checkpoint path or preset name (a preset: random weights, timing only) instead of the
+    sweep's own model."""
 
     name: str
     frames: int | None = None
@@ -65,6 +67,7 @@ class SweepConfig:
     ring: bool = True
     fast_sampling: bool = True
     compile: bool = False
+    model: str | None = None
 
     def __post_init__(self):
         if not 0 < self.queries <= 1:
@@ -143,10 +146,18 @@ def query_budget(model, cfg, fraction: float):
     return smaller.to(next(model.parameters()).device).eval(), new_cfg
 
 
+def is_checkpoint(model: str) -> bool:
+    """A ``SweepConfig.model`` names a checkpoint file, or a preset (name or YAML path)."""
+    return Path(model).is_file() and Path(model).suffix not in (".yaml", ".yml")
+
+
 def prepare_model(checkpoint, preset: str, device: str, config: SweepConfig):
     """-> (model on device in eval mode, its config) for one configuration."""
     from .network.checkpoint import load_model
 
+    if config.model is not None:
+        checkpoint, preset = (config.model, preset) if is_checkpoint(config.model) else \
+            (None, config.model)
     model, cfg = load_model(checkpoint, preset=preset, device="cpu")
     if config.frames is not None and config.frames > cfg.num_frames:
         raise ValueError(f"{config.name}: {config.frames} frames, the model takes at most "
@@ -201,6 +212,8 @@ class ConfigRun:
         self.model, self.cfg = prepare_model(job["checkpoint"], job["preset"], self.device,
                                              config)
         self.frames = config.frames or self.cfg.num_frames
+        self.random_weights = (config.model is None and job["checkpoint"] is None) or (
+            config.model is not None and not is_checkpoint(config.model))
         prune = PruneRule(config.prune, config.prune_after) if config.prune is not None else None
         self.step = OnlineStep(self.model, self.cfg, self.device, ring=config.ring,
                                prune=prune, precision=config.precision)
@@ -248,6 +261,7 @@ class ConfigRun:
 
     def result(self, members: dict) -> dict:
         out = {"config": dataclasses.asdict(self.config), "model": self.cfg.name,
+               "random_weights": self.random_weights,
                "queries": self.cfg.num_queries, "frames": self.frames,
                **summarise(self.timer, self.cfg.num_layers), "per_sample": self.per_sample}
         for name in SUBSETS:
@@ -521,9 +535,10 @@ def run_sweep(data, checkpoint=None, preset: str = "odg_cpu", device: str = "cpu
                            + "; ".join(r["error"] for r in results))
     report = {"meta": meta, "configs": results, "pareto": {},
               "adaptive": adaptive_tradeoff(results)}
+    trusted = [r for r in ok if not r["random_weights"]] or ok   # random scores mean nothing
     for metric in ("mIoU", "RayIoU"):
-        points = [(r["fps"], r["scores"].get(metric)) for r in ok]
-        report["pareto"][metric] = [ok[i]["config"]["name"] for i in pareto_front(points)]
+        points = [(r["fps"], r["scores"].get(metric)) for r in trusted]
+        report["pareto"][metric] = [trusted[i]["config"]["name"] for i in pareto_front(points)]
     if out is not None:
         out = Path(out)
         out.mkdir(parents=True, exist_ok=True)
@@ -590,9 +605,11 @@ def plot_sweep(report: dict, path) -> None:
                 continue
             name = r["config"]["name"]
             on_front = name in front
-            ax.scatter(r["fps"], value, s=60 if on_front else 35, zorder=3,
-                       color="tab:red" if on_front else "tab:blue",
-                       marker="*" if r["config"]["prune"] is not None else "o")
+            marker = "*" if r["config"]["prune"] is not None else "o"
+            if r.get("random_weights") and not meta["random_weights"]:
+                marker, name = "x", name + " (random weights)"
+            ax.scatter(r["fps"], value, s=60 if on_front else 35, zorder=3, marker=marker,
+                       color="tab:red" if on_front else "tab:blue")
             ax.annotate(name, (r["fps"], value), textcoords="offset points", fontsize=7,
                         xytext=(4, 4 + 9 * (ok.index(r) % 3)))   # staggered: fewer overlaps
             if on_front:

@@ -214,6 +214,23 @@ def test_sweep_in_a_fresh_process_reports_its_own_peak_memory(tiny_split):
     assert np.isfinite(c["fps"])
 
 
+def test_another_model_in_the_sweep_is_flagged_and_kept_off_the_pareto_front(tiny_split,
+                                                                             tmp_path):
+    data, checkpoint = tiny_split
+    preset = tmp_path / "other.yaml"
+    values = {k: list(v) if isinstance(v, tuple) else v
+              for k, v in tiny_cfg().replace(name="other", num_static=10).to_dict().items()}
+    preset.write_text(json.dumps(values))            # JSON is YAML
+    report = run_sweep(data, checkpoint, configs=[SweepConfig("mine", frames=1),
+                                                  SweepConfig("other", frames=1,
+                                                              model=str(preset))],
+                       limit=1, repeats=1, warmup=0, isolate=False, progress=False)
+    mine, other = report["configs"]
+    assert mine["random_weights"] is False and other["random_weights"] is True
+    assert other["model"] == "other" and other["queries"] == 16
+    assert report["pareto"]["mIoU"] == ["mine"]
+
+
 def test_a_failing_configuration_is_reported_not_fatal(tiny_split):
     data, checkpoint = tiny_split
     report = run_sweep(data, checkpoint, configs=[SweepConfig("ok", frames=1),

@@ -45,7 +45,9 @@ def add_arguments(parser):
     parser.add_argument("--limit", type=int, default=8, help="--sweep: first N samples")
     parser.add_argument("--configs", default=None,
                         help="--sweep: comma-separated names of default configurations, or a "
-                             "JSON file with a list of sweep.SweepConfig fields")
+                             "JSON file with a list of sweep.SweepConfig fields, e.g. "
+                             '[{"name": "odg_t", "model": "odg_t"}] (a preset: random '
+                             "weights, timing only)")
     parser.add_argument("--list-configs", action="store_true",
                         help="--sweep: print the default configurations and exit")
     parser.add_argument("--no-isolate", action="store_true",
