@@ -15,8 +15,9 @@ LiDAR pattern, but they decide hand-made test cases):
 * a voxel the ray only touches at an edge or corner (zero-length chord) is not visited: when
   the ray crosses two or three voxel planes at the same distance (within 1e-9 voxel) all those
   axes step together (SparseOcc steps one axis at a time and can visit such a voxel);
-* an origin on a voxel face starts in the voxel the ray moves into; a ray lying in a face
-  (direction component 0 on that axis) belongs to the voxel on the + side (floor);
+* an origin on a voxel face (within 1e-9 voxel, along the axes the ray moves on) starts in
+  the voxel the ray moves into; a ray lying in a face (direction component 0 on that axis)
+  belongs to the voxel on the + side (floor);
 * an origin outside the grid starts where the ray enters the grid (SparseOcc starts from the
   origin's voxel truncated towards zero with C ``int()``; that differs only for an origin with
   a negative grid coordinate, i.e. below the grid, since origins keep |x|, |y| < 39 m).
@@ -107,12 +108,17 @@ def cast_rays(occupied_bits: np.ndarray, origins: np.ndarray, directions: np.nda
     t_enter, t_exit = _grid_entry_exit(origins, directions, bits.shape)
     hit_depth = np.repeat(np.where(t_enter < t_exit, t_exit, 0.0)[None], num_bits, axis=0)
 
-    rays = np.flatnonzero(t_enter < t_exit)
+    rays = np.flatnonzero(t_enter < t_exit - TIE_EPS)   # a shorter chord only touches the grid
     if rays.size == 0:
         return hit_index, hit_depth
     o = origins[rays]
     d = directions[rays]
     start = o + t_enter[rays, None] * d
+    # A start within TIE_EPS of a voxel plane it moves across lies on it: metres -> voxel
+    # units rounds (an origin on a voxel corner in metres comes out ~1e-14 off it), and the
+    # ray would otherwise "hit" the voxel it is leaving at depth ~1e-14.
+    plane = np.round(start)
+    start = np.where((d != 0) & (np.abs(start - plane) <= TIE_EPS), plane, start)
     # Start voxel: the one the ray moves into (matters when the start lies on a voxel face).
     voxel = np.where(d >= 0, np.floor(start), np.ceil(start) - 1.0)
     voxel = np.clip(voxel, 0, np.asarray([X - 1, Y - 1, Z - 1], dtype=np.float64))
