@@ -77,12 +77,14 @@ class ODGCriterion:
             intrinsics = batch["intrinsics"].to(device)
 
         losses: dict[str, torch.Tensor] = {}
+        _require_finite("occ_chamfer_l0", init_means=output.init_means)
         init = occupancy_loss(output.init_means.reshape(B, -1, 3), None, targets, cfg.pc_range)
         losses["occ_chamfer_l0"] = init.chamfer
         total = init.chamfer
         for l, layer in enumerate(output.layers, start=1):
             means = layer.means.reshape(B, -1, 3)
             logits = layer.logits.reshape(B, means.shape[1], -1)
+            _require_finite(f"occ_chamfer_l{l}", means=means)
             occ = occupancy_loss(means, logits, targets, cfg.pc_range)
             losses[f"occ_chamfer_l{l}"], losses[f"occ_focal_l{l}"] = occ.chamfer, occ.focal
             total = total + occ.chamfer + occ.focal
@@ -102,6 +104,8 @@ class ODGCriterion:
                     raise ValueError(f"layer {l} has no scales/rotations/opacities (Phi MLPs not "
                                      "run); the rendering loss needs them")
                 G = means.shape[1]
+                _require_finite(f"render_depth_l{l}", scales=layer.scales,
+                                rotations=layer.rotations, opacities=layer.opacities)
                 ren = render_loss(means, layer.scales.reshape(B, G, 3),
                                   layer.rotations.reshape(B, G, 4),
                                   layer.opacities.reshape(B, G), logits, render_targets,
@@ -120,3 +124,13 @@ class ODGCriterion:
                         stats["nonfinite_match_costs"])
         self.last_stats = stats
         return losses
+
+
+def _require_finite(term: str, **outputs: torch.Tensor) -> None:
+    """Non-finite network outputs (a diverging step) cannot be searched for neighbours or
+    rendered: raise the criterion's FloatingPointError naming the term (the trainer skips
+    and counts the step), not the ValueError those functions keep for bad input."""
+    bad = [name for name, t in outputs.items() if not bool(torch.isfinite(t).all())]
+    if bad:
+        raise FloatingPointError(f"non-finite loss terms: {term} (non-finite network output "
+                                 f"{', '.join(bad)})")
