@@ -6,7 +6,7 @@ def add_arguments(parser) -> None:
     from odg_ros.data.synth.generate import DEFAULT_IMAGE_HW
     parser.add_argument("--out", required=True, help="output dataroot (must not hold this version yet)")
     parser.add_argument("--scenes", type=int, default=8, help="number of scenes (every 4th goes to val)")
-    parser.add_argument("--seconds", type=float, default=8.0, help="length of each scene (2 keyframes/s)")
+    parser.add_argument("--seconds", type=float, default=6.0, help="length of each scene (2 keyframes/s)")
     parser.add_argument("--seed", type=int, default=0, help="same seed, same bytes")
     parser.add_argument("--image-size", type=int, nargs=2, default=list(DEFAULT_IMAGE_HW), metavar=("H", "W"),
                         help="camera image size (intrinsics are the nuScenes ones scaled from 900 x 1600)")

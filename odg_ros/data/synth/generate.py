@@ -31,7 +31,7 @@ from odg_ros.data.synth.world import World
 from odg_ros.geometry import invert_transform, matrix_to_quaternion
 
 DEFAULT_IMAGE_HW = (198, 352)
-MASK_RAY_STEP = 0.004          # rad between the depth-map rays of mask_camera (~0.16 m at 40 m)
+MASK_RAY_STEP = 0.006          # rad between the depth-map rays of mask_camera (~0.24 m at 40 m)
 ANNOTATION_RANGE = 60.0        # annotate things whose centre is this close to the ego (xy, m)
 BASE_TIMESTAMP_US = 1_533_000_000_000_000
 
@@ -280,7 +280,7 @@ class _SceneWriter:
                         "name": self.name, "description": f"synthetic city, seed {self.seed}"})
 
 
-def generate(out: str, scenes: int = 8, seconds: float = 8.0, seed: int = 0, image_hw=DEFAULT_IMAGE_HW,
+def generate(out: str, scenes: int = 8, seconds: float = 6.0, seed: int = 0, image_hw=DEFAULT_IMAGE_HW,
              version: str = "v1.0-trainval", progress: bool = True) -> dict:
     """Generate the dataset. Returns a summary (counts, seconds, bytes)."""
     if scenes < 1 or seconds <= 0:

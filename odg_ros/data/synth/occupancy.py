@@ -152,6 +152,9 @@ def traverse(occupied: np.ndarray, origins, dirs, max_t=None, return_hits=False,
     return (visited, t_hit) if return_hits else visited
 
 
+_ALL_CENTRES = voxel_centres_ego(np.indices(GRID_SHAPE).reshape(3, -1).T)  # [X*Y*Z, 3], C order
+
+
 def camera_mask(hits_t, hits_normal, pixel_dirs, K, hw, T_ego_from_cam) -> np.ndarray:
     """bool [200, 200, 16]: voxels one camera observes.
 
@@ -163,7 +166,7 @@ def camera_mask(hits_t, hits_normal, pixel_dirs, K, hw, T_ego_from_cam) -> np.nd
     voxel's own ray to the surface's tangent plane (exact for planes such as the ground,
     where the pixel's neighbouring rays meet the surface metres apart)."""
     h, w = hw
-    centres = voxel_centres_ego(np.indices(GRID_SHAPE).reshape(3, -1).T)
+    centres = _ALL_CENTRES
     R, o = T_ego_from_cam[:3, :3], T_ego_from_cam[:3, 3]
     p = (centres - o) @ R                                   # camera frame
     z = p[:, 2]

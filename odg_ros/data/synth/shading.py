@@ -272,8 +272,10 @@ def sky_color(dirs, lighting, seed):
     cloud = fbm2(px.astype(np.float32), py.astype(np.float32), 1.3, 2, seed + 21) + 0.5
     cover = np.clip((cloud - (0.75 - 0.6 * lighting.cloudiness)) * 3, 0, 1)[:, None]
     col = col * (1 - cover) + cover * np.array([0.9, 0.9, 0.92]) * (0.75 + 0.25 * up)
-    glow = np.clip(dirs @ lighting.sun, 0, 1)[:, None]
-    col = col + lighting.sun_color[None] * (glow ** 64 * 0.5 + glow ** 1500 * 3.0) * (1 - lighting.cloudiness)
+    cos_sun = dirs @ lighting.sun
+    near_sun = np.flatnonzero(cos_sun > 0.9)   # glow ** 64 < 0.001 elsewhere
+    glow = cos_sun[near_sun, None]
+    col[near_sun] += lighting.sun_color[None] * (glow ** 64 * 0.5 + glow ** 1500 * 3.0) * (1 - lighting.cloudiness)
     return col.astype(np.float32)
 
 
