@@ -135,16 +135,15 @@ def camera_rows_view(memory: torch.Tensor) -> torch.Tensor:
     return memory.permute(0, 3, 1, 2)
 
 
-def camera_rows_grid(u, v, camera, visible, image_hw, num_cams: int, level_hw) -> torch.Tensor:
+def camera_rows_grid(u, v, camera, image_hw, num_cams: int, level_hw) -> torch.Tensor:
     """Pixel (u, v) in ``camera`` [...] -> normalised 2-D grid [..., 2] of the camera-rows
-    layout of a level of size ``level_hw``; (-2, -2) (outside: zeros) where not visible."""
+    layout of a level of size ``level_hw`` (a pixel outside the image reads zeros)."""
     H, W = image_hw
     h = level_hw[0]
     rows = num_cams * (h + 1)
     # level pixel (align_corners=False) v / H * h - 0.5, shifted below its camera's zero row
     y = camera.to(v.dtype) * (h + 1) + 1.0 + v / H * h - 0.5
-    grid = torch.stack([u / W * 2.0 - 1.0, (y + 0.5) / rows * 2.0 - 1.0], dim=-1)
-    return torch.where(visible.unsqueeze(-1), grid, torch.full_like(grid, -2.0))
+    return torch.stack([u / W * 2.0 - 1.0, (y + 0.5) / rows * 2.0 - 1.0], dim=-1)
 
 
 class SpatioTemporalSampling(nn.Module):
@@ -209,14 +208,18 @@ class SpatioTemporalSampling(nn.Module):
         def frame_major(x):                                             # -> [F, B, G, Q, P]
             return x.view(B, F_, Q, G, P).permute(1, 0, 3, 2, 4)
         u, v, camera, visible = map(frame_major, (u, v, camera, visible))
-        weights = weights.squeeze(3).permute(0, 2, 1, 3, 4)             # [B, G, Q, P, L]
-        sampled = 0
+        # a point no camera sees goes far left of every image, where grid_sample reads zeros
+        # (so no mask pass over the sampled features is needed)
+        u = torch.where(visible, u, torch.full_like(u, -2.0 * image_hw[1]))
+        v = torch.where(visible, v, torch.zeros_like(v))
+        weights = weights.squeeze(3).permute(4, 0, 2, 1, 3).contiguous()  # [L, B, G, Q, P]
+        sampled = None
         for level, feat in enumerate(mlvl_feats):
             rows, w = feat.shape[-2:]
-            grid = camera_rows_grid(u, v, camera, visible, image_hw, N, (rows // N - 1, w))
+            grid = camera_rows_grid(u, v, camera, image_hw, N, (rows // N - 1, w))
             s = F.grid_sample(feat, grid.reshape(F_ * B * G, Q, P, 2).to(feat.dtype),
                               mode="bilinear", padding_mode="zeros", align_corners=False)
             s = s.permute(0, 2, 3, 1).reshape(F_, B, G, Q, P, s.shape[1])  # [F,B,G,Q,P,c]
-            sampled = sampled + s * weights[..., level:level + 1]
-        sampled = sampled * visible.unsqueeze(-1).to(sampled.dtype)
+            weight = weights[level].unsqueeze(-1)                       # [B, G, Q, P, 1]
+            sampled = s * weight if sampled is None else torch.addcmul(sampled, s, weight)
         return sampled.permute(1, 3, 2, 0, 4, 5)                       # [B, Q, G, F, P, c]
