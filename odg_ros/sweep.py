@@ -1,8 +1,8 @@
 """``odg bench --sweep``: speed against error, in one run, on one device.
 
 For each configuration (history length, adaptive pruning threshold, query budget, precision,
-sampling path) the online step of the node runs over the first ``limit`` samples of a split:
-the older frames' features are computed first (the node has them cached), then the step --
+sampling path) the online step of the node runs over ``limit`` samples spread evenly over a
+split: the older frames' features are computed first (the node has them cached), then the step --
 backbone on the newest set, decoder over the cached history, grid + boxes -- is timed
 ``repeats`` times per sample after ``warmup`` steps, and its grid is scored (mIoU with the
 camera mask, RayIoU, mIoU over the moving classes). The configurations take turns step by
@@ -187,6 +187,14 @@ def scene_load(infos_path, cfg, occ_root, indices) -> list[dict]:
                      "occupied_camera": int((occupied & mask_camera).sum()),
                      "occupied": int(occupied.sum()), "boxes": int(len(info["gt_labels"]))})
     return rows
+
+
+def spread_indices(count: int, limit: int) -> list[int]:
+    """``limit`` sample indices spread evenly over a split of ``count`` (all if fewer): the
+    first N samples would all come from the first scene or two."""
+    if limit >= count:
+        return list(range(count))
+    return sorted({int(round(i)) for i in np.linspace(0, count - 1, limit)})
 
 
 def quiet_and_busy(load: list[dict]) -> tuple[list[int], list[int]]:
@@ -484,9 +492,9 @@ def run_sweep(data, checkpoint=None, preset: str = "odg_cpu", device: str = "cpu
     configs = configs or default_configs(cfg.num_frames, device)
     isolate = True if isolate is None else isolate
     infos = load_infos_file(data)
-    indices = list(range(min(limit, len(infos["infos"]))))
-    if not indices:
+    if not infos["infos"]:
         raise ValueError(f"{data}: no samples")
+    indices = spread_indices(len(infos["infos"]), limit)
     load = scene_load(data, cfg, occ_root, indices)
     quiet, busy = quiet_and_busy(load)
     meta = {"device": device, "device_name": device_name(device),

@@ -15,7 +15,7 @@ from odg_ros.network import ODG
 from odg_ros.network.checkpoint import load_model, save_checkpoint
 from odg_ros.network.decoder import PruneRule
 from odg_ros.sweep import (SweepConfig, adaptive_tradeoff, pareto_front, query_budget,
-                           quiet_and_busy, run_sweep, select_configs)
+                           quiet_and_busy, run_sweep, select_configs, spread_indices)
 from odg_ros.train.evaluate import evaluate
 
 from helpers import tiny_config
@@ -35,6 +35,12 @@ def test_pareto_front_on_hand_made_points():
     assert pareto_front(points) == [3, 0, 2, 5]
     assert pareto_front([]) == []
     assert pareto_front([(1.0, 1.0)]) == [0]
+
+
+def test_samples_are_spread_over_the_split():
+    assert spread_indices(100, 5) == [0, 25, 50, 74, 99]
+    assert spread_indices(3, 8) == [0, 1, 2]
+    assert spread_indices(10, 1) == [0]
 
 
 def test_quiet_and_busy_quarters():

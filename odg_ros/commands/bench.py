@@ -42,7 +42,8 @@ def add_arguments(parser):
     parser.add_argument("--data", default=None, help="--sweep: infos of the split")
     parser.add_argument("--occ-root", default=None, help="--sweep: GT root")
     parser.add_argument("--out", default="docs", help="--sweep: folder for the JSON and PNG")
-    parser.add_argument("--limit", type=int, default=8, help="--sweep: first N samples")
+    parser.add_argument("--limit", type=int, default=8,
+                        help="--sweep: N samples spread evenly over the split")
     parser.add_argument("--configs", default=None,
                         help="--sweep: comma-separated names of default configurations, or a "
                              "JSON file with a list of sweep.SweepConfig fields, e.g. "
