@@ -14,6 +14,7 @@ from hypothesis import strategies as st
 HARD = settings(max_examples=25, deadline=None, derandomize=True, database=None,
                 suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
 FEW = settings(HARD, max_examples=8)
+FUZZ = settings(HARD, max_examples=150)     # cheap examples (bytes, stamp streams)
 
 
 def log_uniform(lo: float, hi: float):
