@@ -1,6 +1,12 @@
 """``odg synth``: generate the synthetic driving world (docs/SYNTH.md)."""
 from __future__ import annotations
 
+import os
+
+# The generator is single-threaded NumPy; keep BLAS from spreading small matmuls over cores.
+for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+
 
 def add_arguments(parser) -> None:
     from odg_ros.data.synth.generate import DEFAULT_IMAGE_HW
