@@ -67,9 +67,11 @@ def box_list(output: ODGOutput, cfg: ModelConfig, score_threshold: float | None 
     probs = layer.box_logits.float().sigmoid()
     score, label = probs.max(dim=-1)
     boxes = decode_box_code(layer.boxes.float())
+    # the code, not only the decoded box: the size clamp would turn an inf code into 50 m
+    finite = torch.isfinite(layer.boxes.float()).all(-1) & torch.isfinite(boxes).all(-1)
     result = []
     for b in range(boxes.shape[0]):
-        keep = (score[b] > threshold) & torch.isfinite(boxes[b]).all(-1)
+        keep = (score[b] > threshold) & finite[b]
         order = torch.argsort(score[b][keep], descending=True)
         sel_boxes, sel_score, sel_label = boxes[b][keep][order], score[b][keep][order], \
             label[b][keep][order]
