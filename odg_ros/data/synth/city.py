@@ -168,7 +168,8 @@ def hedge(layout, x0, x1, y0, y1, rng):
 
 def fence(layout, x0, x1, y0, y1, rng):
     h = rng.uniform(1.2, 2.2)
-    _stuff(layout, BOX, ((x0 + x1) / 2, (y0 + y1) / 2, h / 2), (max(abs(x1 - x0) / 2, 0.03), max(abs(y1 - y0) / 2, 0.03), h / 2),
+    half = (max(abs(x1 - x0) / 2, 0.03), max(abs(y1 - y0) / 2, 0.03), h / 2)
+    _stuff(layout, BOX, ((x0 + x1) / 2, (y0 + y1) / 2, h / 2), half,
            MANMADE, M.FENCE, (0.5, 0.5, 0.48))
 
 
@@ -691,7 +692,8 @@ def build_world(seed_seq: np.random.SeedSequence, name: str, duration: float) ->
                         cross = ahead[0] if direction > 0 else ahead[-1]
                         t_dir = int(rng.choice([-1, 1]))
                         lane_out = min(lane_k, cross.lanes - 1) if t_dir > 0 else cross.lanes - 1
-                        sxy, yaw, pieces, _ = _turn_pieces(road, direction, lane_k, cross, t_dir, lane_out, start_u, 300)
+                        sxy, yaw, pieces, _ = _turn_pieces(road, direction, lane_k, cross, t_dir, lane_out,
+                                                           start_u, 300)
                         path = Path(sxy, yaw, pieces)
                     else:
                         path = _lane_path(road, direction, lane_k, start_u - direction * 30, 500, lateral)
@@ -700,7 +702,8 @@ def build_world(seed_seq: np.random.SeedSequence, name: str, duration: float) ->
                     if len(members) > 1:
                         gid = group_id = group_id + 1
                     for shape, lag in members:
-                        kind_attr = "cycle" if shape.category in ("vehicle.bicycle", "vehicle.motorcycle") else "vehicle"
+                        cycle = shape.category in ("vehicle.bicycle", "vehicle.motorcycle")
+                        kind_attr = "cycle" if cycle else "vehicle"
                         layout.things.append((shape, path, speeds, s_start - lag, kind_attr, gid))
                     u += sum(m[0].wlh[1] for m in members)
             # parked cars along parking lanes
@@ -749,7 +752,8 @@ def build_world(seed_seq: np.random.SeedSequence, name: str, duration: float) ->
             direction = int(rng.choice([-1, 1]))
             start_lat = road.c - direction * (road.half(-direction) + 1.2)
             xy = (u, start_lat) if road.axis == 0 else (start_lat, u)
-            heading = (np.pi / 2 if direction > 0 else -np.pi / 2) if road.axis == 0 else (0.0 if direction > 0 else np.pi)
+            across_x = np.pi / 2 if direction > 0 else -np.pi / 2
+            heading = across_x if road.axis == 0 else (0.0 if direction > 0 else np.pi)
             walk = road.half(-1) + road.half(1) + 4
             wait = rng.uniform(0, duration)
             sp = np.concatenate([np.zeros(int(wait / 0.02)), speed_profile(rng, span, 1.2, 1.4, 1.8)])

@@ -164,7 +164,8 @@ def _object_albedo(prims: Primitives, idx, local, n_local, seed):
         glass = np.stack([0.12 + 0.1 * lit, 0.15 + 0.1 * lit, 0.2 + 0.12 * lit], -1).astype(np.float32)
         a = alb[i] * (1 + 0.25 * dirt[i])[:, None]
         a = np.where((window | shop)[:, None], glass, a)
-        roof = np.array([0.32, 0.31, 0.3], np.float32)[None] * (0.8 + 0.4 * value_noise2(lx[i], ly[i], seed + 13))[:, None]
+        roof_grain = 0.8 + 0.4 * value_noise2(lx[i], ly[i], seed + 13)
+        roof = np.array([0.32, 0.31, 0.3], np.float32)[None] * roof_grain[:, None]
         alb[i] = np.where(top[i][:, None], roof, a)
     i = sel(M.FOLIAGE)
     if len(i):
@@ -239,7 +240,8 @@ def _object_albedo(prims: Primitives, idx, local, n_local, seed):
     if len(i):
         rel = zb[i] / (2 * half[i, 2])
         diag = (_frac((along[i] + zb[i]) / 0.5) < 0.5) & (rel < 0.3)
-        alb[i] = np.where(diag[:, None], np.array([0.08, 0.08, 0.08], np.float32), alb[i] * (1 + 0.3 * dirt[i])[:, None])
+        dirty = alb[i] * (1 + 0.3 * dirt[i])[:, None]
+        alb[i] = np.where(diag[:, None], np.array([0.08, 0.08, 0.08], np.float32), dirty)
     i = sel(M.STRIPES)
     if len(i):
         white = _frac((along[i] + zb[i]) / 0.7) < 0.5

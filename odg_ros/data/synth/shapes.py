@@ -91,7 +91,8 @@ def truck(rng, tractor=False) -> Shape:
     b.box(l / 2 - cab, l / 2 - 0.05, -w / 2 + 0.05, w / 2 - 0.05, cab_h * 0.6, cab_h, M.GLASS, color)
     b.box(-l / 2, l / 2 - cab, -0.4 * w, 0.4 * w, 0.45, 0.95, M.METAL, (0.15, 0.15, 0.15))
     if not tractor:
-        b.box(-l / 2, l / 2 - cab - 0.3, -w / 2, w / 2, 0.95, h, M.CARGO, _pick(rng, ((0.92, 0.92, 0.9), (0.7, 0.1, 0.1), (0.2, 0.3, 0.6), (0.85, 0.85, 0.8))))
+        cargo = _pick(rng, ((0.92, 0.92, 0.9), (0.7, 0.1, 0.1), (0.2, 0.3, 0.6), (0.85, 0.85, 0.8)))
+        b.box(-l / 2, l / 2 - cab - 0.3, -w / 2, w / 2, 0.95, h, M.CARGO, cargo)
     r = 0.5
     for x in (l / 2 - 1.2, -l / 2 + 1.0, -l / 2 + 2.3):
         for y in (w / 2 - 0.16, -w / 2 + 0.16):
@@ -113,7 +114,8 @@ def bus(rng) -> Shape:
 def trailer(rng) -> Shape:
     w, l, h = rng.uniform(2.45, 2.6), rng.uniform(7.5, 12.0), rng.uniform(3.6, 4.0)
     b = _Builder("vehicle.trailer")
-    b.box(-l / 2, l / 2, -w / 2, w / 2, 1.15, h, M.CARGO, _pick(rng, ((0.9, 0.9, 0.9), (0.6, 0.62, 0.65), (0.2, 0.4, 0.3))))
+    cargo = _pick(rng, ((0.9, 0.9, 0.9), (0.6, 0.62, 0.65), (0.2, 0.4, 0.3)))
+    b.box(-l / 2, l / 2, -w / 2, w / 2, 1.15, h, M.CARGO, cargo)
     b.box(l / 2 - 1.6, l / 2 - 1.4, -0.8, 0.8, 0.0, 1.15, M.METAL, (0.2, 0.2, 0.2))
     for x in (-l / 2 + 1.0, -l / 2 + 2.2):
         for y in (w / 2 - 0.16, -w / 2 + 0.16):
@@ -200,7 +202,8 @@ def traffic_cone(rng) -> Shape:
 def trash_bin(rng) -> Shape:
     w, l, h = rng.uniform(0.55, 0.7), rng.uniform(0.6, 0.8), rng.uniform(0.95, 1.15)
     b = _Builder("movable_object.pushable_pullable")
-    b.box(-l / 2, l / 2, -w / 2, w / 2, 0.0, h, M.PLASTIC, _pick(rng, ((0.1, 0.35, 0.15), (0.2, 0.2, 0.22), (0.1, 0.2, 0.5))))
+    color = _pick(rng, ((0.1, 0.35, 0.15), (0.2, 0.2, 0.22), (0.1, 0.2, 0.5)))
+    b.box(-l / 2, l / 2, -w / 2, w / 2, 0.0, h, M.PLASTIC, color)
     return Shape("movable_object.pushable_pullable", (w, l, h), b.done())
 
 
