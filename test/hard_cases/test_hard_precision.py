@@ -84,12 +84,14 @@ def test_decoder_under_autocast_agrees_with_float32(model_and_inputs, dtype):
     assert labels.shape == (1, *cfg.grid_shape)
 
 
-@pytest.mark.parametrize("dtype", [torch.bfloat16, torch.float16], ids=["bf16", "fp16"])
-@pytest.mark.parametrize("images", ["saturated white", "black", "noise x 30"])
+@pytest.mark.parametrize("dtype,images", [
+    (torch.float16, "saturated white"), (torch.float16, "black"),
+    (torch.float16, "noise x 30"), (torch.bfloat16, "noise x 30")])
 def test_decoder_under_autocast_does_not_overflow_on_extreme_images(model_and_inputs, dtype,
                                                                     images):
     """Normalised images of a saturated sensor (255 -> ~+2.6), of a black one (~-2.1) and
-    of noise 30x the normal range: no inf or NaN anywhere in half precision."""
+    of noise 30x the normal range: no inf or NaN anywhere in half precision (float16 tops
+    out at 65504; bfloat16 has float32's range, so it gets the harshest case only)."""
     cfg, model, (x, e2i, warp, dt) = model_and_inputs
     if images == "saturated white":
         x = torch.full_like(x, 2.64)
