@@ -30,6 +30,9 @@ def add_arguments(parser):
     parser.add_argument("--batch-size", type=int, default=1, help="per process")
     parser.add_argument("--lr", type=float, default=2e-4)
     parser.add_argument("--warmup", type=int, default=200, help="warm-up steps")
+    parser.add_argument("--backbone-lr-mult", type=float, default=0.1,
+                        help="backbone lr factor (0.1 for an ImageNet-pretrained backbone; "
+                             "1.0 when it trains from scratch)")
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--device", default="auto", help="auto | cpu | cuda | cuda:N")
     parser.add_argument("--seed", type=int, default=0)
@@ -53,6 +56,7 @@ def run(args) -> int:
     cfg = load_preset(args.preset, **parse_overrides(args.set))
     opts = TrainOptions(out_dir=args.out, epochs=args.epochs, max_steps=args.steps,
                         batch_size=args.batch_size, lr=args.lr, warmup_steps=args.warmup,
+                        backbone_lr_mult=args.backbone_lr_mult,
                         workers=args.workers, seed=args.seed, render=not args.no_render,
                         render_pixels_per_camera=args.render_pixels,
                         history_grad=not args.no_history_grad,
