@@ -2,15 +2,15 @@
 
 For each configuration (history length, adaptive pruning threshold, query budget, precision,
 sampling path) the online step of the node runs over ``limit`` samples spread evenly over a
-split: the older frames' features are computed first (the node has them cached), then the step --
-backbone on the newest set, decoder over the cached history, grid + boxes -- is timed
+split: the older frames' features are computed first (the node has them cached), then the
+step -- backbone on the newest set, decoder over the cached history, grid + boxes -- is timed
 ``repeats`` times per sample after ``warmup`` steps, and its grid is scored (mIoU with the
 camera mask, RayIoU, mIoU over the moving classes). The configurations take turns step by
-step in one process (rotating order), so a shared machine that gets busier during the sweep
-slows all of them alike. Reported per configuration: median latency per stage, per decoder
-layer and per part of a layer, FPS, peak memory, the scores, and the same on the quietest
-and the busiest quarter of the samples (fewest / most occupied GT voxels in the camera
-mask), so adaptive inference can be judged where it should help.
+step in one process (a random order each round), so a shared machine that gets busier during
+the sweep slows all of them alike. Reported per configuration: median latency per stage, per
+decoder layer and per part of a layer, FPS, peak memory, the scores, and the same on the
+quietest and the busiest quarter of the samples (fewest / most occupied GT voxels in the
+camera mask), so adaptive inference can be judged where it should help.
 
 Peak memory: every configuration also runs alone in a fresh process (``isolate``: model,
 first sample, its history, warm-up + 1 step) and reports its peak resident set size
@@ -281,7 +281,7 @@ class ConfigRun:
 @torch.no_grad()
 def measure_interleaved(configs: list[SweepConfig], job: dict) -> list[dict]:
     """Time and score every configuration in one process, interleaved: for each sample and
-    repeat the configurations take turns (in a rotating order), so a machine that gets
+    repeat the configurations take turns (in a random order), so a machine that gets
     busier or quieter during the sweep slows every configuration alike."""
     from .data.batch import collate
     from .data.dataset import OccDataset
@@ -299,6 +299,9 @@ def measure_interleaved(configs: list[SweepConfig], job: dict) -> list[dict]:
             results[config.name] = failure(config, error)
     datasets = {}
     origins = None
+    # a new random order every round: no configuration always follows the same one (the
+    # one before leaves caches and the allocator in its own state)
+    order = np.random.default_rng(0)
     progress = tqdm(total=len(job["indices"]) * job["repeats"] * len(runs),
                     desc="sweep (interleaved steps)", disable=not job.get("progress", True))
     for sample_number, index in enumerate(job["indices"]):
@@ -324,8 +327,8 @@ def measure_interleaved(configs: list[SweepConfig], job: dict) -> list[dict]:
                 run.error = failure(run.config, error)
         for repeat in range(job["repeats"]):
             active = [run for run in runs if run.error is None]
-            shift = (repeat + sample_number) % max(1, len(active))
-            for run in active[shift:] + active[:shift]:
+            for position in order.permutation(len(active)):
+                run = active[position]
                 try:
                     run.run_step()
                 except Exception as error:
