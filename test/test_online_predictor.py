@@ -102,3 +102,24 @@ def test_rejects_wrong_image_shape():
     images, ego2img, pose, stamp = make_sets(cfg, 1)[0]
     with pytest.raises(ValueError, match="expected"):
         predictor.step(images[:, :32], ego2img, pose, stamp)
+
+
+def test_history_keeps_frames_spaced_like_training_whatever_the_camera_rate():
+    """Sets every 0.5 s in make_sets; with min_interval 0.9 s the kept history frames are
+    >= 0.9 s apart (every other set), the current set is always frame 0 (it replaces a
+    provisional predecessor), and the result equals the offline model over those frames."""
+    model, cfg = make_model()
+    sets = make_sets(cfg, 6)
+    predictor = OnlinePredictor(model, cfg, "cpu", max_gap=1.0, keep_output=True,
+                                min_interval=0.9)
+    kept_stamps = []
+    for i, s in enumerate(sets):
+        online = predictor.step(*s)
+        kept_stamps.append([f.stamp for f in predictor.history.frames()])
+    assert kept_stamps[2] == [11.0, 10.0]         # set 1 was provisional, replaced by set 2
+    assert kept_stamps[4] == [12.0, 11.0, 10.0]   # set 3 provisional, replaced by set 4
+    assert kept_stamps[-1] == [12.5, 12.0, 11.0]  # set 5 current (provisional), 4, 2 kept
+    chosen = [sets[2], sets[4], sets[5]]           # oldest first, as offline() indexes
+    reference = offline(model, chosen, 2, 3)
+    torch.testing.assert_close(online.output.last.means, reference.last.means,
+                               atol=1e-4, rtol=1e-4)

@@ -31,8 +31,10 @@ class FeatureRing:
         """Forget the cached frames (keeps the memory: slots are overwritten before use)."""
         self._head, self._count = -1, 0
 
-    def push(self, features: list[torch.Tensor]) -> None:
-        """features: L levels [B, N, C, h, w] of the newest frame (``ODG.extract_features``)."""
+    def push(self, features: list[torch.Tensor], replace_newest: bool = False) -> None:
+        """features: L levels [B, N, C, h, w] of the newest frame (``ODG.extract_features``).
+        replace_newest: overwrite the newest frame instead of adding one (the online history
+        keeps a frame only when it is far enough from the last one kept)."""
         shapes = [tuple(f.shape) for f in features]
         if self._memory is None:
             self._allocate(features)
@@ -41,12 +43,13 @@ class FeatureRing:
             raise ValueError(f"feature shapes {shapes} ({features[0].dtype} on "
                              f"{features[0].device}) differ from the ring's {self._shapes} "
                              f"({self._memory[0].dtype} on {self._memory[0].device})")
-        self._head = (self._head + 1) % self.capacity
+        if not (replace_newest and self._count):
+            self._head = (self._head + 1) % self.capacity
+            self._count = min(self._count + 1, self.capacity)
         for f, memory in zip(features, self._memory):
             per_slot = memory.shape[0] // self.capacity
             camera_rows_layout([f.detach()], self.num_groups,
                                out=memory[self._head * per_slot:(self._head + 1) * per_slot])
-        self._count = min(self._count + 1, self.capacity)
 
     def slots(self) -> list[int]:
         """Storage slot of each cached frame, newest first."""

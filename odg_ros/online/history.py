@@ -50,8 +50,9 @@ class FrameHistory:
     def clear(self) -> None:
         self._frames.clear()
 
-    def push(self, frame: Frame) -> str | None:
-        """Add the newest frame; returns the reason the history was reset first, or None."""
+    def push(self, frame: Frame, replace_newest: bool = False) -> str | None:
+        """Add the newest frame (or, with ``replace_newest``, put it in place of the newest);
+        returns the reason the history was reset first, or None."""
         reason = None
         if self._frames:
             newest = self._frames[0].stamp
@@ -62,7 +63,10 @@ class FrameHistory:
         if reason is not None:
             self.resets[reason] += 1
             self._frames.clear()
-        self._frames.appendleft(frame)
+        if replace_newest and self._frames:
+            self._frames[0] = frame
+        else:
+            self._frames.appendleft(frame)
         return reason
 
     def frames(self) -> list[Frame]:

@@ -45,9 +45,15 @@ class OnlinePredictor:
 
     def __init__(self, model: torch.nn.Module, cfg: ModelConfig, device: str | torch.device,
                  max_gap: float = 1.0, num_frames: int | None = None,
-                 keep_output: bool = False):
+                 keep_output: bool = False, min_interval: float = 0.0):
         """num_frames: history length k (current set included), at most cfg.num_frames
-        (None = cfg.num_frames); max_gap: seconds between sets that restart the history."""
+        (None = cfg.num_frames); max_gap: seconds between sets that restart the history;
+        min_interval: seconds between the history frames kept, so the decoder sees the
+        spacing it was trained with (the dataset's ~0.5 s) whatever the camera rate. The
+        current set is always frame 0; it stays in the history only if it is at least
+        ``min_interval`` after the last set kept, else the next set takes its place. So kept
+        frames are >= min_interval apart, and frame 1 is 0..~2 x min_interval before frame 0
+        (training draws 0.33-0.67 s)."""
         k = cfg.num_frames if num_frames is None else int(num_frames)
         if not 1 <= k <= cfg.num_frames:
             raise ValueError(f"history of {k} frames; the model takes 1..{cfg.num_frames}")
@@ -57,10 +63,13 @@ class OnlinePredictor:
         self.history = FrameHistory(k, max_gap)
         self.ring = FeatureRing(k, cfg.num_groups)     # same capacity: slots follow history
         self.keep_output = keep_output   # tests compare the raw network output
+        self.min_interval = float(min_interval)
+        self._current_is_provisional = False
 
     def reset(self) -> None:
         self.history.clear()
         self.ring.clear()
+        self._current_is_provisional = False
 
     def _sync(self) -> None:
         if self.device.type == "cuda":
@@ -86,13 +95,16 @@ class OnlinePredictor:
         t2 = time.perf_counter()
         timings["backbone"] = t2 - t1
 
+        replace = self._current_is_provisional
         reset = self.history.push(Frame(features=None, pose=np.asarray(pose, np.float64),
                                         ego2img=np.asarray(ego2img, np.float64),
-                                        stamp=float(stamp)))
+                                        stamp=float(stamp)), replace_newest=replace)
         if reset is not None:
             self.ring.clear()
-        self.ring.push(features)
+        self.ring.push(features, replace_newest=replace)
         frames = self.history.frames()
+        self._current_is_provisional = (len(frames) > 1 and
+                                        frames[0].stamp - frames[1].stamp < self.min_interval)
         assert len(frames) == len(self.ring)
         current = frames[0]
         warps = np.stack([ego_warp(current.pose, f.pose) for f in frames])

@@ -83,6 +83,8 @@ PARAMETERS = {
     "history_frames": (0, "Frames the temporal decoder looks at (current included); "
                        "0 = the model's num_frames."),
     "history_max_gap": (1.0, "A longer gap between sets restarts the history, s."),
+    "history_interval": (0.45, "Least time between the history frames kept, s (training "
+                               "spaced them ~0.5 s; the current set is always used)."),
     "max_pose_extrapolation": (0.05, "How far beyond the buffered poses a pose may be "
                                "extrapolated, s; farther is a pose miss."),
     "max_future_stamp": (0.5, "Images stamped this far ahead of the node clock are "
@@ -174,7 +176,8 @@ class OdgNode(Node):
         self.cfg = cfg
         history = int(p["history_frames"]) or None
         predictor = OnlinePredictor(model, cfg, device, max_gap=float(p["history_max_gap"]),
-                                    num_frames=history)
+                                    num_frames=history,
+                                    min_interval=float(p["history_interval"]))
 
         # --- poses and extrinsics ---------------------------------------------------------
         self.tf = TransformBuffer(max_extrapolation=float(p["max_pose_extrapolation"]))
