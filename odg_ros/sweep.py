@@ -504,6 +504,8 @@ def run_sweep(data, checkpoint=None, preset: str = "odg_cpu", device: str = "cpu
             "date": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
             "commit": git_commit(), "torch": torch.__version__,
             "threads": threads or torch.get_num_threads(),
+            # libgomp's default busy-waiting makes 2 threads ~9x slower on a loaded 2-core CPU
+            "OMP_WAIT_POLICY": os.environ.get("OMP_WAIT_POLICY"),
             "checkpoint": str(checkpoint) if checkpoint else None,
             "random_weights": checkpoint is None, "preset": cfg.name,
             "data": str(data), "samples": len(indices), "repeats": repeats, "warmup": warmup,
