@@ -18,8 +18,12 @@ def resize_crop_params(src_hw, dst_hw) -> tuple[float, int, tuple[int, int]]:
     """(scale, crop_top, resized_hw) taking a (H, W) image to the network input (H', W')."""
     src_h, src_w = src_hw
     dst_h, dst_w = dst_hw
+    if min(src_h, src_w, dst_h, dst_w) < 1:
+        raise ValueError(f"cannot resize a {src_h}x{src_w} image to {dst_h}x{dst_w}")
     scale = dst_w / src_w
     resized_h = int(round(src_h * scale))
+    if resized_h < 1:  # wider than dst_w : 1 -- nothing of it would be left
+        raise ValueError(f"a {src_h}x{src_w} image resizes to 0 rows at width {dst_w}")
     crop_top = max(0, resized_h - dst_h)
     return scale, crop_top, (resized_h, dst_w)
 

@@ -85,7 +85,10 @@ def _draft(image, original_hw, input_hw) -> None:
     divides the original exactly (same field of view, pixel grid scaled exactly) and gives
     the same resize/crop as the original. Measured on 1600x900 JPEGs: decode + resize/crop
     ~2x faster, network input within 0.6 grey levels on average of the full decode."""
-    _, crop_top, (resized_h, resized_w) = resize_crop_params(original_hw, input_hw)
+    try:
+        _, crop_top, (resized_h, resized_w) = resize_crop_params(original_hw, input_hw)
+    except ValueError as err:
+        raise _NoInputSize(str(err)) from None
     image.draft("RGB", (resized_w, resized_h))
     reduced_w, reduced_h = image.size
     height, width = original_hw
@@ -101,6 +104,10 @@ def _draft(image, original_hw, input_hw) -> None:
 
 class _NoDraft(Exception):
     pass
+
+
+class _NoInputSize(Exception):
+    """The image has a size no network input can be made of."""
 
 
 def decode_compressed(data: bytes, fmt: str = "") -> np.ndarray:
@@ -145,6 +152,8 @@ def decode_for_input(image: EncodedImage, input_hw) -> tuple[np.ndarray, tuple[i
             return _decode_pillow(image.data, image.format, reduce_for=tuple(input_hw))
         except _NoDraft:
             return _decode_pillow(image.data, image.format)
+        except _NoInputSize as err:   # e.g. a corrupt size header: 25472 x 72
+            raise BadInput("wrong_image_size", str(err)) from None
     rgb = decode_raw(image.data, image.format, image.height, image.width, image.step)
     return rgb, tuple(rgb.shape[:2])
 
@@ -161,4 +170,7 @@ def to_network_input(rgb: np.ndarray, expected_hw, intrinsics, input_hw, origina
     if original_hw != expected_hw:
         raise BadInput("wrong_image_size", f"image is {original_hw[0]}x{original_hw[1]} (HxW) "
                        f"but its CameraInfo says {expected_hw[0]}x{expected_hw[1]}")
-    return resize_crop(rgb, input_hw), adjust_intrinsics(intrinsics, expected_hw, input_hw)
+    try:
+        return resize_crop(rgb, input_hw), adjust_intrinsics(intrinsics, expected_hw, input_hw)
+    except ValueError as err:
+        raise BadInput("wrong_image_size", str(err)) from None

@@ -9,6 +9,8 @@ miss too.
 """
 from __future__ import annotations
 
+import math
+
 import bisect
 
 import numpy as np
@@ -114,6 +116,8 @@ class PoseBuffer:
     def lookup(self, stamp: float) -> np.ndarray:
         """``T_global_from_ego`` at ``stamp``; raises ``BadInput('pose_miss')`` if unknown."""
         stamps = self._stamps
+        if not math.isfinite(stamp):
+            raise BadInput("pose_miss", f"no pose at a non-finite stamp {stamp}")
         if not stamps:
             raise BadInput("pose_miss", f"no pose received yet (wanted t={stamp:.3f})")
         first, last = stamps[0], stamps[-1]

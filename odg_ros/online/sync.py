@@ -21,6 +21,8 @@ Messages are fed one by one as ``(camera, stamp, payload)``; arrival order is fr
 """
 from __future__ import annotations
 
+import math
+
 from dataclasses import dataclass, field
 from typing import Any, Sequence
 
@@ -98,6 +100,8 @@ class CameraSetSync:
         if camera not in self.camera_names:
             raise ValueError(f"unknown camera {camera!r}; expected one of {self.camera_names}")
         stamp = float(stamp)
+        if not math.isfinite(stamp):
+            raise ValueError(f"{camera}: non-finite stamp {stamp}")
         if self._newest_seen is not None and stamp < self._newest_seen - self.time_jump:
             self.counters["time_jumps"] += 1
             self.reset()

@@ -109,12 +109,6 @@ def test_jpeg_with_corrupted_scan_data_reduced_decode(flips):
     assert decode_all_ways(corrupt(flips)) in {"ok", "corrupt_image"}
 
 
-@pytest.mark.xfail(strict=True, raises=ZeroDivisionError, reason=(
-    "the node's reduced JPEG decode (online/images.py _draft) crashes with ZeroDivisionError "
-    "inside PIL's draft when a corrupted header declares a size that resizes to 0 rows "
-    "(here byte 165 ^ 99 turns the 128 x 72 px frame into 25472 x 72 px); same root cause "
-    "as test_extremely_wide_images_are_a_bad_input_not_a_crash. Fix: reject in _draft/"
-    "decode_for_input when the resized height is 0 (BadInput wrong_image_size)"))
 def test_jpeg_with_corrupted_size_header_reduced_decode():
     data = corrupt([(165, 99)])
     assert decode_all_ways(data) in {"corrupt_image", "wrong_image_size"}
@@ -182,13 +176,6 @@ def test_odd_image_sizes_and_camera_info_mismatches(h, w, fmt, info_hw):
 
 
 @pytest.mark.parametrize("hw", [(1, 1000), (2, 1000), (1, 4000)])
-@pytest.mark.xfail(strict=True, reason=(
-    "images wider than 352x their height (for a 176 px wide network input) resize to 0 rows: "
-    "online/images.py _draft divides by the 0 target height inside PIL's draft "
-    "(ZeroDivisionError), and preprocess.resize_crop asks PIL for a 0-row image (ValueError); "
-    "neither is a BadInput, so the node would crash. Fix: reject such sizes as "
-    "BadInput('wrong_image_size') in to_network_input/decode_for_input (or clamp the resized "
-    "height to >= 1 in preprocess.resize_crop_params)"))
 def test_extremely_wide_images_are_a_bad_input_not_a_crash(hw):
     h, w = hw
     buffer = io.BytesIO()
@@ -272,11 +259,6 @@ def test_sync_survives_one_message_far_in_the_future_or_past(glitch):
 
 
 @pytest.mark.parametrize("stamp", [math.nan, math.inf, -math.inf])
-@pytest.mark.xfail(strict=True, reason=(
-    "CameraSetSync.add accepts a non-finite stamp: two NaN (or inf) stamps of different "
-    "cameras form a 'set' that is emitted with NaN/inf stamps (and inf counts as a time jump "
-    "that clears the pending sets). ROS stamps (int sec, nanosec) are always finite, but the "
-    "ROS-free API should reject them: ValueError or BadInput at add(), state unchanged"))
 def test_sync_rejects_non_finite_stamps(stamp):
     sync = CameraSetSync(CAMS[:2], slop=0.05)
     sync.add("F", 1.0, 1)
@@ -347,11 +329,6 @@ def test_pose_lookup_far_in_the_future_or_past_is_a_pose_miss(stamp):
     assert error.value.kind == "pose_miss"
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "PoseBuffer.lookup(NaN) passes the range check (NaN comparisons are False), interpolates "
-    "with alpha = NaN and raises ValueError('invalid quaternion') from geometry instead of "
-    "BadInput('pose_miss'). Unreachable from ROS (finite stamps) once the sync rejects NaN "
-    "stamps; fix: reject a non-finite lookup stamp as pose_miss"))
 def test_pose_lookup_at_nan_is_a_pose_miss():
     buffer = PoseBuffer()
     buffer.add(10.0, np.eye(4))
