@@ -325,6 +325,10 @@ def test_bad_inputs_are_skipped_with_diagnostics_and_the_node_keeps_running(
     h.publish_infos(K_of=lambda c: np.zeros((3, 3)))               # uncalibrated
     expect("bad_camera_info")
     h.publish_infos()
+    # odometry is best effort: poses sent before the node's subscription matched may be lost
+    # (then the next set is a pose miss, not the bad input under test). The node provably
+    # listens now; the same stamps again replace rather than add.
+    h.publish_poses(t0 - 0.5, t0 + 6.0, t0, rate=10.0)
     h.spin_until(lambda: False, 0.3)
     h.publish_set(t0 + 0.7, good, encode=lambda i: jpeg(i)[:300], fmt="jpeg")   # truncated
     expect("corrupt_image")
