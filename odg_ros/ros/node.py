@@ -92,8 +92,9 @@ PARAMETERS = {
     "preset": ("odg_cpu", "Model preset when no checkpoint is given (odg_t, odg_l, odg_cpu)."),
     "checkpoint": ("", "Checkpoint path; \"\" = random weights (meaningless output)."),
     "device": ("auto", "auto (cuda when available, else cpu), cpu, cuda or cuda:N."),
-    "score_threshold": (0.5, "Occupancy point score threshold."),
-    "box_score_threshold": (0.3, "Object score threshold."),
+    "score_threshold": (-1.0, "Occupancy point score threshold; < 0: the checkpoint's own "
+                              "(its config's, calibrated with it)."),
+    "box_score_threshold": (-1.0, "Object score threshold; < 0: the checkpoint's own."),
     "output_frame": ("", "frame_id of the outputs; \"\" = base_frame."),
     "bev_min_z": (-1.0, "Lower end of the BEV obstacle height band, m (grid frame)."),
     "bev_max_z": (2.0, "Upper end of the BEV obstacle height band, m (grid frame)."),
@@ -162,8 +163,8 @@ class OdgNode(Node):
 
         # --- model ---------------------------------------------------------------------
         device = resolve_device(p["device"])
-        thresholds = dict(score_threshold=float(p["score_threshold"]),
-                          box_score_threshold=float(p["box_score_threshold"]))
+        thresholds = {k: float(p[k]) for k in ("score_threshold", "box_score_threshold")
+                      if float(p[k]) >= 0}
         if p["checkpoint"]:
             model, cfg = load_model(p["checkpoint"], device=device, **thresholds)
             self.get_logger().info(f"loaded {p['checkpoint']} ({cfg.name}) on {device}")
