@@ -26,6 +26,7 @@ diagnostics counter, and the set is skipped.
 from __future__ import annotations
 
 import array
+import signal
 import threading
 import time
 import traceback
@@ -38,8 +39,9 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import Point, Pose, Quaternion, Vector3
 from nav_msgs.msg import OccupancyGrid, Odometry
 from rcl_interfaces.msg import ParameterDescriptor, ParameterType
-from rclpy.executors import ExternalShutdownException
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
+from rclpy.signals import SignalHandlerOptions
 from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy,
                        qos_profile_sensor_data)
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image, PointCloud2, PointField
@@ -420,18 +422,29 @@ class OdgNode(Node):
 
 
 def main(args=None) -> int:
-    rclpy.init(args=args)
-    node = None
+    # SIGINT/SIGTERM only set a flag checked between executor steps: an asynchronous
+    # KeyboardInterrupt can land inside rclpy's Task construction and leave a half-built task
+    # that errors when collected (seen at the end of the demo).
+    stop = threading.Event()
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    node = executor = None
     try:
         node = OdgNode()
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
+        executor = SingleThreadedExecutor()
+        executor.add_node(node)
+        while rclpy.ok() and not stop.is_set():
+            executor.spin_once(timeout_sec=0.1)
+    except ExternalShutdownException:
         pass
     except (ValueError, FileNotFoundError, OSError) as error:
         # configuration errors (bad parameter, missing checkpoint / rig file): no traceback
         rclpy.logging.get_logger(NODE_NAME).fatal(f"cannot start: {error}")
         return 1
     finally:
+        if executor is not None:
+            executor.shutdown()
         if node is not None:
             node.destroy_node()
         rclpy.try_shutdown()
