@@ -1,4 +1,6 @@
 """Small shared test utilities."""
+import pickle
+
 from odg_ros.config import load_preset
 
 
@@ -10,3 +12,12 @@ def tiny_config(**overrides):
                   sampling_points=2, mixing_out_points=8)
     values.update(overrides)
     return load_preset("odg_cpu", **values)
+
+
+def write_tiny_split(root, num_keyframes):
+    """A hand-made dataroot (test_dataset.build_world) and its infos pickle -> the pickle path."""
+    from test_dataset import build_world
+    path = root / "infos.pkl"
+    with open(path, "wb") as f:
+        pickle.dump(build_world(root, num_keyframes=num_keyframes), f)
+    return path

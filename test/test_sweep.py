@@ -4,7 +4,6 @@ random-weights checkpoint on a tiny hand-made world (JSON keys, PNG, scores equa
 ``evaluate``)."""
 import json
 import math
-import pickle
 
 import numpy as np
 import pytest
@@ -18,8 +17,7 @@ from odg_ros.sweep import (SweepConfig, adaptive_tradeoff, pareto_front, query_b
                            quiet_and_busy, run_sweep, select_configs, spread_indices)
 from odg_ros.train.evaluate import evaluate
 
-from helpers import tiny_config
-from test_dataset import build_world
+from helpers import tiny_config, write_tiny_split
 
 
 def tiny_cfg():
@@ -154,10 +152,7 @@ def test_bench_online_step_reports_layers_parts_and_memory():
 @pytest.fixture(scope="module")
 def tiny_split(tmp_path_factory):
     root = tmp_path_factory.mktemp("world")
-    infos = build_world(root, num_keyframes=3)
-    path = root / "infos.pkl"
-    with open(path, "wb") as f:
-        pickle.dump(infos, f)
+    path = write_tiny_split(root, 3)
     torch.manual_seed(0)
     checkpoint = root / "tiny.pt"
     save_checkpoint(checkpoint, ODG(tiny_cfg()))

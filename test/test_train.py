@@ -2,7 +2,6 @@
 counted, DDP with 2 CPU processes (gloo) via torchrun."""
 import csv
 import os
-import pickle
 import subprocess
 import sys
 
@@ -13,18 +12,12 @@ from odg_ros.network.checkpoint import load_model
 from odg_ros.train.schedule import warmup_cosine
 from odg_ros.train.trainer import Trainer, TrainOptions
 
-from helpers import tiny_config
-from test_dataset import build_world
+from helpers import tiny_config, write_tiny_split
 
 
 @pytest.fixture(scope="module")
 def split(tmp_path_factory):
-    root = tmp_path_factory.mktemp("split")
-    infos = build_world(root, num_keyframes=2)
-    path = root / "infos.pkl"
-    with open(path, "wb") as f:
-        pickle.dump(infos, f)
-    return path
+    return write_tiny_split(tmp_path_factory.mktemp("split"), 2)
 
 
 def options(out, **kw):

@@ -10,6 +10,7 @@ import torch
 from torch import nn
 
 from .gaussian_heads import class_branch, regression_branch
+from .grid_range import GridRange
 
 BOX_CODE_SIZE = 10
 
@@ -33,13 +34,10 @@ class BoxEncoder(nn.Module):
 
     def __init__(self, embed_dims: int, pc_range):
         super().__init__()
-        self.register_buffer("range_min", torch.tensor(pc_range[:3], dtype=torch.float32),
-                             persistent=False)
-        self.register_buffer("range_size", torch.tensor(pc_range[3:], dtype=torch.float32)
-                             - torch.tensor(pc_range[:3], dtype=torch.float32), persistent=False)
+        self.grid = GridRange(pc_range)
         self.mlp = nn.Sequential(nn.Linear(BOX_CODE_SIZE, embed_dims), nn.LayerNorm(embed_dims),
                                  nn.ReLU(), nn.Linear(embed_dims, embed_dims))
 
     def forward(self, boxes: torch.Tensor) -> torch.Tensor:
-        centre = (boxes[..., :3] - self.range_min) / self.range_size
+        centre = self.grid.normalise(boxes[..., :3])
         return self.mlp(torch.cat([centre, boxes[..., 3:]], dim=-1))

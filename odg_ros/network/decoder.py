@@ -19,6 +19,7 @@ from ..config import ModelConfig
 from .box_head import BoxEncoder, BoxHead
 from .das_attention import DaSAttention
 from .gaussian_heads import GaussianAttributes, PointHead
+from .grid_range import GridRange
 from .mixing import AdaptiveMixing
 from .outputs import LayerOutput
 from .sampling import SpatioTemporalSampling, sampling_centres
@@ -29,16 +30,13 @@ class PositionEncoder(nn.Module):
 
     def __init__(self, num_prev_points: int, embed_dims: int, pc_range):
         super().__init__()
-        self.register_buffer("range_min", torch.tensor(pc_range[:3], dtype=torch.float32),
-                             persistent=False)
-        self.register_buffer("range_size", torch.tensor(pc_range[3:], dtype=torch.float32)
-                             - torch.tensor(pc_range[:3], dtype=torch.float32), persistent=False)
+        self.grid = GridRange(pc_range)
         self.mlp = nn.Sequential(
             nn.Linear(3 * num_prev_points, embed_dims), nn.LayerNorm(embed_dims), nn.ReLU(),
             nn.Linear(embed_dims, embed_dims), nn.LayerNorm(embed_dims), nn.ReLU())
 
     def forward(self, means: torch.Tensor) -> torch.Tensor:
-        normalised = (means - self.range_min) / self.range_size
+        normalised = self.grid.normalise(means)
         return self.mlp(normalised.flatten(2))
 
 

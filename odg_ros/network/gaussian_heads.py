@@ -11,8 +11,9 @@ from __future__ import annotations
 import math
 
 import torch
-import torch.nn.functional as F
 from torch import nn
+
+from .grid_range import GridRange
 
 CLASS_PRIOR = 0.01  # initial sigmoid score, focal-loss convention
 MIN_SCALE, MAX_SCALE = 0.05, 1.6  # metres: from a fraction of a voxel to a bus side
@@ -71,10 +72,7 @@ class GaussianAttributeMLP(nn.Module):
 
     def __init__(self, embed_dims: int, out_dims: int, pc_range, hidden: int = 64):
         super().__init__()
-        self.register_buffer("range_min", torch.tensor(pc_range[:3], dtype=torch.float32),
-                             persistent=False)
-        self.register_buffer("range_size", torch.tensor(pc_range[3:], dtype=torch.float32)
-                             - torch.tensor(pc_range[:3], dtype=torch.float32), persistent=False)
+        self.grid = GridRange(pc_range)
         self.from_query = nn.Linear(embed_dims, hidden)
         self.from_mean = nn.Linear(3, hidden)
         self.mlp = nn.Sequential(nn.ReLU(), nn.Linear(hidden, hidden), nn.ReLU(),
@@ -82,7 +80,7 @@ class GaussianAttributeMLP(nn.Module):
 
     def forward(self, means: torch.Tensor, query: torch.Tensor) -> torch.Tensor:
         """means [B, Q, K, 3] metres, query [B, Q, E] -> [B, Q, K, out_dims]."""
-        normalised = (means - self.range_min) / self.range_size
+        normalised = self.grid.normalise(means)
         hidden = self.from_query(query).unsqueeze(2) + self.from_mean(normalised)
         return self.mlp(hidden)
 

@@ -10,16 +10,15 @@ from __future__ import annotations
 import torch
 from torch import nn
 
+from .grid_range import GridRange
+
 
 class DualGaussianQueries(nn.Module):
     def __init__(self, num_dynamic: int, num_static: int, embed_dims: int, pc_range):
         super().__init__()
         self.num_dynamic = num_dynamic
         self.num_static = num_static
-        self.register_buffer("range_min", torch.tensor(pc_range[:3], dtype=torch.float32),
-                             persistent=False)
-        self.register_buffer("range_size", torch.tensor(pc_range[3:], dtype=torch.float32)
-                             - torch.tensor(pc_range[:3], dtype=torch.float32), persistent=False)
+        self.grid = GridRange(pc_range)
         num = num_dynamic + num_static
         self.features = nn.Parameter(torch.zeros(num, embed_dims))
         self.init_points = nn.Parameter(torch.rand(num, 1, 3))        # normalised, U[0, 1]
@@ -28,7 +27,7 @@ class DualGaussianQueries(nn.Module):
     def forward(self, batch_size: int):
         """-> features [B, Q, E], means [B, Q, 1, 3] metres, boxes [B, D, 10] or None."""
         features = self.features.unsqueeze(0).expand(batch_size, -1, -1)
-        means = self.range_min + self.init_points * self.range_size
+        means = self.grid.metres(self.init_points)
         means = means.unsqueeze(0).expand(batch_size, -1, -1, -1)
         boxes = None
         if self.num_dynamic:

@@ -10,25 +10,18 @@ the data, where they actually arise.
 import csv
 import logging
 import math
-import pickle
 
 import pytest
 import torch
 
 from odg_ros.train.trainer import Trainer, TrainOptions
 
-from helpers import tiny_config
-from test_dataset import build_world
+from helpers import tiny_config, write_tiny_split
 
 
 @pytest.fixture(scope="module")
 def split(tmp_path_factory):
-    root = tmp_path_factory.mktemp("hard_split")
-    infos = build_world(root, num_keyframes=2)
-    path = root / "infos.pkl"
-    with open(path, "wb") as f:
-        pickle.dump(infos, f)
-    return path
+    return write_tiny_split(tmp_path_factory.mktemp("hard_split"), 2)
 
 
 def make_trainer(split, out, **kw):
