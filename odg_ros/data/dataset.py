@@ -98,27 +98,9 @@ def check_infos(infos, source: str = "infos") -> dict:
 
 
 def decode_resized(im: Image.Image, dst_hw) -> np.ndarray:
-    """An opened image -> network input uint8 [H, W, 3] via preprocess.resize_crop.
-
-    JPEGs are decoded at the smallest DCT scale (1/2, 1/4, 1/8) that is still at least the
-    resized size (Pillow ``draft``): 2-3x faster than a full 1600x900 decode. The result has the
-    same geometry as a full decode (pixel footprints scale exactly; lines land within 0.02 px of
-    the full-decode path at 128x352 and 256x704) and differs by ~1 grey level. The draft is used
-    only when it leads to the same resize/crop parameters as the full image, so the intrinsics
-    from preprocess.adjust_intrinsics hold either way.
-    """
-    src_h, src_w = im.height, im.width
-    _, crop_top, resized_hw = preprocess.resize_crop_params((src_h, src_w), dst_hw)
-    if im.format == "JPEG":
-        for k in (8, 4, 2):
-            small = (src_h // k, src_w // k)
-            if (src_h % k == 0 and src_w % k == 0 and small[0] >= resized_hw[0]
-                    and small[1] >= resized_hw[1]
-                    and preprocess.resize_crop_params(small, dst_hw)[1:] == (crop_top, resized_hw)):
-                im.draft("RGB", small[::-1])
-                if (im.height, im.width) != small:
-                    raise RuntimeError(f"JPEG draft gave {im.height}x{im.width}, asked {small}")
-                break
+    """An opened image -> network input uint8 [H, W, 3] (reduced JPEG decode where exact,
+    see preprocess.draft_jpeg, then preprocess.resize_crop)."""
+    preprocess.draft_jpeg(im, dst_hw)
     return preprocess.resize_crop(np.asarray(im.convert("RGB")), dst_hw)
 
 
