@@ -15,6 +15,7 @@ SUBCOMMANDS = {
     "score": "mIoU / RayIoU of saved predictions against the GT",
     "train": "train a preset",
     "eval": "run a checkpoint over a split and score it",
+    "export": "training checkpoint -> shipped one (compressed, score threshold calibrated)",
     "bag": "write rosbag2 MCAP bags (synth world or nuScenes)",
     "replay": "publish a rosbag2 bag with rclpy",
     "demo": "the end-to-end demo: world -> bag -> node -> planner stand-in -> scores",

@@ -1,0 +1,111 @@
+"""``odg export`` / train.calibrate: the threshold table equals offline evaluation at each
+threshold, the chosen one is the best (ties: the higher), and the shipped file holds it and
+the compressed weights that were calibrated."""
+import json
+
+import pytest
+import torch
+
+from odg_ros.cli import main
+from odg_ros.network import ODG
+from odg_ros.network.checkpoint import load_model, save_checkpoint
+from odg_ros.train.calibrate import calibrate_score_threshold
+from odg_ros.train.evaluate import evaluate
+
+from helpers import tiny_config, write_tiny_split
+
+
+@pytest.fixture(scope="module")
+def tiny_split(tmp_path_factory):
+    root = tmp_path_factory.mktemp("world")
+    path = write_tiny_split(root, 3)
+    torch.manual_seed(0)
+    checkpoint = root / "tiny.pt"
+    save_checkpoint(checkpoint, ODG(tiny_config(image_size=(32, 88), num_frames=2)))
+    return path, checkpoint
+
+
+def test_threshold_table_equals_offline_evaluation(tiny_split):
+    data, checkpoint = tiny_split
+    model, cfg = load_model(checkpoint)
+    thresholds = (0.3, 0.45, 0.5, 0.55, 0.7)
+    found = calibrate_score_threshold(model, cfg, str(data), thresholds, progress=False)
+    assert found["samples"] == 3
+    for t in thresholds:
+        expected = evaluate(model, cfg.replace(score_threshold=t), str(data), rayiou=False,
+                            progress=False)["mIoU"] or 0.0
+        assert found["mIoU"][t] == expected, t
+    best = max(found["mIoU"].values())
+    assert found["mIoU"][found["best"]] == best
+
+
+class OracleWithDecoys(torch.nn.Module):
+    """Call i -> keyframe i: a point at every occupied GT voxel with its class at score 0.95,
+    and decoys at free voxels inside the camera mask with the first GT class at 0.6.
+    Threshold 0.5 keeps the decoys, 0.7 and 0.9 only the right points (a tie: the higher,
+    0.9, wins), 0.97 nothing."""
+
+    def __init__(self, dataset, decoys=5):
+        super().__init__()
+        samples = [dataset[i] for i in range(len(dataset))]
+        self.grids = [s["occ_semantics"] for s in samples]
+        self.masks = [s["occ_mask_camera"].bool() for s in samples]
+        self.decoys, self.calls, self.cfg = decoys, 0, dataset.cfg
+
+    def forward(self, images, *args, **kwargs):
+        from odg_ros.network.outputs import LayerOutput, ODGOutput
+        gt, mask = self.grids[self.calls], self.masks[self.calls]
+        self.calls += 1
+        right = (gt != 17).nonzero()
+        decoy = ((gt == 17) & mask).nonzero()[:self.decoys]
+        assert len(right) and len(decoy) == self.decoys
+        voxels = torch.cat([right, decoy])
+        labels = torch.cat([gt[tuple(right.T)].long(),
+                            gt[tuple(right[0])].long().repeat(len(decoy))])
+        scores = torch.cat([torch.full((len(right),), 0.95), torch.full((len(decoy),), 0.6)])
+        lo = torch.tensor(self.cfg.pc_range[:3])
+        means = (lo + (voxels.float() + 0.5) * self.cfg.voxel_size).view(1, -1, 1, 3)
+        logits = torch.full((1, len(voxels), 1, 17), -10.0)
+        logits[0, torch.arange(len(voxels)), 0, labels] = torch.logit(scores)
+        return ODGOutput(means, [LayerOutput(means, logits, None, None, None)], num_dynamic=0)
+
+
+def test_calibration_finds_the_threshold_that_drops_the_decoys(tiny_split):
+    from odg_ros.data.dataset import OccDataset
+    data, checkpoint = tiny_split
+    _, cfg = load_model(checkpoint)
+    oracle = OracleWithDecoys(OccDataset(str(data), cfg, train=False))
+    found = calibrate_score_threshold(oracle, cfg, str(data), (0.5, 0.7, 0.9, 0.97),
+                                      progress=False)
+    table = found["mIoU"]
+    assert table[0.7] == table[0.9] == 100.0 > table[0.5] > table[0.97] == 0.0
+    assert found["best"] == 0.9
+
+
+def test_no_thresholds_is_an_error(tiny_split):
+    data, checkpoint = tiny_split
+    model, cfg = load_model(checkpoint)
+    with pytest.raises(ValueError, match="no thresholds"):
+        calibrate_score_threshold(model, cfg, str(data), (), progress=False)
+
+
+def test_export_writes_the_calibrated_threshold_and_the_int8_weights(tiny_split, tmp_path,
+                                                                     capsys):
+    data, checkpoint = tiny_split
+    out = tmp_path / "shipped.pt"
+    assert main(["export", "--checkpoint", str(checkpoint), "--out", str(out),
+                 "--compress", "int8", "--calibrate", str(data),
+                 "--thresholds", "0.3", "0.5", "0.7"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    model, cfg = load_model(out)
+    assert cfg.score_threshold == report["score_threshold"] in (0.3, 0.5, 0.7)
+    table = report["mIoU_by_threshold"]
+    assert table[str(cfg.score_threshold)] == max(table.values())
+    assert torch.load(out, weights_only=False)["compression"] == "int8"
+    # the shipped weights are the int8 weights that were calibrated, not quantised twice
+    direct = tmp_path / "direct.pt"
+    save_checkpoint(direct, load_model(checkpoint)[0], compress="int8")
+    reference = load_model(direct)[0].state_dict()
+    for key, value in model.state_dict().items():
+        torch.testing.assert_close(value, reference[key], rtol=0, atol=1e-6, msg=key)
+    assert out.stat().st_size < checkpoint.stat().st_size / 2
