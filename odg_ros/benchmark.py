@@ -23,13 +23,13 @@ from .config import ModelConfig
 from .network import ODG
 from .network.feature_ring import FeatureRing
 from .network.postprocess import box_list, occupancy_grid
+from .network.precision import PRECISIONS, precision_context  # noqa: F401 (re-exported)
 from .rig import ring_ego2img
 
 STAGES = ("backbone", "decoder", "postprocess", "total")
 # the parts of a decoder layer, in execution order (attributes of decoder.DecoderLayer)
 LAYER_PARTS = ("position", "box_position", "attention", "sampling", "mixing", "ffn", "points",
                "boxes")
-PRECISIONS = ("fp32", "bf16", "fp16")
 
 
 def online_inputs(cfg: ModelConfig, frames: int, device, seed: int = 0):
@@ -132,19 +132,6 @@ def layer_table(medians: dict[str, float], num_layers: int) -> list[dict]:
         rows.append({"layer": index, "total": round(total, 3), "parts": parts,
                      "other": round(total - sum(parts.values()), 3)})
     return rows
-
-
-def precision_context(precision: str, device):
-    """fp32: nothing; bf16 / fp16: autocast on the device (fp16 only on CUDA)."""
-    device_type = torch.device(device).type
-    if precision not in PRECISIONS:
-        raise ValueError(f"precision {precision!r}: expected one of {PRECISIONS}")
-    if precision == "fp32":
-        return nullcontext()
-    if precision == "fp16" and device_type != "cuda":
-        raise ValueError("fp16 autocast is for CUDA; use bf16 on CPU")
-    dtype = torch.bfloat16 if precision == "bf16" else torch.float16
-    return torch.autocast(device_type=device_type, dtype=dtype)
 
 
 def peak_memory_mb(device) -> tuple[float, str]:

@@ -17,7 +17,8 @@ class ModelConfig:
     name: str = "odg_t"
     # image encoder
     backbone: str = "resnet50"          # resnet18 | resnet34 | resnet50
-    frozen_stages: int = 1               # stem + layer1 frozen, as OPUS/SparseBEV
+    frozen_stages: int = 1               # stem + layer1 frozen, as OPUS/SparseBEV (-1: none)
+    norm_eval: bool = True               # BN statistics fixed (pretrained); False trains them
     fpn_channels: int = 256
     num_levels: int = 4                  # FPN outputs at strides 4, 8, 16, 32
     # input

@@ -87,6 +87,17 @@ def test_stage_one_frozen_and_batchnorm_in_eval():
     assert torch.equal(before, model.bn1.running_mean)
 
 
+def test_from_scratch_backbone_trains_every_stage_and_its_batchnorm():
+    model = ResNet("resnet18", frozen_stages=-1, norm_eval=False).train()
+    assert all(p.requires_grad for p in model.parameters())
+    before = model.bn1.running_mean.clone()
+    model(torch.randn(2, 3, 64, 64) * 5 + 3)
+    assert not torch.equal(before, model.bn1.running_mean)
+    model.eval()  # inference uses the running statistics: same input, same output, any batch
+    x = torch.randn(3, 3, 64, 64)
+    torch.testing.assert_close(model(x)[3][:1], model(x[:1])[3], rtol=1e-5, atol=1e-5)
+
+
 def test_feature_strides():
     feats = ResNet("resnet18")(torch.randn(1, 3, 64, 128))
     assert [tuple(f.shape[-2:]) for f in feats] == [(16, 32), (8, 16), (4, 8), (2, 4)]

@@ -123,3 +123,24 @@ def test_history_keeps_frames_spaced_like_training_whatever_the_camera_rate():
     reference = offline(model, chosen, 2, 3)
     torch.testing.assert_close(online.output.last.means, reference.last.means,
                                atol=1e-4, rtol=1e-4)
+
+
+def test_bf16_predictor_stays_close_to_fp32_and_unknown_precision_fails():
+    """bf16 autocast on CPU: geometry stays float32 (sampling.full_precision), so the means
+    move by bf16 feature rounding only; the grid keeps almost every label."""
+    model, cfg = make_model()
+    sets = make_sets(cfg, 3)
+    full = OnlinePredictor(model, cfg, "cpu", keep_output=True)
+    half = OnlinePredictor(model, cfg, "cpu", keep_output=True, precision="bf16")
+    for s in sets:
+        a, b = full.step(*s), half.step(*s)
+        means_a, means_b = a.output.last.means, b.output.last.means
+        assert means_b.dtype == torch.float32 and torch.isfinite(means_b).all()
+        assert (means_a - means_b).abs().max() < 0.05          # metres (measured ~0.005)
+        assert (means_a - means_b).abs().mean() < 0.01
+        occupied = (a.grid != 17) | (b.grid != 17)
+        assert (a.grid[occupied] == b.grid[occupied]).mean() > 0.8
+    with pytest.raises(ValueError, match="precision"):
+        OnlinePredictor(model, cfg, "cpu", precision="fp8")
+    with pytest.raises(ValueError, match="CUDA"):
+        OnlinePredictor(model, cfg, "cpu", precision="fp16")

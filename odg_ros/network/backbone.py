@@ -3,7 +3,8 @@
 A standard ImageNet checkpoint saved from torchvision (``conv1.weight``, ``layer1.0.bn1.*``,
 ``layer2.0.downsample.0.weight``, ...) loads with ``load_torchvision_state_dict``; the
 classifier (``fc.*``) is ignored. As in OPUS/SparseBEV the stem and ``layer1`` are frozen
-(``frozen_stages=1``) and every BatchNorm stays in eval mode, even while training.
+(``frozen_stages=1``) and every BatchNorm stays in eval mode, even while training; a backbone
+trained from scratch (the CPU preset) uses ``frozen_stages=-1, norm_eval=False`` instead.
 """
 from __future__ import annotations
 
@@ -71,11 +72,12 @@ class Bottleneck(nn.Module):
 class ResNet(nn.Module):
     """Returns C2..C5 (outputs of layer1..layer4, strides 4, 8, 16, 32)."""
 
-    def __init__(self, name: str = "resnet50", frozen_stages: int = 1):
+    def __init__(self, name: str = "resnet50", frozen_stages: int = 1, norm_eval: bool = True):
         super().__init__()
         kind, depths = ARCHITECTURES[name]
         block = BasicBlock if kind == "basic" else Bottleneck
         self.frozen_stages = frozen_stages
+        self.norm_eval = norm_eval
         self.conv1 = nn.Conv2d(3, 64, 7, 2, 3, bias=False)
         self.bn1 = nn.BatchNorm2d(64)
         self.relu = nn.ReLU(inplace=True)
@@ -103,9 +105,12 @@ class ResNet(nn.Module):
 
     def train(self, mode: bool = True):
         super().train(mode)
-        for m in self.modules():  # BN statistics stay fixed: batches of 6 views are too small
-            if isinstance(m, nn.BatchNorm2d):
-                m.eval()
+        # A pretrained backbone keeps its BN statistics (batches of 6 views are too small to
+        # re-estimate them); a backbone trained from scratch has no statistics worth keeping.
+        if self.norm_eval:
+            for m in self.modules():
+                if isinstance(m, nn.BatchNorm2d):
+                    m.eval()
         return self
 
     def forward(self, x: torch.Tensor) -> list[torch.Tensor]:

@@ -27,7 +27,7 @@ class ODG(nn.Module):
         num_dynamic = cfg.num_dynamic if cfg.dual_queries else 0
         num_static = cfg.num_static + (0 if cfg.dual_queries else cfg.num_dynamic)
         self.num_dynamic = num_dynamic
-        self.backbone = ResNet(cfg.backbone, cfg.frozen_stages)
+        self.backbone = ResNet(cfg.backbone, cfg.frozen_stages, cfg.norm_eval)
         self.neck = FPN(self.backbone.out_channels, cfg.fpn_channels)
         self.queries = DualGaussianQueries(num_dynamic, num_static, cfg.embed_dims, cfg.pc_range)
         self.decoder = Decoder(cfg, num_dynamic)

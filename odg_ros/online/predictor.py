@@ -21,6 +21,7 @@ from ..geometry import ego_warp
 from ..network.feature_ring import FeatureRing
 from ..network.outputs import ODGOutput
 from ..network.postprocess import box_list, occupancy_grid
+from ..network.precision import precision_context
 from ..preprocess import normalize
 from .history import Frame, FrameHistory
 
@@ -45,7 +46,8 @@ class OnlinePredictor:
 
     def __init__(self, model: torch.nn.Module, cfg: ModelConfig, device: str | torch.device,
                  max_gap: float = 1.0, num_frames: int | None = None,
-                 keep_output: bool = False, min_interval: float = 0.0):
+                 keep_output: bool = False, min_interval: float = 0.0,
+                 precision: str = "fp32"):
         """num_frames: history length k (current set included), at most cfg.num_frames
         (None = cfg.num_frames); max_gap: seconds between sets that restart the history;
         min_interval: seconds between the history frames kept, so the decoder sees the
@@ -53,7 +55,8 @@ class OnlinePredictor:
         current set is always frame 0; it stays in the history only if it is at least
         ``min_interval`` after the last set kept, else the next set takes its place. So kept
         frames are >= min_interval apart, and frame 1 is 0..~2 x min_interval before frame 0
-        (training draws 0.33-0.67 s)."""
+        (training draws 0.33-0.67 s). precision: fp32, or bf16 / fp16 autocast for the
+        backbone and decoder (network.precision; fp16 on CUDA only)."""
         k = cfg.num_frames if num_frames is None else int(num_frames)
         if not 1 <= k <= cfg.num_frames:
             raise ValueError(f"history of {k} frames; the model takes 1..{cfg.num_frames}")
@@ -65,6 +68,8 @@ class OnlinePredictor:
         self.keep_output = keep_output   # tests compare the raw network output
         self.min_interval = float(min_interval)
         self._current_is_provisional = False
+        precision_context(precision, self.device)      # an unknown / unusable one fails here
+        self.precision = precision
 
     def reset(self) -> None:
         self.history.clear()
@@ -90,7 +95,8 @@ class OnlinePredictor:
         self._sync()
         t1 = time.perf_counter()
         timings["decode_images"] = t1 - t0
-        features = self.model.extract_features(x.unsqueeze(0))       # L x [1, N, C, h, w]
+        with precision_context(self.precision, self.device):
+            features = self.model.extract_features(x.unsqueeze(0))   # L x [1, N, C, h, w]
         self._sync()
         t2 = time.perf_counter()
         timings["backbone"] = t2 - t1
@@ -113,11 +119,12 @@ class OnlinePredictor:
         def as_tensor(array):
             return torch.as_tensor(array, dtype=torch.float32, device=self.device)
 
-        output = self.model.decode_ring(
-            self.ring,
-            as_tensor(np.stack([f.ego2img for f in frames]))[None],       # [1, T, N, 4, 4]
-            as_tensor(warps)[None],                                       # [1, T, 4, 4]
-            as_tensor(deltas)[None])                                      # [1, T]
+        with precision_context(self.precision, self.device):
+            output = self.model.decode_ring(
+                self.ring,
+                as_tensor(np.stack([f.ego2img for f in frames]))[None],   # [1, T, N, 4, 4]
+                as_tensor(warps)[None],                                   # [1, T, 4, 4]
+                as_tensor(deltas)[None])                                  # [1, T]
         self._sync()
         t3 = time.perf_counter()
         timings["decoder"] = t3 - t2

@@ -52,6 +52,7 @@ from odg_ros_msgs.msg import DynamicObject, DynamicObjectArray, SemanticVoxelGri
 
 from ..data.batch import CAMERA_NAMES
 from ..network.checkpoint import load_model
+from ..network.precision import PRECISIONS
 from ..online import packing
 from ..online.diagnostics import PipelineStats
 from ..online.errors import BadInput
@@ -94,6 +95,8 @@ PARAMETERS = {
     "preset": ("odg_cpu", "Model preset when no checkpoint is given (odg_t, odg_l, odg_cpu)."),
     "checkpoint": ("", "Checkpoint path; \"\" = random weights (meaningless output)."),
     "device": ("auto", "auto (cuda when available, else cpu), cpu, cuda or cuda:N."),
+    "precision": ("fp32", "Inference precision: fp32, bf16 (autocast; CPU and CUDA) or fp16 "
+                  "(CUDA). Geometry stays float32 either way."),
     "score_threshold": (-1.0, "Occupancy point score threshold; < 0: the checkpoint's own "
                               "(its config's, calibrated with it)."),
     "box_score_threshold": (-1.0, "Object score threshold; < 0: the checkpoint's own."),
@@ -104,6 +107,7 @@ PARAMETERS = {
     "warn_throttle": (5.0, "At most one warning per bad-input kind per this many s."),
 }
 CHOICES = {"image_transport": ("compressed", "raw"), "pose_source": ("tf", "odometry"),
+           "precision": PRECISIONS,
            "extrinsics_source": ("rig", "tf")}
 
 _PARAMETER_TYPES = {bool: ParameterType.PARAMETER_BOOL, int: ParameterType.PARAMETER_INTEGER,
@@ -180,7 +184,8 @@ class OdgNode(Node):
         history = int(p["history_frames"]) or None
         predictor = OnlinePredictor(model, cfg, device, max_gap=float(p["history_max_gap"]),
                                     num_frames=history,
-                                    min_interval=float(p["history_interval"]))
+                                    min_interval=float(p["history_interval"]),
+                                    precision=p["precision"])
 
         # --- poses and extrinsics ---------------------------------------------------------
         self.tf = TransformBuffer(max_extrapolation=float(p["max_pose_extrapolation"]))

@@ -198,6 +198,10 @@ class Trainer:
         model.train()
         batch = to_device(batch, self.device)
         self.optimizer.zero_grad(set_to_none=True)
+        # BatchNorm statistics change in the forward pass already; a skipped step must leave
+        # them as they were (a NaN batch would otherwise poison every later inference).
+        buffers = {name: b.detach().clone() for name, b in self.model.named_buffers()
+                   if ".running_" in name or name.endswith("num_batches_tracked")}
         terms, finite = {}, True
         try:
             with torch.autocast(self.device.type, dtype=self.amp_dtype,
@@ -212,6 +216,7 @@ class Trainer:
             finite, loss, losses = False, None, {}
         finite = self._all_ranks(finite)
         if not finite:
+            self._restore_buffers(buffers)
             return {k: float("nan") for k in losses}, False
         self.scaler.scale(loss).backward()
         self.scaler.unscale_(self.optimizer)
@@ -219,12 +224,19 @@ class Trainer:
         if not torch.isfinite(grad_norm):  # grads are all-reduced: every rank agrees
             self.optimizer.zero_grad(set_to_none=True)
             self.scaler.update()
+            self._restore_buffers(buffers)
             return {k: float(v.detach()) for k, v in losses.items()}, False
         self.scaler.step(self.optimizer)
         self.scaler.update()
         terms = {k: float(v.detach()) for k, v in losses.items()}
         terms["grad_norm"] = float(grad_norm)
         return terms, True
+
+    @torch.no_grad()
+    def _restore_buffers(self, saved: dict) -> None:
+        own = dict(self.model.named_buffers())
+        for name, value in saved.items():
+            own[name].copy_(value)
 
     def _all_ranks(self, flag: bool) -> bool:
         if self.world == 1:
