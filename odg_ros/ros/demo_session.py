@@ -88,11 +88,12 @@ class ChildProcess:
         return self.process.returncode
 
 
-def node_command(checkpoint: Path) -> list[str]:
+def node_command(checkpoint: Path, precision: str = "fp32") -> list[str]:
     return [sys.executable, "-m", "odg_ros.ros.node", "--ros-args",
             "--params-file", str(resource_path("config/odg.yaml")),
             "-r", f"__node:={NODE_NAME}",
             "-p", f"checkpoint:={checkpoint}",
+            "-p", f"precision:={precision}",
             "-p", "use_sim_time:=true"]
 
 
@@ -200,7 +201,7 @@ class PlannerStandIn:
 
 
 def run_session(bag: Path, checkpoint: Path, sets: CameraSets, out_dir: Path, rate: float,
-                progress: bool = True, log=print) -> SessionRecord:
+                progress: bool = True, log=print, precision: str = "fp32") -> SessionRecord:
     """Start the node, wait until it is up, replay the bag, receive every output, collect the
     node's final diagnostics; stop everything. Raises DemoError on any failure."""
     import rclpy
@@ -221,7 +222,8 @@ def run_session(bag: Path, checkpoint: Path, sets: CameraSets, out_dir: Path, ra
 
         # --- the node ---------------------------------------------------------------------
         start = time.monotonic()
-        node = ChildProcess("odg_node", node_command(checkpoint), out_dir / "node.log", env)
+        node = ChildProcess("odg_node", node_command(checkpoint, precision), out_dir / "node.log",
+                            env)
         log(f"odg_node started (pid {node.process.pid}, log {node.log_path}); waiting for it "
             "to load the checkpoint")
         shown = start
