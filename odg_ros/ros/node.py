@@ -173,7 +173,8 @@ class OdgNode(Node):
                       if float(p[k]) >= 0}
         if p["checkpoint"]:
             model, cfg = load_model(p["checkpoint"], device=device, **thresholds)
-            self.get_logger().info(f"loaded {p['checkpoint']} ({cfg.name}) on {device}")
+            self.get_logger().info(f"loaded {p['checkpoint']} ({cfg.name}) on {device}, "
+                                   f"precision {p['precision']}")
         else:
             model, cfg = load_model(None, p["preset"], device, **thresholds)
             self.get_logger().warning(

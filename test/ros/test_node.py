@@ -309,7 +309,7 @@ def test_node_output_equals_offline_model_and_yaml_parameters_apply(
 
 def test_bad_inputs_are_skipped_with_diagnostics_and_the_node_keeps_running(
         ros_context, rclpy_module, checkpoint, start_node):
-    child, params, log = start_node(checkpoint)
+    child, params, log = start_node(checkpoint, precision="bf16")   # the bf16 path end to end
     h = Harness(rclpy_module, ros_context)
     h.wait_for_node(child, log)
     t0 = time.time() - 60.0
@@ -353,6 +353,7 @@ def test_bad_inputs_are_skipped_with_diagnostics_and_the_node_keeps_running(
     text = log.read()
     for kind in ("corrupt_image", "wrong_image_size", "pose_miss", "missing_camera_info"):
         assert f"odg_node.{kind}]" in text, f"no warning for {kind}:\n{text}"
+    assert "precision bf16" in text
     assert "Traceback" not in text
 
 
