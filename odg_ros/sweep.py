@@ -43,7 +43,10 @@ from tqdm import tqdm
 from .benchmark import DecoderHooks, OnlineStep, StageTimer, peak_memory_mb, summarise
 from .train.evaluate import dynamic_class_miou
 
-PRUNE_THRESHOLDS = (0.05, 0.1, 0.2)
+# Pruning thresholds relative to the checkpoint's own occupancy score threshold: at 1.0 a
+# query is dropped when none of its points would reach the grid at that layer; 0.5 is
+# cautious (queries that may still rise stay), 1.5 aggressive.
+PRUNE_FACTORS = (0.5, 1.0, 1.5)
 SUBSETS = ("all", "quiet", "busy")
 
 
@@ -76,14 +79,17 @@ class SweepConfig:
             raise ValueError(f"{self.name}: frames must be >= 1")
 
 
-def default_configs(num_frames: int, device: str = "cpu") -> list[SweepConfig]:
-    """History 1, 2, .., k; pruning at PRUNE_THRESHOLDS; query budgets 1/2 and 1/4 (the tiny
-    variants); bf16 autocast; the plain path; on CUDA also fp16 and torch.compile."""
+def default_configs(num_frames: int, device: str = "cpu",
+                    score_threshold: float = 0.5) -> list[SweepConfig]:
+    """History 1, 2, .., k; pruning at PRUNE_FACTORS x score_threshold; query budgets 1/2
+    and 1/4 (the tiny variants); bf16 autocast; the plain path; on CUDA also fp16 and
+    torch.compile."""
     k = num_frames
     histories = sorted({h for h in (1, 2, 4, 8) if h < k})
     configs = [SweepConfig(f"full-h{k}", frames=k)]
     configs += [SweepConfig(f"full-h{h}", frames=h) for h in histories]
-    configs += [SweepConfig(f"prune{t:g}-h{k}", frames=k, prune=t) for t in PRUNE_THRESHOLDS]
+    thresholds = [round(f * score_threshold, 3) for f in PRUNE_FACTORS]
+    configs += [SweepConfig(f"prune{t:g}-h{k}", frames=k, prune=t) for t in thresholds]
     configs += [SweepConfig(f"q50-h{k}", frames=k, queries=0.5),
                 SweepConfig(f"q25-h{k}", frames=k, queries=0.25),
                 SweepConfig(f"bf16-h{k}", frames=k, precision="bf16"),
@@ -96,10 +102,11 @@ def default_configs(num_frames: int, device: str = "cpu") -> list[SweepConfig]:
     return configs
 
 
-def select_configs(spec: str | None, num_frames: int, device: str = "cpu") -> list[SweepConfig]:
+def select_configs(spec: str | None, num_frames: int, device: str = "cpu",
+                   score_threshold: float = 0.5) -> list[SweepConfig]:
     """None: the defaults; a ``.json`` path: a list of SweepConfig fields; else
     comma-separated names of default configurations."""
-    defaults = default_configs(num_frames, device)
+    defaults = default_configs(num_frames, device, score_threshold)
     if spec is None:
         return defaults
     if spec.endswith(".json"):
@@ -492,7 +499,7 @@ def run_sweep(data, checkpoint=None, preset: str = "odg_cpu", device: str = "cpu
         from .config import ModelConfig
         payload = torch.load(checkpoint, map_location="cpu", weights_only=False)
         cfg = ModelConfig(**payload["config"])
-    configs = configs or default_configs(cfg.num_frames, device)
+    configs = configs or default_configs(cfg.num_frames, device, cfg.score_threshold)
     isolate = True if isolate is None else isolate
     infos = load_infos_file(data)
     if not infos["infos"]:

@@ -87,7 +87,9 @@ def test_select_configs_by_name_and_from_json(tmp_path):
     defaults = select_configs(None, 4)
     names = [c.name for c in defaults]
     assert names[:3] == ["full-h4", "full-h1", "full-h2"]
-    assert {"prune0.05-h4", "q50-h4", "q25-h4", "bf16-h4", "plain-h4"} <= set(names)
+    assert {"prune0.25-h4", "prune0.5-h4", "prune0.75-h4", "q50-h4", "q25-h4", "bf16-h4",
+            "plain-h4"} <= set(names)               # pruning relative to the threshold 0.5
+    assert "prune0.15-h4" in [c.name for c in select_configs(None, 4, score_threshold=0.3)]
     assert not any("fp16" in n or "compile" in n for n in names)   # CUDA only
     assert [c.name for c in select_configs("q25-h4,full-h1", 4)] == ["q25-h4", "full-h1"]
     with pytest.raises(ValueError, match="unknown configurations"):
