@@ -14,6 +14,16 @@ def tiny_config(**overrides):
     return load_preset("odg_cpu", **values)
 
 
+def write_tiny_checkpoint(path, **overrides):
+    """Random weights (seed 0) of tiny_config(**overrides) saved at ``path`` -> the path."""
+    import torch
+    from odg_ros.network import ODG
+    from odg_ros.network.checkpoint import save_checkpoint
+    torch.manual_seed(0)
+    save_checkpoint(path, ODG(tiny_config(**overrides)))
+    return path
+
+
 def write_tiny_split(root, num_keyframes):
     """A hand-made dataroot (test_dataset.build_world) and its infos pickle -> the pickle path."""
     from test_dataset import build_world

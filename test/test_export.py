@@ -7,22 +7,18 @@ import pytest
 import torch
 
 from odg_ros.cli import main
-from odg_ros.network import ODG
 from odg_ros.network.checkpoint import load_model, save_checkpoint
 from odg_ros.train.calibrate import calibrate_score_threshold
 from odg_ros.train.evaluate import evaluate
 
-from helpers import tiny_config, write_tiny_split
+from helpers import write_tiny_checkpoint, write_tiny_split
 
 
 @pytest.fixture(scope="module")
 def tiny_split(tmp_path_factory):
     root = tmp_path_factory.mktemp("world")
-    path = write_tiny_split(root, 3)
-    torch.manual_seed(0)
-    checkpoint = root / "tiny.pt"
-    save_checkpoint(checkpoint, ODG(tiny_config(image_size=(32, 88), num_frames=2)))
-    return path, checkpoint
+    checkpoint = write_tiny_checkpoint(root / "tiny.pt", image_size=(32, 88), num_frames=2)
+    return write_tiny_split(root, 3), checkpoint
 
 
 def test_threshold_table_equals_offline_evaluation(tiny_split):

@@ -11,13 +11,13 @@ import torch
 
 from odg_ros.benchmark import LAYER_PARTS, bench_online_step
 from odg_ros.network import ODG
-from odg_ros.network.checkpoint import load_model, save_checkpoint
+from odg_ros.network.checkpoint import load_model
 from odg_ros.network.decoder import PruneRule
 from odg_ros.sweep import (SweepConfig, adaptive_tradeoff, pareto_front, query_budget,
                            quiet_and_busy, run_sweep, select_configs, spread_indices)
 from odg_ros.train.evaluate import evaluate
 
-from helpers import tiny_config, write_tiny_split
+from helpers import tiny_config, write_tiny_checkpoint, write_tiny_split
 
 
 def tiny_cfg():
@@ -154,11 +154,8 @@ def test_bench_online_step_reports_layers_parts_and_memory():
 @pytest.fixture(scope="module")
 def tiny_split(tmp_path_factory):
     root = tmp_path_factory.mktemp("world")
-    path = write_tiny_split(root, 3)
-    torch.manual_seed(0)
-    checkpoint = root / "tiny.pt"
-    save_checkpoint(checkpoint, ODG(tiny_cfg()))
-    return path, checkpoint
+    checkpoint = write_tiny_checkpoint(root / "tiny.pt", image_size=(32, 88), num_frames=3)
+    return write_tiny_split(root, 3), checkpoint
 
 
 def test_sweep_writes_json_and_png_with_every_measure(tiny_split, tmp_path):

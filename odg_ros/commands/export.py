@@ -3,10 +3,9 @@ turn a training checkpoint into a shipped one (weights only, compressed, thresho
 from __future__ import annotations
 
 import json
-import tempfile
 from pathlib import Path
 
-from ..network.checkpoint import load_model, save_checkpoint
+from ..network.checkpoint import compress_state, decompress_state, load_model, save_checkpoint
 from ..train.calibrate import DEFAULT_THRESHOLDS, calibrate_score_threshold
 
 
@@ -26,11 +25,9 @@ def run(args) -> int:
     model, cfg = load_model(args.checkpoint)
     report = {"source": str(args.checkpoint), "compression": compress}
     if args.calibrate:
-        # Calibrate the weights as shipped: compression first, then the threshold on them.
-        with tempfile.TemporaryDirectory() as tmp:
-            compressed = Path(tmp) / "compressed.pt"
-            save_checkpoint(compressed, model, compress=compress)
-            model, cfg = load_model(compressed)
+        # Calibrate the weights as shipped: compression first, then the threshold on them
+        # (load_state_dict casts the fp16 / dequantised tensors back to float32).
+        model.load_state_dict(decompress_state(compress_state(model.state_dict(), compress)))
         found = calibrate_score_threshold(model, cfg, args.calibrate, args.thresholds,
                                           limit=args.limit)
         model.cfg = cfg = cfg.replace(score_threshold=found["best"])

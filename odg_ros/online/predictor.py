@@ -67,14 +67,12 @@ class OnlinePredictor:
         self.ring = FeatureRing(k, cfg.num_groups)     # same capacity: slots follow history
         self.keep_output = keep_output   # tests compare the raw network output
         self.min_interval = float(min_interval)
-        self._current_is_provisional = False
         precision_context(precision, self.device)      # an unknown / unusable one fails here
         self.precision = precision
 
     def reset(self) -> None:
         self.history.clear()
         self.ring.clear()
-        self._current_is_provisional = False
 
     def _sync(self) -> None:
         if self.device.type == "cuda":
@@ -101,7 +99,10 @@ class OnlinePredictor:
         t2 = time.perf_counter()
         timings["backbone"] = t2 - t1
 
-        replace = self._current_is_provisional
+        # the newest kept set is provisional while it is closer than min_interval to the one
+        # before it: this set takes its place
+        kept = self.history.frames()
+        replace = len(kept) > 1 and kept[0].stamp - kept[1].stamp < self.min_interval
         reset = self.history.push(Frame(features=None, pose=np.asarray(pose, np.float64),
                                         ego2img=np.asarray(ego2img, np.float64),
                                         stamp=float(stamp)), replace_newest=replace)
@@ -109,8 +110,6 @@ class OnlinePredictor:
             self.ring.clear()
         self.ring.push(features, replace_newest=replace)
         frames = self.history.frames()
-        self._current_is_provisional = (len(frames) > 1 and
-                                        frames[0].stamp - frames[1].stamp < self.min_interval)
         assert len(frames) == len(self.ring)
         current = frames[0]
         warps = np.stack([ego_warp(current.pose, f.pose) for f in frames])

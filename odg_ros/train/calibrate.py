@@ -10,13 +10,11 @@ from __future__ import annotations
 
 import numpy as np
 import torch
-from tqdm import tqdm
 
-from ..data.batch import collate
 from ..data.dataset import OccDataset
 from ..metrics.score import OccScore
 from ..network.postprocess import occupancy_grid
-from .trainer import to_device
+from .evaluate import predict_split
 
 DEFAULT_THRESHOLDS = tuple(round(float(t), 2) for t in np.arange(0.05, 0.951, 0.05))
 
@@ -32,15 +30,12 @@ def calibrate_score_threshold(model, cfg, infos, thresholds=DEFAULT_THRESHOLDS,
     if not thresholds:
         raise ValueError("no thresholds to try")
     dataset = OccDataset(infos, cfg, train=False)
-    count = len(dataset) if limit is None else min(limit, len(dataset))
     scores = {float(t): OccScore(dataset.dataset, rayiou=False) for t in thresholds}
-    model.eval()
     used = 0
-    for index in tqdm(range(count), desc="calibrate", disable=not progress):
-        batch = to_device(collate([dataset[index]]), device)
+    for _, batch, output in predict_split(model, dataset, limit, device, progress=progress,
+                                          desc="calibrate"):
         if not batch["has_occ"][0]:
             continue
-        output = model(batch["images"], batch["ego2img"], batch["ego_warp"], batch["time_delta"])
         gt = batch["occ_semantics"][0].cpu().numpy()
         mask = batch["occ_mask_camera"][0].cpu().numpy().astype(bool)
         for threshold, score in scores.items():

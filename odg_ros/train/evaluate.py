@@ -24,6 +24,22 @@ def dynamic_class_miou(result: dict) -> float | None:
 
 
 @torch.no_grad()
+def predict_split(model, dataset: OccDataset, limit: int | None = None, device="cpu",
+                  workers: int = 0, progress: bool = True, desc: str = "eval",
+                  **decode_options):
+    """Run ``model`` over the first ``limit`` samples of ``dataset``: yields (index, batch on
+    ``device``, output), one sample at a time. decode_options go to ``ODG.decode``."""
+    indices = list(range(len(dataset)))[:limit]
+    loader = torch.utils.data.DataLoader(torch.utils.data.Subset(dataset, indices),
+                                         batch_size=1, collate_fn=collate, num_workers=workers)
+    model.eval()
+    for index, batch in zip(indices, tqdm(loader, desc=desc, disable=not progress)):
+        batch = to_device(batch, device)
+        yield index, batch, model(batch["images"], batch["ego2img"], batch["ego_warp"],
+                                  batch["time_delta"], **decode_options)
+
+
+@torch.no_grad()
 def evaluate(model, cfg, infos, occ_root=None, save_pred: str | None = None, device="cpu",
              rayiou: bool = True, limit: int | None = None, progress: bool = True,
              workers: int = 0, frames: int | None = None, **decode_options) -> dict:
@@ -31,19 +47,12 @@ def evaluate(model, cfg, infos, occ_root=None, save_pred: str | None = None, dev
     oldest frame for the rest). decode_options go to ``ODG.decode`` (e.g. prune=...)."""
     data_cfg = cfg if frames is None else cfg.replace(num_frames=frames)
     dataset = OccDataset(infos, data_cfg, occ_root=occ_root, train=False)
-    indices = list(range(len(dataset)))[:limit]
-    subset = torch.utils.data.Subset(dataset, indices)
-    loader = torch.utils.data.DataLoader(subset, batch_size=1, collate_fn=collate,
-                                         num_workers=workers)
     score = OccScore(dataset.dataset, rayiou=rayiou)
     origins = LidarOrigins(dataset.infos) if rayiou else None
     if save_pred:
         Path(save_pred).mkdir(parents=True, exist_ok=True)
-    model.eval()
-    for index, batch in zip(indices, tqdm(loader, desc="eval", disable=not progress)):
-        batch = to_device(batch, device)
-        output = model(batch["images"], batch["ego2img"], batch["ego_warp"], batch["time_delta"],
-                       **decode_options)
+    for index, batch, output in predict_split(model, dataset, limit, device, workers, progress,
+                                              **decode_options):
         grid = occupancy_grid(output, cfg)[0][0].cpu().numpy()
         if save_pred:
             np.savez_compressed(Path(save_pred) / f"{batch['token'][0]}.npz", semantics=grid)

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import csv
 import logging
-import math
 import os
 import random
 import time
@@ -200,8 +199,7 @@ class Trainer:
         self.optimizer.zero_grad(set_to_none=True)
         # BatchNorm statistics change in the forward pass already; a skipped step must leave
         # them as they were (a NaN batch would otherwise poison every later inference).
-        buffers = {name: b.detach().clone() for name, b in self.model.named_buffers()
-                   if ".running_" in name or name.endswith("num_batches_tracked")}
+        buffers = {name: b.detach().clone() for name, b in self.model.named_buffers()}
         terms, finite = {}, True
         try:
             with torch.autocast(self.device.type, dtype=self.amp_dtype,

@@ -9,12 +9,11 @@ import sys
 
 import numpy as np
 import pytest
-import torch
 from PIL import Image
 
 from odg_ros import demo
 from odg_ros.classes import OCC_CLASSES
-from helpers import tiny_config  # test/helpers.py
+from helpers import write_tiny_checkpoint  # test/helpers.py
 
 REPORT_KEYS = ("frames_in", "frames_out", "dropped", "fps", "latency_ms_p50", "latency_ms_p95",
                "mIoU", "RayIoU")
@@ -22,12 +21,7 @@ REPORT_KEYS = ("frames_in", "frames_out", "dropped", "fps", "latency_ms_p50", "l
 
 @pytest.fixture(scope="module")
 def tiny_checkpoint(tmp_path_factory):
-    from odg_ros.network import ODG
-    from odg_ros.network.checkpoint import save_checkpoint
-    torch.manual_seed(0)
-    path = tmp_path_factory.mktemp("ckpt") / "tiny.pt"
-    save_checkpoint(path, ODG(tiny_config()))
-    return path
+    return write_tiny_checkpoint(tmp_path_factory.mktemp("ckpt") / "tiny.pt")
 
 
 def run_demo(out, checkpoint, *extra, timeout=240):

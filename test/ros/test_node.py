@@ -26,7 +26,7 @@ from odg_ros.geometry import ego_warp, make_transform
 from odg_ros.online.rig import load_rig, set_ego2img
 from odg_ros.preprocess import adjust_intrinsics, normalize, resize_crop
 from odg_ros.resources import resource_path
-from helpers import tiny_config  # test/helpers.py (test/ is on sys.path under pytest)
+from helpers import write_tiny_checkpoint  # test/helpers.py (test/ is on sys.path under pytest)
 
 RIG = load_rig(resource_path("config/rig_nuscenes.yaml"))
 CAMS = tuple(RIG.cameras)
@@ -67,12 +67,7 @@ def set_images(seed):
 
 @pytest.fixture(scope="module")
 def checkpoint(tmp_path_factory):
-    from odg_ros.network import ODG
-    from odg_ros.network.checkpoint import save_checkpoint
-    torch.manual_seed(0)
-    path = tmp_path_factory.mktemp("ckpt") / "tiny.pt"
-    save_checkpoint(path, ODG(tiny_config()))
-    return path
+    return write_tiny_checkpoint(tmp_path_factory.mktemp("ckpt") / "tiny.pt")
 
 
 def write_params(path, checkpoint, **overrides):
