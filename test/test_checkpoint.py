@@ -2,7 +2,10 @@
 import torch
 
 from odg_ros.network import ODG
-from odg_ros.network.checkpoint import load_model, quantize_int8, dequantize_int8, save_checkpoint
+import pytest
+
+from odg_ros.network.checkpoint import (dequantize_int8, grow_point_heads, load_model,
+                                       quantize_int8, save_checkpoint)
 
 from helpers import tiny_config
 
@@ -44,3 +47,44 @@ def test_int8_checkpoint_is_small_and_predicts_like_the_original(tmp_path):
         a, b = model(*args), loaded(*args)
     assert (a.last.means - b.last.means).abs().max() < 0.5      # metres
     assert (a.last.logits - b.last.logits).abs().mean() < 0.1
+
+
+def _random_inputs(cfg, seed=0):
+    from odg_ros.rig import ring_ego2img
+    g = torch.Generator().manual_seed(seed)
+    H, W = cfg.image_size
+    T = cfg.num_frames
+    return (torch.randn(1, T, 6, 3, H, W, generator=g), ring_ego2img(cfg.image_size, T),
+            torch.eye(4).repeat(1, T, 1, 1), torch.zeros(1, T))
+
+
+def test_grown_point_head_repeats_every_point_one_voxel_grid_apart():
+    small_cfg = tiny_config(points_per_layer=(1, 2, 2, 4, 4, 8))
+    small = ODG(small_cfg).eval()
+    big = ODG(small_cfg.replace(points_per_layer=(1, 2, 2, 4, 4, 32))).eval()
+    big.load_state_dict(grow_point_heads(small.state_dict(), big))
+    args = _random_inputs(small_cfg)
+    with torch.no_grad():
+        a, b = small(*args), big(*args)
+    for la, lb in zip(a.layers[:-1], b.layers[:-1]):       # earlier layers untouched
+        assert torch.equal(la.means, lb.means) and torch.equal(la.logits, lb.logits)
+    B, Q, K, _ = a.last.means.shape
+    copies = b.last.means.reshape(B, Q, 4, K, 3)             # copy c of point k = c * K + k
+    logits = b.last.logits.reshape(B, Q, 4, K, -1)
+    assert torch.allclose(logits, a.last.logits.unsqueeze(2).expand_as(logits), atol=1e-5)
+    shift = (copies - a.last.means.unsqueeze(2)).double()    # [B, Q, 4, K, 3]
+    assert shift[..., 2].abs().max() < 1e-5                  # z unchanged
+    v = small_cfg.voxel_size / 2
+    expected = torch.tensor([[-v, -v], [-v, v], [v, -v], [v, v]], dtype=torch.float64)
+    assert torch.allclose(shift[..., :2], expected[None, None, :, None, :].expand_as(
+        shift[..., :2]), atol=1e-5)
+
+
+def test_grow_point_heads_refuses_what_it_cannot_grow():
+    cfg = tiny_config(points_per_layer=(1, 2, 2, 4, 4, 8))
+    state = ODG(cfg).state_dict()
+    with pytest.raises(ValueError, match="cannot grow 8 points per query to 12"):
+        grow_point_heads(state, ODG(cfg.replace(points_per_layer=(1, 2, 2, 4, 4, 12))))
+    with pytest.raises(ValueError, match="not a point head"):
+        grow_point_heads(state, ODG(cfg.replace(embed_dims=32, fpn_channels=32,
+                                                ffn_dims=64)))

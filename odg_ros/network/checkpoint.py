@@ -1,6 +1,7 @@
 """Checkpoints: ``{"config": ModelConfig dict, "model": state_dict, ...}``, written atomically."""
 from __future__ import annotations
 
+import math
 import os
 import tempfile
 from pathlib import Path
@@ -66,6 +67,39 @@ def save_checkpoint(path, model: ODG, extra: dict | None = None,
     finally:
         if os.path.exists(tmp):
             os.unlink(tmp)
+
+
+def grow_point_heads(state: dict, model: ODG) -> dict:
+    """``state`` for ``model`` where a decoder layer of ``model`` emits more points per query
+    than the checkpoint's (K_new a multiple of K_old): each point of the checkpoint's head
+    becomes K_new / K_old copies with the same class logits, the copies spread over a grid of
+    neighbouring voxels (x, y) so that they start in different voxels and Chamfer pulls them
+    apart. Every other tensor must match in shape. Lets a trained model take a larger final
+    point budget without retraining from scratch."""
+    own = model.state_dict()
+    voxel = float(model.cfg.voxel_size)
+    grown = dict(state)
+    for key, tensor in state.items():
+        if key not in own or own[key].shape == tensor.shape:
+            continue
+        head = key.rsplit(".", 3)    # decoder.layers.N.points | cls/reg | index | weight/bias
+        if len(head) != 4 or not head[0].endswith(".points") or head[1] not in ("cls", "reg"):
+            raise ValueError(f"{key}: checkpoint {tuple(tensor.shape)} vs model "
+                             f"{tuple(own[key].shape)}, and it is not a point head")
+        per_point = model.cfg.num_classes if head[1] == "cls" else 3
+        old_k, new_k = tensor.shape[0] // per_point, own[key].shape[0] // per_point
+        if new_k % old_k or tensor.shape[1:] != own[key].shape[1:]:
+            raise ValueError(f"{key}: cannot grow {old_k} points per query to {new_k}")
+        copies = new_k // old_k
+        rows = tensor.reshape(1, old_k, per_point, *tensor.shape[1:])
+        rows = rows.expand(copies, *rows.shape[1:]).clone()
+        if head[1] == "reg" and head[3] == "bias":   # the offsets are the bias, in metres
+            side = math.ceil(math.sqrt(copies))
+            grid = [((i - (side - 1) / 2) * voxel, (j - (side - 1) / 2) * voxel)
+                    for i in range(side) for j in range(side)][:copies]
+            rows[:, :, :2] += torch.tensor(grid, dtype=rows.dtype)[:, None, :]
+        grown[key] = rows.reshape(own[key].shape)
+    return grown
 
 
 def load_model(path=None, preset: str = "odg_cpu", device="cpu", **overrides):
