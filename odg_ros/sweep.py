@@ -405,19 +405,34 @@ def _isolated(function, job: dict) -> dict:
 
 
 # ------------------------------------------------------------------------ the whole sweep
-def pareto_front(points: list[tuple[float, float]]) -> list[int]:
+def pareto_front(points: list[tuple[float, float]], decimals: int | None = None) -> list[int]:
     """Indices of the points no other point beats in both coordinates (higher is better in
-    both, e.g. (FPS, mIoU)); equal points are all kept; None / NaN coordinates are out."""
+    both, e.g. (FPS, mIoU)); equal points are all kept; None / NaN coordinates are out.
+    decimals: compare at the precision the report prints, so that float noise between two
+    paths computing the same grid (plain vs fast path: 3e-4 mIoU) does not keep the slower
+    one on the front."""
     valid = [i for i, p in enumerate(points)
              if p[0] is not None and p[1] is not None and np.isfinite(p).all()]
+    compared = {i: tuple(round(v, decimals) if decimals is not None else v for v in points[i])
+                for i in valid}
     front = []
     for i in valid:
-        xi, yi = points[i]
-        dominated = any(points[j][0] >= xi and points[j][1] >= yi and
-                        (points[j][0] > xi or points[j][1] > yi) for j in valid)
+        xi, yi = compared[i]
+        dominated = any(xj >= xi and yj >= yi and (xj > xi or yj > yi)
+                        for xj, yj in compared.values())
         if not dominated:
             front.append(i)
     return sorted(front, key=lambda i: points[i][0])
+
+
+def pareto_report(results: list[dict]) -> dict:
+    """{metric: config names on the (FPS, metric) front}, at the table's 2 decimals; configs
+    with random weights only when nothing else ran (their scores mean nothing)."""
+    ok = [r for r in results if "error" not in r]
+    trusted = [r for r in ok if not r["random_weights"]] or ok
+    return {metric: [trusted[i]["config"]["name"] for i in pareto_front(
+        [(r["fps"], r["scores"].get(metric)) for r in trusted], decimals=2)]
+        for metric in ("mIoU", "RayIoU")}
 
 
 def adaptive_tradeoff(results: list[dict]) -> list[dict]:
@@ -553,12 +568,8 @@ def run_sweep(data, checkpoint=None, preset: str = "odg_cpu", device: str = "cpu
     if not ok:
         raise RuntimeError("every sweep configuration failed: "
                            + "; ".join(r["error"] for r in results))
-    report = {"meta": meta, "configs": results, "pareto": {},
+    report = {"meta": meta, "configs": results, "pareto": pareto_report(results),
               "adaptive": adaptive_tradeoff(results)}
-    trusted = [r for r in ok if not r["random_weights"]] or ok   # random scores mean nothing
-    for metric in ("mIoU", "RayIoU"):
-        points = [(r["fps"], r["scores"].get(metric)) for r in trusted]
-        report["pareto"][metric] = [trusted[i]["config"]["name"] for i in pareto_front(points)]
     if out is not None:
         out = Path(out)
         out.mkdir(parents=True, exist_ok=True)

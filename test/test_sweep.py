@@ -33,6 +33,11 @@ def test_pareto_front_on_hand_made_points():
     assert pareto_front(points) == [3, 0, 2, 5]
     assert pareto_front([]) == []
     assert pareto_front([(1.0, 1.0)]) == [0]
+    # a slower path with 3e-4 more mIoU (float noise) is on the exact front, not on the
+    # front at the report's 2 decimals
+    noisy = [(4.17, 8.7142), (3.36, 8.7145)]
+    assert pareto_front(noisy) == [1, 0]
+    assert pareto_front(noisy, decimals=2) == [0]
 
 
 def test_samples_are_spread_over_the_split():
