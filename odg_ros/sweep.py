@@ -630,6 +630,7 @@ def plot_sweep(report: dict, path) -> None:
     for ax, metric in zip(axes[:2], ("mIoU", "RayIoU")):
         front = set(report["pareto"].get(metric, []))
         xs, ys = [], []
+        labels = {}   # configurations on (nearly) the same spot share one label
         for r in ok:
             value = r["scores"].get(metric)
             if value is None:
@@ -641,11 +642,16 @@ def plot_sweep(report: dict, path) -> None:
                 marker, name = "x", name + " (random weights)"
             ax.scatter(r["fps"], value, s=60 if on_front else 35, zorder=3, marker=marker,
                        color="tab:red" if on_front else "tab:blue")
-            ax.annotate(name, (r["fps"], value), textcoords="offset points", fontsize=7,
-                        xytext=(4, 4 + 9 * (ok.index(r) % 3)))   # staggered: fewer overlaps
+            spot = (round(r["fps"], 1), round(value, 1))
+            labels.setdefault(spot, ((r["fps"], value), []))[1].append(name)
             if on_front:
                 xs.append(r["fps"])
                 ys.append(value)
+        for index, (xy, group) in enumerate(labels.values()):
+            ax.annotate("\n".join(group), xy, textcoords="offset points", fontsize=7,
+                        xytext=(5, 3 - 8 * (len(group) - 1) * (index % 2)),
+                        va="bottom" if index % 2 == 0 else "top")
+        ax.margins(x=0.12, y=0.12)
         if xs:
             order = np.argsort(xs)
             ax.plot(np.array(xs)[order], np.array(ys)[order], "--", color="tab:red",
