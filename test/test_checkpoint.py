@@ -4,7 +4,7 @@ import torch
 from odg_ros.network import ODG
 import pytest
 
-from odg_ros.network.checkpoint import (dequantize_int8, grow_point_heads, load_model,
+from odg_ros.network.checkpoint import (dequantize_int8, grow_state_dict, load_model,
                                        quantize_int8, save_checkpoint)
 
 from helpers import tiny_config
@@ -62,7 +62,7 @@ def test_grown_point_head_repeats_every_point_one_voxel_grid_apart():
     small_cfg = tiny_config(points_per_layer=(1, 2, 2, 4, 4, 8))
     small = ODG(small_cfg).eval()
     big = ODG(small_cfg.replace(points_per_layer=(1, 2, 2, 4, 4, 32))).eval()
-    big.load_state_dict(grow_point_heads(small.state_dict(), big))
+    big.load_state_dict(grow_state_dict(small.state_dict(), big))
     args = _random_inputs(small_cfg)
     with torch.no_grad():
         a, b = small(*args), big(*args)
@@ -80,11 +80,37 @@ def test_grown_point_head_repeats_every_point_one_voxel_grid_apart():
         shift[..., :2]), atol=1e-5)
 
 
-def test_grow_point_heads_refuses_what_it_cannot_grow():
+def test_grow_state_dict_refuses_what_it_cannot_grow():
     cfg = tiny_config(points_per_layer=(1, 2, 2, 4, 4, 8))
     state = ODG(cfg).state_dict()
     with pytest.raises(ValueError, match="cannot grow 8 points per query to 12"):
-        grow_point_heads(state, ODG(cfg.replace(points_per_layer=(1, 2, 2, 4, 4, 12))))
+        grow_state_dict(state, ODG(cfg.replace(points_per_layer=(1, 2, 2, 4, 4, 12))))
+    with pytest.raises(ValueError, match="cannot grow 6 dynamic queries"):
+        grow_state_dict(state, ODG(cfg.replace(num_dynamic=3)))
+    with pytest.raises(ValueError, match="cannot grow 6 dynamic queries"):
+        grow_state_dict(state, ODG(cfg.replace(num_dynamic=12, num_static=14)))  # same total
     with pytest.raises(ValueError, match="not a point head"):
-        grow_point_heads(state, ODG(cfg.replace(embed_dims=32, fpn_channels=32,
+        grow_state_dict(state, ODG(cfg.replace(embed_dims=32, fpn_channels=32,
                                                 ffn_dims=64)))
+
+
+def test_grown_dynamic_queries_keep_the_trained_ones_and_start_the_new_ones_fresh():
+    cfg = tiny_config()                                        # 6 dynamic + 20 static
+    torch.manual_seed(0)
+    trained = ODG(cfg).state_dict()
+    torch.manual_seed(1)
+    big = ODG(cfg.replace(num_dynamic=12))
+    fresh = {k: v.clone() for k, v in big.state_dict().items()}
+    big.load_state_dict(grow_state_dict(trained, big))
+    grown = big.state_dict()
+    for key in ("queries.features", "queries.init_points"):
+        assert torch.equal(grown[key][:6], trained[key][:6])          # trained dynamic
+        assert torch.equal(grown[key][12:], trained[key][6:])         # trained static
+        assert torch.equal(grown[key][6:12], fresh[key][6:12])        # new: as initialised
+    assert torch.equal(grown["queries.init_box"][:6], trained["queries.init_box"])
+    assert torch.equal(grown["queries.init_box"][6:], fresh["queries.init_box"][6:])
+    assert torch.equal(grown["decoder.layers.0.points.cls.6.bias"],
+                       trained["decoder.layers.0.points.cls.6.bias"])
+    with torch.no_grad():
+        out = big.eval()(*_random_inputs(cfg))
+    assert out.last.boxes.shape[1] == 12 and torch.isfinite(out.last.means).all()

@@ -69,37 +69,58 @@ def save_checkpoint(path, model: ODG, extra: dict | None = None,
             os.unlink(tmp)
 
 
-def grow_point_heads(state: dict, model: ODG) -> dict:
-    """``state`` for ``model`` where a decoder layer of ``model`` emits more points per query
-    than the checkpoint's (K_new a multiple of K_old): each point of the checkpoint's head
-    becomes K_new / K_old copies with the same class logits, the copies spread over a grid of
-    neighbouring voxels (x, y) so that they start in different voxels and Chamfer pulls them
-    apart. Every other tensor must match in shape. Lets a trained model take a larger final
-    point budget without retraining from scratch."""
+def grow_state_dict(state: dict, model: ODG) -> dict:
+    """``state`` (a trained checkpoint) for a ``model`` that is larger in two ways only, so
+    that a trained model can grow instead of being retrained from scratch:
+    * a decoder layer emits more points per query (K_new a multiple of K_old): each point of
+      the head becomes K_new / K_old copies with the same class logits, the copies spread over
+      a grid of neighbouring voxels (x, y) so they start in different voxels;
+    * more dynamic queries: the trained dynamic and static queries are kept, the new dynamic
+      ones start as ``model`` initialised them (zero features, uniform means and boxes).
+    Any other shape difference is an error."""
     own = model.state_dict()
-    voxel = float(model.cfg.voxel_size)
+    num_dynamic = model.cfg.num_dynamic
+    old_dynamic = len(state.get("queries.init_box", own["queries.init_box"]))
     grown = dict(state)
     for key, tensor in state.items():
-        if key not in own or own[key].shape == tensor.shape:
-            continue
-        head = key.rsplit(".", 3)    # decoder.layers.N.points | cls/reg | index | weight/bias
-        if len(head) != 4 or not head[0].endswith(".points") or head[1] not in ("cls", "reg"):
-            raise ValueError(f"{key}: checkpoint {tuple(tensor.shape)} vs model "
-                             f"{tuple(own[key].shape)}, and it is not a point head")
-        per_point = model.cfg.num_classes if head[1] == "cls" else 3
-        old_k, new_k = tensor.shape[0] // per_point, own[key].shape[0] // per_point
-        if new_k % old_k or tensor.shape[1:] != own[key].shape[1:]:
-            raise ValueError(f"{key}: cannot grow {old_k} points per query to {new_k}")
-        copies = new_k // old_k
-        rows = tensor.reshape(1, old_k, per_point, *tensor.shape[1:])
-        rows = rows.expand(copies, *rows.shape[1:]).clone()
-        if head[1] == "reg" and head[3] == "bias":   # the offsets are the bias, in metres
-            side = math.ceil(math.sqrt(copies))
-            grid = [((i - (side - 1) / 2) * voxel, (j - (side - 1) / 2) * voxel)
-                    for i in range(side) for j in range(side)][:copies]
-            rows[:, :, :2] += torch.tensor(grid, dtype=rows.dtype)[:, None, :]
-        grown[key] = rows.reshape(own[key].shape)
+        if key.startswith("queries.") and key in own and old_dynamic != num_dynamic:
+            grown[key] = _grow_queries(key, tensor, own[key], old_dynamic, num_dynamic)
+        elif key in own and own[key].shape != tensor.shape:
+            grown[key] = _grow_point_head(key, tensor, own[key], model.cfg)
     return grown
+
+
+def _grow_queries(key, tensor, fresh, old_dynamic, num_dynamic):
+    # rows are [dynamic; static] (init_box: dynamic only); the static count must not change
+    if (tensor.shape[1:] != fresh.shape[1:] or old_dynamic > num_dynamic
+            or len(tensor) - old_dynamic != len(fresh) - num_dynamic):
+        raise ValueError(f"{key}: cannot grow {old_dynamic} dynamic queries "
+                         f"{tuple(tensor.shape)} to {num_dynamic} {tuple(fresh.shape)}")
+    grown = fresh.clone()
+    grown[:old_dynamic] = tensor[:old_dynamic]                 # trained dynamic queries
+    grown[num_dynamic:] = tensor[old_dynamic:]                 # trained static queries
+    return grown
+
+
+def _grow_point_head(key, tensor, fresh, cfg):
+    head = key.rsplit(".", 3)    # decoder.layers.N.points | cls/reg | index | weight/bias
+    if len(head) != 4 or not head[0].endswith(".points") or head[1] not in ("cls", "reg"):
+        raise ValueError(f"{key}: checkpoint {tuple(tensor.shape)} vs model "
+                         f"{tuple(fresh.shape)}, and it is not a point head or a query table")
+    per_point = cfg.num_classes if head[1] == "cls" else 3
+    old_k, new_k = tensor.shape[0] // per_point, fresh.shape[0] // per_point
+    if new_k % old_k or tensor.shape[1:] != fresh.shape[1:]:
+        raise ValueError(f"{key}: cannot grow {old_k} points per query to {new_k}")
+    copies = new_k // old_k
+    rows = tensor.reshape(1, old_k, per_point, *tensor.shape[1:])
+    rows = rows.expand(copies, *rows.shape[1:]).clone()
+    if head[1] == "reg" and head[3] == "bias":   # the offsets are the bias, in metres
+        side = math.ceil(math.sqrt(copies))
+        voxel = float(cfg.voxel_size)
+        grid = [((i - (side - 1) / 2) * voxel, (j - (side - 1) / 2) * voxel)
+                for i in range(side) for j in range(side)][:copies]
+        rows[:, :, :2] += torch.tensor(grid, dtype=rows.dtype)[:, None, :]
+    return rows.reshape(fresh.shape)
 
 
 def load_model(path=None, preset: str = "odg_cpu", device="cpu", **overrides):
