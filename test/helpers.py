@@ -14,6 +14,21 @@ def tiny_config(**overrides):
     return load_preset("odg_cpu", **values)
 
 
+def model_inputs(cfg, frames=None, seed=0, batch=1):
+    """Random camera images of a ring rig with the ego moving 4 m forward per frame, 0.5 s
+    apart -> (images, ego2img, ego_warp, time_delta), the model's positional inputs."""
+    import torch
+    from odg_ros.rig import ring_ego2img
+    frames = frames or cfg.num_frames
+    g = torch.Generator().manual_seed(seed)
+    images = torch.randn(batch, frames, cfg.num_cams, 3, *cfg.image_size, generator=g)
+    ego2img = ring_ego2img(cfg.image_size, frames, cfg.num_cams, batch)
+    warp = torch.eye(4).repeat(batch, frames, 1, 1)
+    warp[:, :, 0, 3] = torch.arange(frames) * 4.0
+    time_delta = torch.arange(frames, dtype=torch.float32).repeat(batch, 1) * 0.5
+    return images, ego2img, warp, time_delta
+
+
 def write_tiny_checkpoint(path, **overrides):
     """Random weights (seed 0) of tiny_config(**overrides) saved at ``path`` -> the path."""
     import torch

@@ -1,13 +1,12 @@
 """Checkpoints: atomic round trip, and the compressed shipping formats."""
+import pytest
 import torch
 
 from odg_ros.network import ODG
-import pytest
-
 from odg_ros.network.checkpoint import (dequantize_int8, grow_state_dict, load_model,
                                        quantize_int8, save_checkpoint)
 
-from helpers import tiny_config
+from helpers import model_inputs, tiny_config
 
 
 def test_round_trip_exact(tmp_path):
@@ -38,24 +37,11 @@ def test_int8_checkpoint_is_small_and_predicts_like_the_original(tmp_path):
         (tmp_path / "int8.pt").stat().st_size
     assert small_size < 0.35 * full_size
     loaded, _ = load_model(tmp_path / "int8.pt")
-    H, W = cfg.image_size
-    from odg_ros.rig import ring_ego2img
-    T = cfg.num_frames
-    args = (torch.randn(1, T, 6, 3, H, W), ring_ego2img(cfg.image_size, T),
-            torch.eye(4).repeat(1, T, 1, 1), torch.zeros(1, T))
+    args = model_inputs(cfg)
     with torch.no_grad():
         a, b = model(*args), loaded(*args)
     assert (a.last.means - b.last.means).abs().max() < 0.5      # metres
     assert (a.last.logits - b.last.logits).abs().mean() < 0.1
-
-
-def _random_inputs(cfg, seed=0):
-    from odg_ros.rig import ring_ego2img
-    g = torch.Generator().manual_seed(seed)
-    H, W = cfg.image_size
-    T = cfg.num_frames
-    return (torch.randn(1, T, 6, 3, H, W, generator=g), ring_ego2img(cfg.image_size, T),
-            torch.eye(4).repeat(1, T, 1, 1), torch.zeros(1, T))
 
 
 def test_grown_point_head_repeats_every_point_one_voxel_grid_apart():
@@ -63,7 +49,7 @@ def test_grown_point_head_repeats_every_point_one_voxel_grid_apart():
     small = ODG(small_cfg).eval()
     big = ODG(small_cfg.replace(points_per_layer=(1, 2, 2, 4, 4, 32))).eval()
     big.load_state_dict(grow_state_dict(small.state_dict(), big))
-    args = _random_inputs(small_cfg)
+    args = model_inputs(small_cfg)
     with torch.no_grad():
         a, b = small(*args), big(*args)
     for la, lb in zip(a.layers[:-1], b.layers[:-1]):       # earlier layers untouched
@@ -112,5 +98,5 @@ def test_grown_dynamic_queries_keep_the_trained_ones_and_start_the_new_ones_fres
     assert torch.equal(grown["decoder.layers.0.points.cls.6.bias"],
                        trained["decoder.layers.0.points.cls.6.bias"])
     with torch.no_grad():
-        out = big.eval()(*_random_inputs(cfg))
+        out = big.eval()(*model_inputs(cfg))
     assert out.last.boxes.shape[1] == 12 and torch.isfinite(out.last.means).all()

@@ -18,9 +18,9 @@ from odg_ros.network import ODG
 from odg_ros.network.decoder import PruneRule
 from odg_ros.network.feature_ring import FeatureRing
 from odg_ros.network.sampling import SpatioTemporalSampling, camera_rows_layout
-from odg_ros.rig import ring_cameras, ring_ego2img
+from odg_ros.rig import ring_cameras
 
-from helpers import tiny_config
+from helpers import model_inputs, tiny_config
 
 HW = (64, 176)
 
@@ -143,16 +143,6 @@ def test_frame_index_reads_stored_frames_in_time_order():
                       [camera_rows_layout([f[lv] for f in stored], G) for lv in range(3)],
                       e2i[:, order], warp[:, order], dt[:, order], HW, frame_index=index)
     torch.testing.assert_close(got, expected, rtol=0, atol=1e-10)
-
-
-def model_inputs(cfg, frames, seed=0):
-    g = torch.Generator().manual_seed(seed)
-    images = torch.randn(1, frames, cfg.num_cams, 3, *cfg.image_size, generator=g)
-    e2i = ring_ego2img(cfg.image_size, frames, cfg.num_cams)
-    warp = torch.eye(4).repeat(1, frames, 1, 1)
-    warp[0, :, 0, 3] = torch.arange(frames) * 4.0
-    dt = torch.arange(frames, dtype=torch.float32)[None] * 0.5
-    return images, e2i, warp, dt
 
 
 def assert_outputs_close(a, b, tol):

@@ -13,22 +13,15 @@ from odg_ros.network.outputs import LayerOutput, ODGOutput
 from odg_ros.network.postprocess import box_list, decode_box_code, occupancy_grid
 from odg_ros.rig import ring_ego2img
 
-from helpers import tiny_config
+from helpers import model_inputs, tiny_config
 
 PAPER_GAUSSIANS = {"odg_t": [600, 2400, 9600, 19200, 38400, 76800],
                    "odg_l": [4800, 9600, 19200, 38400, 76800, 76800]}
 
 
 def run(model, cfg, batch=1, frames=None, seed=0, **decode_options):
-    frames = frames or cfg.num_frames
-    g = torch.Generator().manual_seed(seed)
-    H, W = cfg.image_size
-    images = torch.randn(batch, frames, cfg.num_cams, 3, H, W, generator=g)
-    ego2img = ring_ego2img(cfg.image_size, frames, cfg.num_cams, batch)
-    warp = torch.eye(4).repeat(batch, frames, 1, 1)
-    warp[:, :, 0, 3] = torch.arange(frames) * 4.0
-    dt = torch.arange(frames, dtype=torch.float32).repeat(batch, 1) * 0.5
-    return model(images, ego2img, warp, dt, **decode_options), (images, ego2img, warp, dt)
+    inputs = model_inputs(cfg, frames, seed, batch)
+    return model(*inputs, **decode_options), inputs
 
 
 @pytest.mark.parametrize("name", PRESET_NAMES)

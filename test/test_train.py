@@ -8,11 +8,12 @@ import sys
 import pytest
 import torch
 
-from odg_ros.network.checkpoint import load_model
+from odg_ros.network import ODG
+from odg_ros.network.checkpoint import load_model, save_checkpoint
 from odg_ros.train.schedule import warmup_cosine
 from odg_ros.train.trainer import Trainer, TrainOptions
 
-from helpers import tiny_config, write_tiny_checkpoint, write_tiny_split
+from helpers import tiny_config, write_tiny_split
 
 
 @pytest.fixture(scope="module")
@@ -68,11 +69,7 @@ def test_resume_continues_where_it_stopped(split, tmp_path):
 def test_init_from_a_shipped_checkpoint_with_a_smaller_final_point_budget(split, tmp_path):
     """--init takes an int8 shipped file and a final layer with fewer points (grown)."""
     small = tiny_config(num_frames=2)
-    write_tiny_checkpoint(tmp_path / "small.pt", num_frames=2)
-    from odg_ros.network.checkpoint import compress_state
-    payload = torch.load(tmp_path / "small.pt", weights_only=False)
-    payload["model"] = compress_state(payload["model"], "int8")
-    torch.save(payload, tmp_path / "small_int8.pt")
+    save_checkpoint(tmp_path / "small_int8.pt", ODG(small), compress="int8")
     big = small.replace(points_per_layer=small.points_per_layer[:-1] + (16,))
     trainer = Trainer(big, split, options(tmp_path / "run", init_checkpoint=str(
         tmp_path / "small_int8.pt")))
@@ -81,6 +78,7 @@ def test_init_from_a_shipped_checkpoint_with_a_smaller_final_point_budget(split,
     grown = trainer.model.state_dict()[key].view(2, 8, -1)
     assert torch.allclose(grown, reference.state_dict()[key].view(1, 8, -1).expand_as(grown))
     assert trainer.fit()["skipped_steps"] == 0
+
 
 def test_nonfinite_step_is_skipped_counted_and_not_applied(split, tmp_path):
     cfg = tiny_config(num_frames=2)

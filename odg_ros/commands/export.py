@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from ..network.checkpoint import compress_state, decompress_state, load_model, save_checkpoint
+from ..network.checkpoint import compress_state, load_model, load_weights, save_checkpoint
 from ..train.calibrate import DEFAULT_THRESHOLDS, calibrate_score_threshold
 
 
@@ -25,9 +25,8 @@ def run(args) -> int:
     model, cfg = load_model(args.checkpoint)
     report = {"source": str(args.checkpoint), "compression": compress}
     if args.calibrate:
-        # Calibrate the weights as shipped: compression first, then the threshold on them
-        # (load_state_dict casts the fp16 / dequantised tensors back to float32).
-        model.load_state_dict(decompress_state(compress_state(model.state_dict(), compress)))
+        # Calibrate the weights as shipped: compression first, then the threshold on them.
+        load_weights(model, compress_state(model.state_dict(), compress))
         found = calibrate_score_threshold(model, cfg, args.calibrate, args.thresholds,
                                           limit=args.limit)
         model.cfg = cfg = cfg.replace(score_threshold=found["best"])

@@ -123,6 +123,14 @@ def _grow_point_head(key, tensor, fresh, cfg):
     return rows.reshape(fresh.shape)
 
 
+def load_weights(model: ODG, state: dict) -> None:
+    """Load a checkpoint's state (compressed or not, grown where ``model`` is larger, see
+    grow_state_dict) into ``model``, cast to the model's own dtypes."""
+    own = model.state_dict()
+    state = grow_state_dict(decompress_state(state), model)
+    model.load_state_dict({k: v.to(own[k].dtype) if k in own else v for k, v in state.items()})
+
+
 def load_model(path=None, preset: str = "odg_cpu", device="cpu", **overrides):
     """-> (model in eval mode on ``device``, config). ``path`` None: random weights of ``preset``."""
     if path is None:
@@ -132,8 +140,5 @@ def load_model(path=None, preset: str = "odg_cpu", device="cpu", **overrides):
         payload = torch.load(path, map_location="cpu", weights_only=False)
         cfg = ModelConfig(**{**payload["config"], **overrides})
         model = ODG(cfg)
-        own = model.state_dict()
-        state = {k: v.to(own[k].dtype) if k in own else v
-                 for k, v in decompress_state(payload["model"]).items()}
-        model.load_state_dict(state)
+        load_weights(model, payload["model"])
     return model.to(device).eval(), cfg

@@ -30,7 +30,7 @@ from ..data.dataset import OccDataset
 from ..losses.criterion import ODGCriterion
 from ..network import ODG
 from ..network.backbone import load_torchvision_state_dict
-from ..network.checkpoint import decompress_state, grow_state_dict, save_checkpoint
+from ..network.checkpoint import load_weights, save_checkpoint
 from .schedule import warmup_cosine
 
 log = logging.getLogger(__name__)
@@ -136,9 +136,7 @@ class Trainer:
             load_torchvision_state_dict(self.model.backbone, opts.backbone_weights)
         if opts.init_checkpoint:
             payload = torch.load(opts.init_checkpoint, map_location="cpu", weights_only=False)
-            own = self.model.state_dict()
-            state = grow_state_dict(decompress_state(payload["model"]), self.model)
-            self.model.load_state_dict({k: v.to(own[k].dtype) for k, v in state.items()})
+            load_weights(self.model, payload["model"])
         self.model.to(self.device)
         self.optimizer = torch.optim.AdamW(parameter_groups(self.model, opts), lr=opts.lr,
                                            weight_decay=opts.weight_decay)
