@@ -5,6 +5,7 @@ import json
 
 import torch
 
+from ..metrics.detection import format_detection
 from ..metrics.score import format_table
 from ..network.checkpoint import load_model
 from ..train.evaluate import evaluate
@@ -33,4 +34,6 @@ def run(args) -> int:
     else:
         print(format_table(result))
         print(f"mIoU over the dynamic classes: {result['mIoU_dynamic']}")
+        if "boxes" in result:
+            print(format_detection(result["boxes"]))
     return 0

@@ -6,7 +6,7 @@ import json
 from pathlib import Path
 
 from ..network.checkpoint import compress_state, load_model, load_weights, save_checkpoint
-from ..train.calibrate import DEFAULT_THRESHOLDS, calibrate_score_threshold
+from ..train.calibrate import DEFAULT_THRESHOLDS, calibrate_thresholds
 
 
 def add_arguments(parser):
@@ -15,7 +15,8 @@ def add_arguments(parser):
     parser.add_argument("--compress", choices=("none", "fp16", "int8"), default="int8",
                         help="weight storage (int8: per-output-channel scales, ~4x smaller)")
     parser.add_argument("--calibrate", default=None, metavar="INFOS",
-                        help="choose score_threshold by mIoU on this split (training keyframes)")
+                        help="choose score_threshold by mIoU and box_score_threshold by F1 on "
+                             "this split (training keyframes)")
     parser.add_argument("--limit", type=int, default=None, help="calibration keyframes")
     parser.add_argument("--thresholds", type=float, nargs="+", default=list(DEFAULT_THRESHOLDS))
 
@@ -27,12 +28,16 @@ def run(args) -> int:
     if args.calibrate:
         # Calibrate the weights as shipped: compression first, then the threshold on them.
         load_weights(model, compress_state(model.state_dict(), compress))
-        found = calibrate_score_threshold(model, cfg, args.calibrate, args.thresholds,
-                                          limit=args.limit)
-        model.cfg = cfg = cfg.replace(score_threshold=found["best"])
+        found = calibrate_thresholds(model, cfg, args.calibrate, args.thresholds,
+                                     limit=args.limit)
+        cfg = cfg.replace(score_threshold=found["best"])
+        if found["box"] is not None:
+            cfg = cfg.replace(box_score_threshold=found["box"]["threshold"])
+        model.cfg = cfg
         report.update(calibration=str(args.calibrate), calibration_samples=found["samples"],
-                      mIoU_by_threshold=found["mIoU"])
+                      mIoU_by_threshold=found["mIoU"], box_f1=found["box"])
     report["score_threshold"] = cfg.score_threshold
+    report["box_score_threshold"] = cfg.box_score_threshold
     save_checkpoint(args.out, model, extra={"export": report}, compress=compress)
     report["bytes"] = Path(args.out).stat().st_size
     print(json.dumps(report, indent=2))

@@ -1,4 +1,5 @@
-"""Run a model over a split and score it (mIoU with the camera mask, RayIoU, per class)."""
+"""Run a model over a split and score it (mIoU with the camera mask, RayIoU, per class; the
+dynamic queries' boxes by nuScenes-style mAP)."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -10,9 +11,10 @@ from tqdm import tqdm
 from ..classes import DYNAMIC_OCC_CLASSES
 from ..data.batch import collate
 from ..data.dataset import OccDataset
+from ..metrics.detection import DetectionScore
 from ..metrics.rayiou import LidarOrigins
 from ..metrics.score import OccScore
-from ..network.postprocess import occupancy_grid
+from ..network.postprocess import box_list, occupancy_grid
 from .trainer import to_device
 
 
@@ -21,6 +23,25 @@ def dynamic_class_miou(result: dict) -> float | None:
     values = [result["per_class"][c]["IoU"] for c in DYNAMIC_OCC_CLASSES
               if result["per_class"].get(c, {}).get("IoU") is not None]
     return round(float(np.mean(values)), 2) if values else None
+
+
+def add_box_sample(score: DetectionScore, output, batch, cfg) -> None:
+    """All of the sample's predicted boxes (no score threshold: AP ranks them) and its GT
+    boxes, both kept where their centre lies inside the grid's x-y range."""
+    x_min, y_min, _, x_max, y_max, _ = cfg.pc_range
+
+    def inside(centres):
+        return ((centres[:, 0] >= x_min) & (centres[:, 0] < x_max)
+                & (centres[:, 1] >= y_min) & (centres[:, 1] < y_max))
+
+    boxes = box_list(output, cfg, score_threshold=0.0)[0]
+    centres = np.array([b["center"] for b in boxes], dtype=np.float64).reshape(-1, 3)
+    labels = np.array([b["label"] for b in boxes], dtype=np.int64)
+    scores = np.array([b["score"] for b in boxes], dtype=np.float64)
+    gt = batch["gt_boxes"][0].cpu().numpy().astype(np.float64).reshape(-1, 9)
+    gt_labels = batch["gt_labels"][0].cpu().numpy()
+    keep, keep_gt = inside(centres), inside(gt)
+    score.add(centres[keep], labels[keep], scores[keep], gt[keep_gt], gt_labels[keep_gt])
 
 
 @torch.no_grad()
@@ -48,6 +69,7 @@ def evaluate(model, cfg, infos, occ_root=None, save_pred: str | None = None, dev
     data_cfg = cfg if frames is None else cfg.replace(num_frames=frames)
     dataset = OccDataset(infos, data_cfg, occ_root=occ_root, train=False)
     score = OccScore(dataset.dataset, rayiou=rayiou)
+    boxes = DetectionScore() if cfg.num_dynamic else None
     origins = LidarOrigins(dataset.infos) if rayiou else None
     if save_pred:
         Path(save_pred).mkdir(parents=True, exist_ok=True)
@@ -56,6 +78,8 @@ def evaluate(model, cfg, infos, occ_root=None, save_pred: str | None = None, dev
         grid = occupancy_grid(output, cfg)[0][0].cpu().numpy()
         if save_pred:
             np.savez_compressed(Path(save_pred) / f"{batch['token'][0]}.npz", semantics=grid)
+        if boxes is not None:
+            add_box_sample(boxes, output, batch, cfg)
         if not batch["has_occ"][0]:
             continue
         score.add(grid, batch["occ_semantics"][0].cpu().numpy(),
@@ -63,4 +87,6 @@ def evaluate(model, cfg, infos, occ_root=None, save_pred: str | None = None, dev
                   origins(index) if origins is not None else None)
     result = score.result()
     result["mIoU_dynamic"] = dynamic_class_miou(result)
+    if boxes is not None:
+        result["boxes"] = boxes.result()
     return result
