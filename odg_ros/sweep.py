@@ -5,9 +5,9 @@ sampling path) the online step of the node runs over ``limit`` samples spread ev
 split: the older frames' features are computed first (the node has them cached), then the
 step -- backbone on the newest set, decoder over the cached history, grid + boxes -- is timed
 ``repeats`` times per sample after ``warmup`` steps, and its grid is scored (mIoU with the
-camera mask, RayIoU, mIoU over the moving classes). The configurations take turns step by
-step in one process (a random order each round), so a shared machine that gets busier during
-the sweep slows all of them alike. Reported per configuration: median latency per stage, per
+camera mask, RayIoU, mIoU over the moving classes) and its boxes (mAP, ``metrics.detection``).
+The configurations take turns step by step in one process (a random order each round), so a
+shared machine that gets busier during the sweep slows all of them alike. Reported per configuration: median latency per stage, per
 decoder layer and per part of a layer, FPS, peak memory, the scores, and the same on the
 quietest and the busiest quarter of the samples (fewest / most occupied GT voxels in the
 camera mask), so adaptive inference can be judged where it should help.
@@ -220,6 +220,7 @@ class ConfigRun:
     """One configuration during the measurement: its model, online step, timers, scores."""
 
     def __init__(self, config: SweepConfig, job: dict):
+        from .metrics.detection import DetectionScore
         from .metrics.score import OccScore
         from .network.decoder import PruneRule
 
@@ -234,6 +235,8 @@ class ConfigRun:
                                prune=prune, precision=config.precision)
         self.scores = {name: OccScore(job["dataset"], rayiou=job.get("rayiou", True))
                        for name in SUBSETS}
+        self.box_scores = {name: DetectionScore() for name in SUBSETS} \
+            if self.cfg.num_dynamic else None
         self.timer, self.per_sample, self.error = StageTimer(self.device), [], None
         self.history = self.sample_timer = self.output = self.grid = None
 
@@ -264,6 +267,11 @@ class ConfigRun:
                                 "queries_last_layer": int(last.means.shape[1]),
                                 "gaussians_last_layer": int(last.means.shape[1]
                                                             * last.means.shape[2])})
+        if self.box_scores is not None:
+            from .train.evaluate import add_box_sample
+            for name in SUBSETS:
+                if index in members[name]:
+                    add_box_sample(self.box_scores[name], self.output, self.batch, self.cfg)
         if self.batch["has_occ"][0]:
             pred = self.grid[0].cpu().numpy()
             gt = self.batch["occ_semantics"][0].cpu().numpy()
@@ -281,7 +289,8 @@ class ConfigRun:
                **summarise(self.timer, self.cfg.num_layers), "per_sample": self.per_sample}
         for name in SUBSETS:
             out["scores" if name == "all" else name] = subset_result(
-                self.scores[name], self.per_sample, members[name])
+                self.scores[name], self.box_scores and self.box_scores[name], self.per_sample,
+                members[name])
         return out
 
 
@@ -382,7 +391,7 @@ def probe_memory(job: dict) -> dict:
             if torch.device(job["device"]).type == "cpu" else None}
 
 
-def subset_result(score, per_sample, members) -> dict:
+def subset_result(score, box_score, per_sample, members) -> dict:
     rows = [r for r in per_sample if r["index"] in members]
     out = {"samples": len(rows)}
     if rows:
@@ -394,6 +403,8 @@ def subset_result(score, per_sample, members) -> dict:
         res = score.result()
         out.update({k: res.get(k) for k in ("mIoU", "RayIoU", "IoU_geometry")})
         out["mIoU_dynamic"] = dynamic_class_miou(res)
+    if box_score is not None and box_score.samples:
+        out["box_mAP"] = box_score.result()["mAP"]
     return out
 
 
@@ -584,7 +595,7 @@ def run_sweep(data, checkpoint=None, preset: str = "odg_cpu", device: str = "cpu
 # ------------------------------------------------------------------------ report
 def format_table(report: dict) -> str:
     lines = [f"{'config':<16} {'FPS':>6} {'total':>8} {'backbone':>8} {'decoder':>8} "
-             f"{'post':>6} {'mem MB':>7} {'mIoU':>6} {'RayIoU':>6} {'mIoU_dyn':>8} "
+             f"{'post':>6} {'mem MB':>7} {'mIoU':>6} {'RayIoU':>6} {'mIoU_dyn':>8} {'box mAP':>7} "
              f"{'quiet ms':>8} {'busy ms':>8} {'Q last':>6}"]
     cell = lambda v, f="{:.2f}": "-" if v is None else f.format(v)  # noqa: E731
     for r in report["configs"]:
@@ -598,7 +609,7 @@ def format_table(report: dict) -> str:
             f"{cell(lat['backbone'], '{:.1f}'):>8} {cell(lat['decoder'], '{:.1f}'):>8} "
             f"{cell(lat['postprocess'], '{:.1f}'):>6} {cell(r['peak_memory_mb'], '{:.0f}'):>7} "
             f"{cell(s.get('mIoU')):>6} {cell(s.get('RayIoU')):>6} "
-            f"{cell(s.get('mIoU_dynamic')):>8} "
+            f"{cell(s.get('mIoU_dynamic')):>8} {cell(s.get('box_mAP')):>7} "
             f"{cell(r['quiet'].get('latency_ms'), '{:.1f}'):>8} "
             f"{cell(r['busy'].get('latency_ms'), '{:.1f}'):>8} "
             f"{cell(s.get('queries_last_layer'), '{:.0f}'):>6}")

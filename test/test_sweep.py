@@ -182,7 +182,7 @@ def test_sweep_writes_json_and_png_with_every_measure(tiny_split, tmp_path):
         assert "error" not in c, c.get("traceback")
         assert set(c["latency_ms"]) >= {"backbone", "decoder", "postprocess", "total"}
         assert len(c["decoder_layers_ms"]) == 6 and c["fps"] > 0 and c["peak_memory_mb"] > 0
-        for key in ("mIoU", "RayIoU", "mIoU_dynamic", "IoU_geometry", "latency_ms"):
+        for key in ("mIoU", "RayIoU", "mIoU_dynamic", "IoU_geometry", "latency_ms", "box_mAP"):
             assert key in c["scores"]
         assert c["quiet"]["samples"] == 1 and c["busy"]["samples"] == 1
         assert len(c["per_sample"]) == 2
@@ -205,6 +205,7 @@ def test_sweep_scores_equal_offline_evaluation(tiny_split):
     got = report["configs"][0]["scores"]
     for key in ("mIoU", "RayIoU", "IoU_geometry"):
         assert got[key] == expected[key], key
+    assert got["box_mAP"] == expected["boxes"]["mAP"]
 
 
 def test_sweep_in_a_fresh_process_reports_its_own_peak_memory(tiny_split):
