@@ -4,6 +4,8 @@ The world: one scene, keyframes every 6th 12 Hz camera set (0.5 s), the ego driv
 SPEED m/s; camera n of a set is stamped 7 + 8 n ms after the set (LiDAR) time, with its own ego
 pose, as in nuScenes. Every camera image is a solid colour that encodes (set, camera).
 """
+import copy
+
 import numpy as np
 import pytest
 import torch
@@ -146,6 +148,20 @@ def hand_pixel(point_ego_cam_stamp):
 
 
 # --------------------------------------------------------------------------- contract
+def test_gt_boxes_outside_the_grid_are_dropped(world):
+    """The infos keep objects out to the annotation range; the grid (and every query) ends
+    at +-40 m, so only boxes whose centre is inside [x_min, x_max) x [y_min, y_max) stay."""
+    infos = copy.deepcopy(world)
+    boxes = np.tile(infos["infos"][2]["gt_boxes"], (5, 1))
+    boxes[:, :2] = [[10.0, 2.0], [45.0, 0.0], [39.9, -40.0], [0.0, 40.0], [-40.5, 3.0]]
+    infos["infos"][2].update(gt_boxes=boxes, gt_labels=np.array([0, 1, 5, 8, 9]))
+    s = OccDataset(infos, cfg())[2]
+    np.testing.assert_allclose(s["gt_boxes"][:, :2].numpy(), [[10.0, 2.0], [39.9, -40.0]])
+    assert s["gt_labels"].tolist() == [0, 5]
+    np.testing.assert_array_equal(geometry.inside_bev_range(boxes, cfg().pc_range),
+                                  [True, False, True, False, False])
+
+
 def test_shapes_and_dtypes(world):
     ds = OccDataset(world, cfg())
     assert len(ds) == 3

@@ -119,6 +119,7 @@ class OccDataset(torch.utils.data.Dataset):
     occ_root            folder the keyframes' ``occ_path`` are relative to
                         (default: infos' ``occ_root`` under dataroot, else ``<dataroot>/gts``)
     train               random history interval (module docstring); no other change
+    GT boxes: only those whose centre lies inside the grid's x-y range are kept.
     dataroot            overrides the infos' ``dataroot`` (data moved to another disk)
     """
 
@@ -289,6 +290,11 @@ class OccDataset(torch.utils.data.Dataset):
         if len(gt_labels) != len(gt_boxes):
             raise ValueError(f"keyframe {info['token']}: {len(gt_boxes)} boxes, "
                              f"{len(gt_labels)} labels")
+        # Only the objects inside the grid's x-y range (mmdet3d's ObjectRangeFilter in the
+        # SparseBEV / OPUS pipelines): the queries live in the grid, farther boxes (the infos
+        # keep them up to the annotation range) would be targets no query can reach.
+        inside = geometry.inside_bev_range(gt_boxes, self.cfg.pc_range)
+        gt_boxes, gt_labels = gt_boxes[inside], gt_labels[inside]
         return {
             "images": preprocess.normalize(torch.from_numpy(images)),
             "ego2img": torch.from_numpy(ego2img).float(),

@@ -11,6 +11,7 @@ from tqdm import tqdm
 from ..classes import DYNAMIC_OCC_CLASSES
 from ..data.batch import collate
 from ..data.dataset import OccDataset
+from ..geometry import inside_bev_range
 from ..metrics.detection import DetectionScore
 from ..metrics.rayiou import LidarOrigins
 from ..metrics.score import OccScore
@@ -26,22 +27,15 @@ def dynamic_class_miou(result: dict) -> float | None:
 
 
 def add_box_sample(score: DetectionScore, output, batch, cfg) -> None:
-    """All of the sample's predicted boxes (no score threshold: AP ranks them) and its GT
-    boxes, both kept where their centre lies inside the grid's x-y range."""
-    x_min, y_min, _, x_max, y_max, _ = cfg.pc_range
-
-    def inside(centres):
-        return ((centres[:, 0] >= x_min) & (centres[:, 0] < x_max)
-                & (centres[:, 1] >= y_min) & (centres[:, 1] < y_max))
-
+    """All of the sample's predicted boxes (no score threshold: AP ranks them) whose centre
+    lies inside the grid's x-y range, against its GT boxes (the dataset keeps those inside)."""
     boxes = box_list(output, cfg, score_threshold=0.0)[0]
     centres = np.array([b["center"] for b in boxes], dtype=np.float64).reshape(-1, 3)
     labels = np.array([b["label"] for b in boxes], dtype=np.int64)
     scores = np.array([b["score"] for b in boxes], dtype=np.float64)
-    gt = batch["gt_boxes"][0].cpu().numpy().astype(np.float64).reshape(-1, 9)
-    gt_labels = batch["gt_labels"][0].cpu().numpy()
-    keep, keep_gt = inside(centres), inside(gt)
-    score.add(centres[keep], labels[keep], scores[keep], gt[keep_gt], gt_labels[keep_gt])
+    keep = inside_bev_range(centres, cfg.pc_range)
+    score.add(centres[keep], labels[keep], scores[keep], batch["gt_boxes"][0].cpu().numpy(),
+              batch["gt_labels"][0].cpu().numpy())
 
 
 @torch.no_grad()
