@@ -92,41 +92,30 @@ class DetectionScore:
         gt = _check(gt_boxes, gt_labels, what="GT boxes")
         self.samples.append((pred, gt))
 
-    def class_ap(self, label: int, threshold: float) -> float | None:
-        """AP of one class at one distance threshold; None without GT of that class."""
-        num_gt = sum(int((gt[1] == label).sum()) for _, gt in self.samples)
-        if num_gt == 0:
-            return None
-        scores, matched, position = [], [], []
+    def _class_matches(self, label: int, threshold: float):
+        """Every prediction of class ``label``: (scores [N], true positive at ``threshold`` m
+        [N], position [N]), each sample's predictions in the devkit's order -- score
+        descending, ties by the later box first; position: the box's index over all samples
+        (samples in order, boxes in order), the devkit's tie-break across samples."""
+        scores, matched, position = [np.zeros(0)], [np.zeros(0, bool)], [np.zeros(0, int)]
         offset = 0
         for (boxes, labels, pred_scores), (gt_boxes, gt_labels) in self.samples:
             mine = np.flatnonzero(labels == label)
-            # the devkit's order: score descending, ties by the later box first (its global
-            # position: samples in order, boxes in order)
             order = mine[np.lexsort((-mine, -pred_scores[mine]))]
             scores.append(pred_scores[order])
             position.append(offset + order)
             matched.append(greedy_match(boxes[order][:, :2],
                                         gt_boxes[gt_labels == label][:, :2], threshold))
             offset += len(labels)
-        scores, matched = np.concatenate(scores), np.concatenate(matched)
-        order = np.lexsort((-np.concatenate(position), -scores))
-        return average_precision(matched[order], num_gt)
+        return np.concatenate(scores), np.concatenate(matched), np.concatenate(position)
 
-    def _matches(self, threshold: float) -> tuple[np.ndarray, np.ndarray]:
-        """Every prediction's score and whether it is a true positive at ``threshold`` m
-        (class by class, greedy in score order) -> (scores [N], matched [N])."""
-        scores, matched = [], []
-        for (boxes, labels, pred_scores), (gt_boxes, gt_labels) in self.samples:
-            for label in np.unique(labels):
-                mine = np.flatnonzero(labels == label)
-                order = mine[np.argsort(-pred_scores[mine], kind="stable")]
-                scores.append(pred_scores[order])
-                matched.append(greedy_match(boxes[order][:, :2],
-                                            gt_boxes[gt_labels == label][:, :2], threshold))
-        if not scores:
-            return np.zeros(0), np.zeros(0, dtype=bool)
-        return np.concatenate(scores), np.concatenate(matched)
+    def class_ap(self, label: int, threshold: float) -> float | None:
+        """AP of one class at one distance threshold; None without GT of that class."""
+        num_gt = sum(int((gt[1] == label).sum()) for _, gt in self.samples)
+        if num_gt == 0:
+            return None
+        scores, matched, position = self._class_matches(label, threshold)
+        return average_precision(matched[np.lexsort((-position, -scores))], num_gt)
 
     def best_f1_threshold(self, distance: float = 2.0) -> dict:
         """The box score threshold that maximises F1 (all classes pooled, true positive = right
@@ -135,7 +124,9 @@ class DetectionScore:
         A greedy match in score order does not depend on the lower-scored boxes, so each
         prefix of the order is exactly what a threshold keeps."""
         num_gt = sum(len(gt[1]) for _, gt in self.samples)
-        scores, matched = self._matches(distance)
+        per_class = [self._class_matches(label, distance) for label in range(len(BOX_CLASSES))]
+        scores = np.concatenate([c[0] for c in per_class])
+        matched = np.concatenate([c[1] for c in per_class])
         order = np.argsort(-scores, kind="stable")
         scores, matched = scores[order], matched[order]
         tp = np.cumsum(matched)
