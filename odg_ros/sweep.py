@@ -416,33 +416,36 @@ def _isolated(function, job: dict) -> dict:
 
 
 # ------------------------------------------------------------------------ the whole sweep
-def pareto_front(points: list[tuple[float, float]], decimals: int | None = None) -> list[int]:
-    """Indices of the points no other point beats in both coordinates (higher is better in
-    both, e.g. (FPS, mIoU)); equal points are all kept; None / NaN coordinates are out.
-    decimals: compare at the precision the report prints, so that float noise between two
-    paths computing the same grid (plain vs fast path: 3e-4 mIoU) does not keep the slower
-    one on the front."""
+PARETO_TOLERANCE = 0.02   # score points: float noise between paths computing the same grid
+
+
+def pareto_front(points: list[tuple[float, float]], tolerance: float = 0.0) -> list[int]:
+    """Indices of the points no other point beats (higher is better in both coordinates, e.g.
+    (FPS, mIoU)); equal points are all kept; None / NaN coordinates are out. A point beats
+    another when it is at least as fast, at most ``tolerance`` worse in the score, and faster
+    or more than ``tolerance`` better: float noise between two paths computing the same grid
+    (plain vs fast path: 3e-4 to 3e-3 mIoU) must not keep the slower one on the front."""
     valid = [i for i, p in enumerate(points)
              if p[0] is not None and p[1] is not None and np.isfinite(p).all()]
-    compared = {i: tuple(round(v, decimals) if decimals is not None else v for v in points[i])
-                for i in valid}
     front = []
     for i in valid:
-        xi, yi = compared[i]
-        dominated = any(xj >= xi and yj >= yi and (xj > xi or yj > yi)
-                        for xj, yj in compared.values())
+        xi, yi = points[i]
+        dominated = any(points[j][0] >= xi and points[j][1] >= yi - tolerance
+                        and (points[j][0] > xi or points[j][1] > yi + tolerance)
+                        for j in valid)
         if not dominated:
             front.append(i)
     return sorted(front, key=lambda i: points[i][0])
 
 
 def pareto_report(results: list[dict]) -> dict:
-    """{metric: config names on the (FPS, metric) front}, at the table's 2 decimals; configs
-    with random weights only when nothing else ran (their scores mean nothing)."""
+    """{metric: config names on the (FPS, metric) front}, scores compared within
+    PARETO_TOLERANCE; configs with random weights only when nothing else ran (their scores
+    mean nothing)."""
     ok = [r for r in results if "error" not in r]
     trusted = [r for r in ok if not r["random_weights"]] or ok
     return {metric: [trusted[i]["config"]["name"] for i in pareto_front(
-        [(r["fps"], r["scores"].get(metric)) for r in trusted], decimals=2)]
+        [(r["fps"], r["scores"].get(metric)) for r in trusted], PARETO_TOLERANCE)]
         for metric in ("mIoU", "RayIoU")}
 
 
