@@ -7,10 +7,11 @@ step -- backbone on the newest set, decoder over the cached history, grid + boxe
 ``repeats`` times per sample after ``warmup`` steps, and its grid is scored (mIoU with the
 camera mask, RayIoU, mIoU over the moving classes) and its boxes (mAP, ``metrics.detection``).
 The configurations take turns step by step in one process (a random order each round), so a
-shared machine that gets busier during the sweep slows all of them alike. Reported per configuration: median latency per stage, per
-decoder layer and per part of a layer, FPS, peak memory, the scores, and the same on the
-quietest and the busiest quarter of the samples (fewest / most occupied GT voxels in the
-camera mask), so adaptive inference can be judged where it should help.
+shared machine that gets busier during the sweep slows all of them alike. Reported per
+configuration: median latency per stage, per decoder layer and per part of a layer, FPS, peak
+memory, the scores, and the same on the quietest and the busiest quarter of the samples
+(fewest / most occupied GT voxels in the camera mask), so adaptive inference can be judged
+where it should help.
 
 Peak memory: every configuration also runs alone in a fresh process (``isolate``: model,
 first sample, its history, warm-up + 1 step) and reports its peak resident set size
@@ -41,7 +42,7 @@ import torch
 from tqdm import tqdm
 
 from .benchmark import DecoderHooks, OnlineStep, StageTimer, peak_memory_mb, summarise
-from .train.evaluate import dynamic_class_miou
+from .train.evaluate import add_box_sample, dynamic_class_miou
 
 # Pruning thresholds relative to the checkpoint's own occupancy score threshold: at 1.0 a
 # query is dropped when none of its points would reach the grid at that layer; 0.5 is
@@ -268,7 +269,6 @@ class ConfigRun:
                                 "gaussians_last_layer": int(last.means.shape[1]
                                                             * last.means.shape[2])})
         if self.box_scores is not None:
-            from .train.evaluate import add_box_sample
             for name in SUBSETS:
                 if index in members[name]:
                     add_box_sample(self.box_scores[name], self.output, self.batch, self.cfg)
@@ -289,8 +289,8 @@ class ConfigRun:
                **summarise(self.timer, self.cfg.num_layers), "per_sample": self.per_sample}
         for name in SUBSETS:
             out["scores" if name == "all" else name] = subset_result(
-                self.scores[name], self.box_scores and self.box_scores[name], self.per_sample,
-                members[name])
+                self.scores[name], self.box_scores[name] if self.box_scores else None,
+                self.per_sample, members[name])
         return out
 
 

@@ -119,8 +119,9 @@ class OccDataset(torch.utils.data.Dataset):
     occ_root            folder the keyframes' ``occ_path`` are relative to
                         (default: infos' ``occ_root`` under dataroot, else ``<dataroot>/gts``)
     train               random history interval (module docstring); no other change
-    GT boxes: only those whose centre lies inside the grid's x-y range are kept.
     dataroot            overrides the infos' ``dataroot`` (data moved to another disk)
+
+    GT boxes: only those whose centre lies inside the grid's x-y range are kept.
     """
 
     def __init__(self, infos_path_or_dict, cfg: ModelConfig, occ_root=None, train: bool = False,

@@ -127,15 +127,14 @@ class DetectionScore:
         per_class = [self._class_matches(label, distance) for label in range(len(BOX_CLASSES))]
         scores = np.concatenate([c[0] for c in per_class])
         matched = np.concatenate([c[1] for c in per_class])
+        if not matched.any():
+            return {"threshold": 1.0, "precision": None, "recall": 0.0, "f1": 0.0}
         order = np.argsort(-scores, kind="stable")
         scores, matched = scores[order], matched[order]
         tp = np.cumsum(matched)
-        f1 = 2 * tp / (np.arange(1, len(scores) + 1) + max(num_gt, 1))
+        f1 = 2 * tp / (np.arange(1, len(scores) + 1) + num_gt)
         # a cut is only possible where the next score is lower (equal scores go together)
-        cut = np.append(scores[1:] < scores[:-1], True) if len(scores) else np.zeros(0, bool)
-        f1 = np.where(cut, f1, -1.0)
-        if not len(scores) or tp[-1] == 0:
-            return {"threshold": 1.0, "precision": None, "recall": 0.0, "f1": 0.0}
+        f1 = np.where(np.append(scores[1:] < scores[:-1], True), f1, -1.0)
         best = int(np.argmax(f1))       # the first maximum: the higher threshold on ties
         below = scores[best + 1] if best + 1 < len(scores) else 0.0
         return {"threshold": float(scores[best] + below) / 2,
