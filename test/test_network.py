@@ -199,23 +199,27 @@ def test_online_inputs_geometry_is_consistent():
     assert e2i.shape == (1, 3, 6, 4, 4) and warp.shape == (1, 3, 4, 4) and dt.shape == (1, 3)
 
 
-def test_adaptive_pruning_drops_empty_queries_and_keeps_confident_ones():
+def test_adaptive_pruning_drops_empty_queries_and_dynamic_queries_without_object():
     from odg_ros.network.decoder import PruneRule
     cfg = tiny_config()
     model = ODG(cfg).eval()
     _, inputs = run(model, cfg)
     with torch.no_grad():
         full = model(*inputs)
-        keep_hook = {}  # scores forced so exactly queries 0 (dynamic) and 10 (static) survive
+        # scores forced so exactly queries 0 (dynamic, an object) and 10 (static, occupied)
+        # survive; dynamic query 1 has confident points but no object
+        keep_hook = {}
         original = PruneRule.keep
 
         def keep(self, logits, box_logits, num_dynamic):
-            logits = logits.clone().fill_(-8.0)
+            logits, box_logits = logits.clone().fill_(-8.0), box_logits.clone().fill_(-8.0)
             if "kept" in keep_hook:  # later layers: the two survivors stay
                 logits.fill_(5.0)
+                box_logits.fill_(5.0)
             else:
-                logits[:, [0, 10]] = 5.0
-            kept = original(self, logits, box_logits.clone().fill_(-8.0), num_dynamic)
+                logits[:, [1, 10]] = 5.0
+                box_logits[:, 0, 3] = 5.0
+            kept = original(self, logits, box_logits, num_dynamic)
             keep_hook.setdefault("kept", kept)
             return kept
         PruneRule.keep = keep

@@ -140,11 +140,12 @@ class Decoder(nn.Module):
 
 
 class PruneRule:
-    """Adaptive inference: after layer ``after_layer``, drop the queries whose best point
-    score is below ``threshold`` (empty space) and the dynamic queries whose box score is
-    also below it (no object), so later, denser layers only refine what the scene has.
-    A query is kept if any sample of the batch needs it (tensors stay dense); the best
-    query is always kept, so an empty scene never leaves the later layers with no query."""
+    """Adaptive inference: after layer ``after_layer``, drop the static queries whose best
+    point score is below ``threshold`` (empty space) and the dynamic queries whose box score
+    is below it (no object: their points would only repeat the static set's ground), so the
+    later, denser layers only refine what the scene has. A query is kept if any sample of
+    the batch needs it (tensors stay dense); the best query is always kept, so an empty
+    scene never leaves the later layers with no query."""
 
     def __init__(self, threshold: float = 0.05, after_layer: int = 2):
         self.threshold = threshold
@@ -156,8 +157,7 @@ class PruneRule:
         score = logits.float().amax(dim=(2, 3)).sigmoid()                  # [B, Q]
         if box_logits is not None and num_dynamic:
             box_score = box_logits.float().amax(dim=-1).sigmoid()          # [B, D]
-            score = torch.cat([torch.maximum(score[:, :num_dynamic], box_score),
-                               score[:, num_dynamic:]], dim=1)
+            score = torch.cat([box_score, score[:, num_dynamic:]], dim=1)
         keep = score > self.threshold
         keep[:, score.amax(dim=0).argmax()] = True
         return keep.any(dim=0).nonzero().squeeze(1)
