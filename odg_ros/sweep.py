@@ -641,10 +641,14 @@ def plot_sweep(report: dict, path) -> None:
     ok = [r for r in report["configs"] if "error" not in r]
     fig, axes = plt.subplots(1, 3, figsize=(19, 6.2),
                              gridspec_kw={"width_ratios": [1, 1, 1.25]})
+    # one colour per configuration (a legend instead of labels next to the points: nearby
+    # configurations' labels overlap); the Pareto front gets a black edge and the line
+    # (tab20's dark shades first: 10 distinct hues before any light twin)
+    colours = {r["config"]["name"]: plt.get_cmap("tab20")((2 * i) % 20 + (i // 10) % 2)
+               for i, r in enumerate(ok)}
     for ax, metric in zip(axes[:2], ("mIoU", "RayIoU")):
         front = set(report["pareto"].get(metric, []))
         xs, ys = [], []
-        labels = {}   # configurations on (nearly) the same spot share one label
         for r in ok:
             value = r["scores"].get(metric)
             if value is None:
@@ -652,25 +656,21 @@ def plot_sweep(report: dict, path) -> None:
             name = r["config"]["name"]
             on_front = name in front
             marker = "*" if r["config"]["prune"] is not None else "o"
+            label = name + (" (Pareto front)" if on_front else "")
             if r.get("random_weights") and not meta["random_weights"]:
-                marker, name = "x", name + " (random weights)"
-            ax.scatter(r["fps"], value, s=60 if on_front else 35, zorder=3, marker=marker,
-                       color="tab:red" if on_front else "tab:blue")
-            spot = (round(r["fps"], 1), round(value, 1))
-            labels.setdefault(spot, ((r["fps"], value), []))[1].append(name)
+                marker, label = "x", label + " (random weights)"
+            ax.scatter(r["fps"], value, s=110 if on_front else 55, zorder=3, marker=marker,
+                       color=colours[name], edgecolors="black" if on_front else "none",
+                       linewidths=1.2, label=label)
             if on_front:
                 xs.append(r["fps"])
                 ys.append(value)
-        for index, (xy, group) in enumerate(labels.values()):
-            ax.annotate("\n".join(group), xy, textcoords="offset points", fontsize=7,
-                        xytext=(5, 3 - 8 * (len(group) - 1) * (index % 2)),
-                        va="bottom" if index % 2 == 0 else "top")
         ax.margins(x=0.12, y=0.12)
         if xs:
             order = np.argsort(xs)
             ax.plot(np.array(xs)[order], np.array(ys)[order], "--", color="tab:red",
                     label="Pareto front", zorder=2)
-            ax.legend(loc="best", fontsize=8)
+        ax.legend(loc="best", fontsize=7, ncol=2)
         ax.set_xlabel("FPS (online step: backbone + decoder + post-processing)")
         ax.set_ylabel(f"{metric} (%)")
         ax.grid(alpha=0.3)
