@@ -660,7 +660,7 @@ def plot_sweep(report: dict, path) -> None:
             if r.get("random_weights") and not meta["random_weights"]:
                 marker, label = "x", label + " (random weights)"
             ax.scatter(r["fps"], value, s=110 if on_front else 55, zorder=3, marker=marker,
-                       color=colours[name], edgecolors="black" if on_front else "none",
+                       color=colours[name], edgecolors="black" if on_front else None,
                        linewidths=1.2, label=label)
             if on_front:
                 xs.append(r["fps"])
