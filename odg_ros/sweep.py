@@ -45,8 +45,9 @@ from .benchmark import DecoderHooks, OnlineStep, StageTimer, peak_memory_mb, sum
 from .train.evaluate import add_box_sample, dynamic_class_miou
 
 # Pruning thresholds relative to the checkpoint's own occupancy score threshold: at 1.0 a
-# query is dropped when none of its points would reach the grid at that layer; 0.5 is
-# cautious (queries that may still rise stay), 1.5 aggressive.
+# static query is dropped when none of its points would reach the grid at that layer (a
+# dynamic query: when its box score is as low); 0.5 is cautious (queries that may still
+# rise stay), 1.5 aggressive.
 PRUNE_FACTORS = (0.5, 1.0, 1.5)
 SUBSETS = ("all", "quiet", "busy")
 

@@ -252,4 +252,3 @@ def test_a_failing_configuration_is_reported_not_fatal(tiny_split):
     with pytest.raises(RuntimeError, match="every sweep configuration failed"):
         run_sweep(data, checkpoint, configs=[SweepConfig("too-long", frames=9)], limit=1,
                   repeats=1, warmup=0, isolate=False, progress=False)
-

@@ -143,9 +143,9 @@ class PruneRule:
     """Adaptive inference: after layer ``after_layer``, drop the static queries whose best
     point score is below ``threshold`` (empty space) and the dynamic queries whose box score
     is below it (no object; their points go with them, which costs grid accuracy where they
-    also covered surfaces), so the later, denser layers only refine what the scene has. A query is kept if any sample of
-    the batch needs it (tensors stay dense); the best query is always kept, so an empty
-    scene never leaves the later layers with no query."""
+    also covered surfaces), so the later, denser layers only refine what the scene has.
+    A query is kept if any sample of the batch needs it (tensors stay dense); the best query
+    is always kept, so an empty scene never leaves the later layers with no query."""
 
     def __init__(self, threshold: float = 0.05, after_layer: int = 2):
         self.threshold = threshold
