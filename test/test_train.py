@@ -80,6 +80,46 @@ def test_init_from_a_shipped_checkpoint_with_a_smaller_final_point_budget(split,
     assert trainer.fit()["skipped_steps"] == 0
 
 
+def _same(a, b):
+    if isinstance(a, torch.Tensor):
+        return isinstance(b, torch.Tensor) and a.shape == b.shape and torch.equal(a, b)
+    if isinstance(a, dict):
+        return isinstance(b, dict) and a.keys() == b.keys() and all(_same(a[k], b[k]) for k in a)
+    if isinstance(a, (list, tuple)):
+        return len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b))
+    return a == b
+
+
+def test_several_infos_files_train_together_each_from_its_own_dataroot(tmp_path):
+    """Two dataroots naming their scenes alike (two odg synth runs): every sample, history
+    included, must come from its own root, as if that file were loaded alone."""
+    from test_dataset import build_world
+    import pickle
+
+    from odg_ros.data.dataset import OccDataset
+    from odg_ros.train.trainer import training_dataset
+    paths = []
+    for name, keyframes, yaw_rate in (("a", 2, 0.0), ("b", 3, 0.3)):
+        root = tmp_path / name
+        root.mkdir()
+        paths.append(root / "infos.pkl")
+        with open(paths[-1], "wb") as f:
+            pickle.dump(build_world(root, num_keyframes=keyframes, yaw_rate=yaw_rate), f)
+    cfg = tiny_config(num_frames=2)
+    both = training_dataset([str(p) for p in paths], cfg)
+    alone = [OccDataset(str(p), cfg, train=True) for p in paths]
+    assert len(both) == 5
+    for index, (part, local) in enumerate([(0, 0), (0, 1), (1, 0), (1, 1), (1, 2)]):
+        torch.manual_seed(index)
+        mixed = both[index]
+        torch.manual_seed(index)
+        assert _same(mixed, alone[part][local]), index
+    torch.manual_seed(0)
+    assert not _same(both[2], alone[0][0])  # the roots differ (the check above can fail)
+    with pytest.raises(ValueError, match="no training infos"):
+        training_dataset([], cfg)
+
+
 def test_nonfinite_step_is_skipped_counted_and_not_applied(split, tmp_path):
     cfg = tiny_config(num_frames=2)
     trainer = Trainer(cfg, split, options(tmp_path, epochs=1))

@@ -23,7 +23,8 @@ def parse_overrides(items: list[str]) -> dict:
 
 def add_arguments(parser):
     parser.add_argument("--preset", default="odg_cpu")
-    parser.add_argument("--data", required=True, help="training infos (odg prepare)")
+    parser.add_argument("--data", required=True, nargs="+",
+                        help="training infos (odg prepare); several files train together")
     parser.add_argument("--out", required=True, help="output dir: checkpoints, train_log.csv")
     parser.add_argument("--epochs", type=int, default=24)
     parser.add_argument("--steps", type=int, default=None, help="stop after this many steps")

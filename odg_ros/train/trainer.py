@@ -106,8 +106,19 @@ def parameter_groups(model: ODG, opts: TrainOptions) -> list[dict]:
             {"params": rest, "lr": opts.lr, "name": "rest"}]
 
 
+def training_dataset(infos, cfg: ModelConfig) -> torch.utils.data.Dataset:
+    """One OccDataset per infos file, concatenated: each keeps its own dataroot, and a
+    sample's history is looked up in its own file, so scene names may repeat across files."""
+    sources = infos if isinstance(infos, (list, tuple)) else [infos]
+    if not sources:
+        raise ValueError("no training infos given")
+    datasets = [OccDataset(source, cfg, train=True) for source in sources]
+    return datasets[0] if len(datasets) == 1 else torch.utils.data.ConcatDataset(datasets)
+
+
 class Trainer:
     def __init__(self, cfg: ModelConfig, infos, opts: TrainOptions):
+        """``infos``: one infos path/dict, or a list of them (several dataroots train together)."""
         self.cfg, self.opts = cfg, opts
         self.rank, self.world, local_rank = distributed_context()
         if opts.device == "auto":
@@ -118,7 +129,7 @@ class Trainer:
         seed = opts.seed + self.rank
         torch.manual_seed(seed), np.random.seed(seed), random.seed(seed)
 
-        self.dataset = OccDataset(infos, cfg, train=True)
+        self.dataset = training_dataset(infos, cfg)
         self.sampler = (torch.utils.data.distributed.DistributedSampler(
             self.dataset, self.world, self.rank, shuffle=True, seed=opts.seed)
             if self.world > 1 else None)
