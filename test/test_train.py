@@ -1,19 +1,22 @@
 """Training: the loss goes down, resume continues exactly, non-finite steps are skipped and
-counted, DDP with 2 CPU processes (gloo) via torchrun."""
+counted, several infos files train together, DDP with 2 CPU processes (gloo) via torchrun."""
 import csv
 import os
+import pickle
 import subprocess
 import sys
 
 import pytest
 import torch
 
+from odg_ros.data.dataset import OccDataset
 from odg_ros.network import ODG
 from odg_ros.network.checkpoint import load_model, save_checkpoint
 from odg_ros.train.schedule import warmup_cosine
-from odg_ros.train.trainer import Trainer, TrainOptions
+from odg_ros.train.trainer import Trainer, TrainOptions, training_dataset
 
 from helpers import tiny_config, write_tiny_split
+from test_dataset import build_world
 
 
 @pytest.fixture(scope="module")
@@ -93,11 +96,6 @@ def _same(a, b):
 def test_several_infos_files_train_together_each_from_its_own_dataroot(tmp_path):
     """Two dataroots naming their scenes alike (two odg synth runs): every sample, history
     included, must come from its own root, as if that file were loaded alone."""
-    from test_dataset import build_world
-    import pickle
-
-    from odg_ros.data.dataset import OccDataset
-    from odg_ros.train.trainer import training_dataset
     paths = []
     for name, keyframes, yaw_rate in (("a", 2, 0.0), ("b", 3, 0.3)):
         root = tmp_path / name
