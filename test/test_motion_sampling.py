@@ -155,7 +155,7 @@ def test_dynamic_object_is_found_in_the_past_frame_only_with_its_velocity():
     x_then[:2] -= v * dt
     (u, v_pix), _ = project_np(e2i[0].double().numpy(), x_then)
     (u_now, _), _ = project_np(e2i[0].double().numpy(), x_now)
-    assert abs(u - u_now) < 1 and True  # same column (straight ahead) -> check rows differ
+    assert abs(u - u_now) < 1  # same column (straight ahead) -> check rows differ
     feat = torch.zeros(2, 1, 1, 6, HW[0], HW[1])  # T=2, B=1, G=1, c=1, full resolution
     feat[1, 0, 0, 0, int(v_pix), int(u)] = 1.0
     mlvl = [feat.view(2, 1, 6, HW[0], HW[1])]
@@ -164,7 +164,7 @@ def test_dynamic_object_is_found_in_the_past_frame_only_with_its_velocity():
     ego2img = e2i.expand(1, 2, 6, 4, 4)
     dts = torch.tensor([[0.0, dt]])
     with torch.no_grad():
-        with_v = sampler(torch.zeros(1, 1, 4), prev, torch.tensor([[v]], dtype=torch.float32),
+        with_v = sampler(torch.zeros(1, 1, 4), prev, torch.from_numpy(v).float().view(1, 1, 2),
                          mlvl, ego2img, None, dts, HW)
         without_v = sampler(torch.zeros(1, 1, 4), prev, None, mlvl, ego2img, None, dts, HW)
     assert with_v[0, 0, 0, 1, 0] > 0.2      # frame -1 read at the object's past position
