@@ -2,7 +2,6 @@
 counted, several infos files train together, DDP with 2 CPU processes (gloo) via torchrun."""
 import csv
 import os
-import pickle
 import subprocess
 import sys
 
@@ -16,7 +15,6 @@ from odg_ros.train.schedule import warmup_cosine
 from odg_ros.train.trainer import Trainer, TrainOptions, training_dataset
 
 from helpers import tiny_config, write_tiny_split
-from test_dataset import build_world
 
 
 @pytest.fixture(scope="module")
@@ -98,11 +96,8 @@ def test_several_infos_files_train_together_each_from_its_own_dataroot(tmp_path)
     included, must come from its own root, as if that file were loaded alone."""
     paths = []
     for name, keyframes, yaw_rate in (("a", 2, 0.0), ("b", 3, 0.3)):
-        root = tmp_path / name
-        root.mkdir()
-        paths.append(root / "infos.pkl")
-        with open(paths[-1], "wb") as f:
-            pickle.dump(build_world(root, num_keyframes=keyframes, yaw_rate=yaw_rate), f)
+        (tmp_path / name).mkdir()
+        paths.append(write_tiny_split(tmp_path / name, keyframes, yaw_rate=yaw_rate))
     cfg = tiny_config(num_frames=2)
     both = training_dataset([str(p) for p in paths], cfg)
     alone = [OccDataset(str(p), cfg, train=True) for p in paths]

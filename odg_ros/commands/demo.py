@@ -35,7 +35,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="model checkpoint (default: the shipped model/odg_cpu.pt)")
     parser.add_argument("--seed", type=int, default=DEFAULT_SEED,
                         help=f"seed of the synthetic scene (default {DEFAULT_SEED}; the "
-                             "shipped model trained on seeds 1-3)")
+                             "seeds the shipped model trained on are in model/odg_cpu.md)")
     parser.add_argument("--seconds", type=float, default=DEFAULT_SECONDS,
                         help=f"length of the scene (default {DEFAULT_SECONDS:g}; 2 keyframes/s)")
     parser.add_argument("--image-size", type=int, nargs=2, default=None, metavar=("H", "W"),
