@@ -67,6 +67,27 @@ def test_resume_continues_where_it_stopped(split, tmp_path):
     assert len(read_log(tmp_path / "train_log.csv")) == 4
 
 
+def test_resume_mid_epoch_trains_what_the_interrupted_run_had_not(tmp_path):
+    """Stopped after 7 of 2 x 5 steps and resumed, a run trains the same samples in the same
+    order as one never stopped: the rest of epoch 1, not epoch 0's order from its start."""
+    (tmp_path / "five").mkdir()
+    five = write_tiny_split(tmp_path / "five", 5)
+    cfg = tiny_config(num_frames=2)
+
+    def trained_samples(out):
+        return [r["samples"] for r in read_log(out / "train_log.csv")]
+
+    whole = tmp_path / "whole"
+    Trainer(cfg, five, options(whole, epochs=2)).fit()
+    stopped = tmp_path / "stopped"
+    Trainer(cfg, five, options(stopped, epochs=2, max_steps=7)).fit()
+    Trainer(cfg, five, options(stopped, epochs=2, resume=True)).fit()
+    order = trained_samples(whole)
+    assert trained_samples(stopped) == order
+    assert sorted(order[:5]) == sorted(order[5:]) and len(set(order[:5])) == 5  # each epoch: all
+    assert order[:5] != order[5:]  # reshuffled (this seed; 1 in 120 orders would repeat)
+
+
 def test_init_from_a_shipped_checkpoint_with_a_smaller_final_point_budget(split, tmp_path):
     """--init takes an int8 shipped file and a final layer with fewer points (grown)."""
     small = tiny_config(num_frames=2)

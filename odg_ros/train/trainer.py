@@ -116,6 +116,26 @@ def training_dataset(infos, cfg: ModelConfig) -> torch.utils.data.Dataset:
     return datasets[0] if len(datasets) == 1 else torch.utils.data.ConcatDataset(datasets)
 
 
+class EpochSampler(torch.utils.data.distributed.DistributedSampler):
+    """Each epoch's shuffled order follows from (seed, epoch) alone, split over the ranks, and
+    an epoch can start part-way: a resumed run trains exactly the samples the interrupted one
+    had not reached, in the same order (a fresh shuffling generator would replay epoch 0's
+    order from its start)."""
+
+    def __init__(self, dataset, world: int, rank: int, seed: int):
+        super().__init__(dataset, num_replicas=world, rank=rank, shuffle=True, seed=seed)
+        self._skip = 0
+
+    def start_at(self, epoch: int, consumed: int) -> None:
+        """The next iteration is epoch ``epoch`` without its first ``consumed`` indices."""
+        self.set_epoch(epoch)
+        self._skip = consumed
+
+    def __iter__(self):
+        skip, self._skip = self._skip, 0
+        return iter(list(super().__iter__())[skip:])
+
+
 class Trainer:
     def __init__(self, cfg: ModelConfig, infos, opts: TrainOptions):
         """``infos``: one infos path/dict, or a list of them (several dataroots train together)."""
@@ -130,15 +150,13 @@ class Trainer:
         torch.manual_seed(seed), np.random.seed(seed), random.seed(seed)
 
         self.dataset = training_dataset(infos, cfg)
-        self.sampler = (torch.utils.data.distributed.DistributedSampler(
-            self.dataset, self.world, self.rank, shuffle=True, seed=opts.seed)
-            if self.world > 1 else None)
-        g = torch.Generator().manual_seed(opts.seed)
+        self.sampler = EpochSampler(self.dataset, self.world, self.rank, opts.seed)
         self.loader = torch.utils.data.DataLoader(
-            self.dataset, batch_size=opts.batch_size, shuffle=self.sampler is None,
-            sampler=self.sampler, num_workers=opts.workers, collate_fn=collate,
-            drop_last=True, generator=g, persistent_workers=opts.workers > 0)
-        if len(self.loader) == 0:
+            self.dataset, batch_size=opts.batch_size, sampler=self.sampler,
+            num_workers=opts.workers, collate_fn=collate, drop_last=True,
+            persistent_workers=opts.workers > 0)
+        self.steps_per_epoch = len(self.loader)
+        if self.steps_per_epoch == 0:
             raise ValueError(f"{len(self.dataset)} samples cannot fill one batch of "
                              f"{opts.batch_size} per process")
 
@@ -151,8 +169,7 @@ class Trainer:
         self.model.to(self.device)
         self.optimizer = torch.optim.AdamW(parameter_groups(self.model, opts), lr=opts.lr,
                                            weight_decay=opts.weight_decay)
-        steps_per_epoch = len(self.loader)
-        self.total_steps = steps_per_epoch * opts.epochs
+        self.total_steps = self.steps_per_epoch * opts.epochs
         if opts.max_steps:
             self.total_steps = min(self.total_steps, opts.max_steps)
         self.scheduler = torch.optim.lr_scheduler.LambdaLR(
@@ -261,11 +278,10 @@ class Trainer:
         bar = tqdm(total=self.total_steps, initial=self.step, desc="train",
                    disable=not self.opts.progress or self.rank != 0)
         start, first_loss, last_loss = time.time(), None, None
-        epoch = self.step // len(self.loader)
+        epoch, steps_done_in_epoch = divmod(self.step, self.steps_per_epoch)
+        self.sampler.start_at(epoch, steps_done_in_epoch * self.opts.batch_size)
         try:
             while self.step < self.total_steps:
-                if self.sampler is not None:
-                    self.sampler.set_epoch(epoch)
                 for batch in self.loader:
                     if self.step >= self.total_steps:
                         break
@@ -284,14 +300,14 @@ class Trainer:
                         row = {"step": self.step, "epoch": epoch, "applied": int(applied),
                                "skipped_total": self.skipped_steps,
                                "lr": self.optimizer.param_groups[1]["lr"],
-                               "seconds": round(time.time() - t0, 3), **terms}
+                               "seconds": round(time.time() - t0, 3),
+                               "samples": " ".join(batch["token"]), **terms}
                         if writer is None:
-                            fields = list(row) + [k for k in self._all_term_names()
-                                                  if k not in row]
-                            new_file = log_path.stat().st_size == 0
+                            fields = self._log_header(log_path) or (
+                                list(row) + [k for k in self._all_term_names() if k not in row])
                             writer = csv.DictWriter(log_file, fieldnames=fields,
                                                     extrasaction="ignore")
-                            if new_file:
+                            if log_path.stat().st_size == 0:
                                 writer.writeheader()
                         writer.writerow(row)
                         log_file.flush()
@@ -301,6 +317,7 @@ class Trainer:
                     if self.step % self.opts.checkpoint_every == 0:
                         self.save()
                 epoch += 1
+                self.sampler.set_epoch(epoch)
         finally:
             bar.close()
             if log_file is not None:
@@ -311,6 +328,15 @@ class Trainer:
                 "first_loss": first_loss, "last_loss": last_loss,
                 "seconds": round(time.time() - start, 1), "world_size": self.world,
                 "device": str(self.device)}
+
+    @staticmethod
+    def _log_header(path: Path) -> list[str] | None:
+        """The columns of a log a resumed run appends to (None for a new log): rows must follow
+        the header that is there, whichever version of this code wrote it."""
+        if path.stat().st_size == 0:
+            return None
+        with open(path, newline="") as f:
+            return next(csv.reader(f), None)
 
     def _all_term_names(self) -> list[str]:
         names = ["loss", "grad_norm", "occ_chamfer_l0"]
