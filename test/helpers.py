@@ -42,6 +42,7 @@ def write_tiny_checkpoint(path, **overrides):
 def write_tiny_split(root, num_keyframes, yaw_rate=0.0):
     """A hand-made dataroot (test_dataset.build_world) and its infos pickle -> the pickle path."""
     from test_dataset import build_world
+    root.mkdir(parents=True, exist_ok=True)
     path = root / "infos.pkl"
     with open(path, "wb") as f:
         pickle.dump(build_world(root, num_keyframes=num_keyframes, yaw_rate=yaw_rate), f)

@@ -70,7 +70,6 @@ def test_resume_continues_where_it_stopped(split, tmp_path):
 def test_resume_mid_epoch_trains_what_the_interrupted_run_had_not(tmp_path):
     """Stopped after 7 of 2 x 5 steps and resumed, a run trains the same samples in the same
     order as one never stopped: the rest of epoch 1, not epoch 0's order from its start."""
-    (tmp_path / "five").mkdir()
     five = write_tiny_split(tmp_path / "five", 5)
     cfg = tiny_config(num_frames=2)
 
@@ -117,7 +116,6 @@ def test_several_infos_files_train_together_each_from_its_own_dataroot(tmp_path)
     included, must come from its own root, as if that file were loaded alone."""
     paths = []
     for name, keyframes, yaw_rate in (("a", 2, 0.0), ("b", 3, 0.3)):
-        (tmp_path / name).mkdir()
         paths.append(write_tiny_split(tmp_path / name, keyframes, yaw_rate=yaw_rate))
     cfg = tiny_config(num_frames=2)
     both = training_dataset([str(p) for p in paths], cfg)

@@ -303,11 +303,12 @@ class Trainer:
                                "seconds": round(time.time() - t0, 3),
                                "samples": " ".join(batch["token"]), **terms}
                         if writer is None:
-                            fields = self._log_header(log_path) or (
+                            header = self._log_header(log_path)
+                            fields = header or (
                                 list(row) + [k for k in self._all_term_names() if k not in row])
                             writer = csv.DictWriter(log_file, fieldnames=fields,
                                                     extrasaction="ignore")
-                            if log_path.stat().st_size == 0:
+                            if header is None:
                                 writer.writeheader()
                         writer.writerow(row)
                         log_file.flush()
