@@ -83,6 +83,26 @@ def test_resume_mid_epoch_trains_what_the_interrupted_run_had_not(tmp_path):
     Trainer(cfg, five, options(stopped, epochs=2, resume=True)).fit()
     order = trained_samples(whole)
     assert trained_samples(stopped) == order
+    # Killed after step 8 with the last checkpoint at step 6: steps 7-8 are trained again and
+    # logged once.
+    killed = tmp_path / "killed"
+    interrupted = Trainer(cfg, five, options(killed, epochs=2, checkpoint_every=3))
+    real_step = interrupted.train_step
+
+    def step_until_killed(batch):
+        if interrupted.step == 8:
+            raise KeyboardInterrupt
+        return real_step(batch)
+
+    interrupted.train_step = step_until_killed
+    with pytest.raises(KeyboardInterrupt):
+        interrupted.fit()
+    assert len(read_log(killed / "train_log.csv")) == 8
+    resumed = Trainer(cfg, five, options(killed, epochs=2, checkpoint_every=3, resume=True))
+    assert resumed.step == 6
+    resumed.fit()
+    assert trained_samples(killed) == order
+    assert [int(r["step"]) for r in read_log(killed / "train_log.csv")] == list(range(1, 11))
     assert sorted(order[:5]) == sorted(order[5:]) and len(set(order[:5])) == 5  # each epoch: all
     assert order[:5] != order[5:]  # reshuffled (this seed; 1 in 120 orders would repeat)
 

@@ -274,6 +274,8 @@ class Trainer:
         self.out_dir.mkdir(parents=True, exist_ok=True)
         log_path = self.out_dir / "train_log.csv"
         writer = None
+        if self.rank == 0 and log_path.exists():
+            self._drop_log_rows_after(log_path, self.step)
         log_file = open(log_path, "a", newline="") if self.rank == 0 else None
         bar = tqdm(total=self.total_steps, initial=self.step, desc="train",
                    disable=not self.opts.progress or self.rank != 0)
@@ -338,6 +340,23 @@ class Trainer:
             return None
         with open(path, newline="") as f:
             return next(csv.reader(f), None)
+
+    @staticmethod
+    def _drop_log_rows_after(path: Path, step: int) -> None:
+        """A run stopped between checkpoints logged steps its checkpoint does not hold; the
+        resumed run trains them again, so their old rows go (one row per step in the log)."""
+        with open(path, newline="") as f:
+            rows = list(csv.reader(f))
+        if not rows:
+            return
+        column = rows[0].index("step")
+        kept = [rows[0]] + [r for r in rows[1:] if r and int(r[column]) <= step]
+        if len(kept) == len(rows):
+            return
+        tmp = path.with_suffix(".csv.tmp")
+        with open(tmp, "w", newline="") as f:
+            csv.writer(f).writerows(kept)
+        os.replace(tmp, path)
 
     def _all_term_names(self) -> list[str]:
         names = ["loss", "grad_norm", "occ_chamfer_l0"]
