@@ -344,13 +344,15 @@ class Trainer:
     @staticmethod
     def _drop_log_rows_after(path: Path, step: int) -> None:
         """A run stopped between checkpoints logged steps its checkpoint does not hold; the
-        resumed run trains them again, so their old rows go (one row per step in the log)."""
+        resumed run trains them again, so their old rows go (one row per step in the log), and
+        so does a row cut short by the stop."""
         with open(path, newline="") as f:
             rows = list(csv.reader(f))
         if not rows:
             return
         column = rows[0].index("step")
-        kept = [rows[0]] + [r for r in rows[1:] if r and int(r[column]) <= step]
+        kept = [rows[0]] + [r for r in rows[1:] if len(r) == len(rows[0])
+                            and r[column].isdigit() and int(r[column]) <= step]
         if len(kept) == len(rows):
             return
         tmp = path.with_suffix(".csv.tmp")
