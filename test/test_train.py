@@ -82,6 +82,8 @@ def test_resume_mid_epoch_trains_what_the_interrupted_run_had_not(tmp_path):
     Trainer(cfg, five, options(stopped, epochs=2, max_steps=7)).fit()
     Trainer(cfg, five, options(stopped, epochs=2, resume=True)).fit()
     order = trained_samples(whole)
+    assert sorted(order[:5]) == sorted(order[5:]) and len(set(order[:5])) == 5  # each epoch: all
+    assert order[:5] != order[5:]  # reshuffled (this seed; 1 in 120 orders would repeat)
     assert trained_samples(stopped) == order
     # Killed after step 8 with the last checkpoint at step 6: steps 7-8 are trained again and
     # logged once.
@@ -105,8 +107,6 @@ def test_resume_mid_epoch_trains_what_the_interrupted_run_had_not(tmp_path):
     resumed.fit()
     assert trained_samples(killed) == order
     assert [int(r["step"]) for r in read_log(killed / "train_log.csv")] == list(range(1, 11))
-    assert sorted(order[:5]) == sorted(order[5:]) and len(set(order[:5])) == 5  # each epoch: all
-    assert order[:5] != order[5:]  # reshuffled (this seed; 1 in 120 orders would repeat)
 
 
 def test_init_from_a_shipped_checkpoint_with_a_smaller_final_point_budget(split, tmp_path):

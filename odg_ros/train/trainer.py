@@ -274,8 +274,7 @@ class Trainer:
         self.out_dir.mkdir(parents=True, exist_ok=True)
         log_path = self.out_dir / "train_log.csv"
         writer = None
-        if self.rank == 0 and log_path.exists():
-            self._drop_log_rows_after(log_path, self.step)
+        header = self._trim_log(log_path, self.step) if self.rank == 0 else None
         log_file = open(log_path, "a", newline="") if self.rank == 0 else None
         bar = tqdm(total=self.total_steps, initial=self.step, desc="train",
                    disable=not self.opts.progress or self.rank != 0)
@@ -305,7 +304,6 @@ class Trainer:
                                "seconds": round(time.time() - t0, 3),
                                "samples": " ".join(batch["token"]), **terms}
                         if writer is None:
-                            header = self._log_header(log_path)
                             fields = header or (
                                 list(row) + [k for k in self._all_term_names() if k not in row])
                             writer = csv.DictWriter(log_file, fieldnames=fields,
@@ -333,32 +331,27 @@ class Trainer:
                 "device": str(self.device)}
 
     @staticmethod
-    def _log_header(path: Path) -> list[str] | None:
-        """The columns of a log a resumed run appends to (None for a new log): rows must follow
-        the header that is there, whichever version of this code wrote it."""
-        if path.stat().st_size == 0:
+    def _trim_log(path: Path, step: int) -> list[str] | None:
+        """The header of the log this run appends to (None when there is none yet): new rows
+        must follow the columns already there, whichever version of this code wrote them. A
+        run stopped between checkpoints logged steps its checkpoint does not hold; the resumed
+        run trains them again, so their old rows go (one row per step in the log), and so does
+        a row cut short by the stop."""
+        if not path.exists():
             return None
-        with open(path, newline="") as f:
-            return next(csv.reader(f), None)
-
-    @staticmethod
-    def _drop_log_rows_after(path: Path, step: int) -> None:
-        """A run stopped between checkpoints logged steps its checkpoint does not hold; the
-        resumed run trains them again, so their old rows go (one row per step in the log), and
-        so does a row cut short by the stop."""
         with open(path, newline="") as f:
             rows = list(csv.reader(f))
         if not rows:
-            return
+            return None
         column = rows[0].index("step")
         kept = [rows[0]] + [r for r in rows[1:] if len(r) == len(rows[0])
                             and r[column].isdigit() and int(r[column]) <= step]
-        if len(kept) == len(rows):
-            return
-        tmp = path.with_suffix(".csv.tmp")
-        with open(tmp, "w", newline="") as f:
-            csv.writer(f).writerows(kept)
-        os.replace(tmp, path)
+        if len(kept) < len(rows):
+            tmp = path.with_suffix(".csv.tmp")
+            with open(tmp, "w", newline="") as f:
+                csv.writer(f).writerows(kept)
+            os.replace(tmp, path)
+        return rows[0]
 
     def _all_term_names(self) -> list[str]:
         names = ["loss", "grad_norm", "occ_chamfer_l0"]
