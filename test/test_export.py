@@ -3,6 +3,7 @@ threshold, the chosen one is the best (ties: the higher), and the shipped file h
 the compressed weights that were calibrated."""
 import json
 
+import numpy as np
 import pytest
 import torch
 
@@ -123,6 +124,23 @@ def test_eval_command_reports_grid_and_boxes(tiny_split, capsys):
                  "--no-rayiou"]) == 0
     table = capsys.readouterr().out
     assert "MEAN" in table and "boxes: mAP" in table
+
+
+def test_eval_overrides_reach_the_model(tiny_split, capsys, tmp_path):
+    data, checkpoint = tiny_split
+    args = ["eval", "--checkpoint", str(checkpoint), "--data", str(data), "--no-rayiou", "--json"]
+
+    def occupied_voxels(threshold):
+        out = tmp_path / str(threshold)
+        assert main(args + ["--save-pred", str(out), "--set", f"score_threshold={threshold}"]) == 0
+        capsys.readouterr()
+        return sum(int((np.load(f)["semantics"] != 17).sum()) for f in out.glob("*.npz"))
+
+    # every point inside the grid counts at threshold 0, none at 1.5
+    assert occupied_voxels(0.0) > 0 and occupied_voxels(1.5) == 0
+    # a knock-out of a trained component runs on the same weights
+    assert main(args + ["--set", "ego_compensation=false", "--set", "das_attention=false"]) == 0
+    assert json.loads(capsys.readouterr().out)["samples"] == 3
 
 
 def test_no_thresholds_is_an_error(tiny_split):

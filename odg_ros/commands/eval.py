@@ -9,6 +9,7 @@ from ..metrics.detection import format_detection
 from ..metrics.score import format_table
 from ..network.checkpoint import load_model
 from ..train.evaluate import evaluate
+from .train import parse_overrides
 
 
 def add_arguments(parser):
@@ -20,12 +21,16 @@ def add_arguments(parser):
     parser.add_argument("--limit", type=int, default=None, help="first N samples only")
     parser.add_argument("--no-rayiou", action="store_true")
     parser.add_argument("--json", action="store_true")
+    parser.add_argument("--set", action="append", metavar="KEY=VALUE",
+                        help="config override at inference, e.g. motion_compensation=false "
+                             "(what a trained model loses without a component) or "
+                             "score_threshold=0.3")
 
 
 def run(args) -> int:
     device = ("cuda" if torch.cuda.is_available() else "cpu") if args.device == "auto" \
         else args.device
-    model, cfg = load_model(args.checkpoint, device=device)
+    model, cfg = load_model(args.checkpoint, device=device, **parse_overrides(args.set))
     result = evaluate(model, cfg, args.data, occ_root=args.occ_root, save_pred=args.save_pred,
                       device=device, rayiou=not args.no_rayiou, limit=args.limit,
                       progress=not args.json)
