@@ -100,3 +100,15 @@ def test_grown_dynamic_queries_keep_the_trained_ones_and_start_the_new_ones_fres
     with torch.no_grad():
         out = big.eval()(*model_inputs(cfg))
     assert out.last.boxes.shape[1] == 12 and torch.isfinite(out.last.means).all()
+
+
+def test_single_query_set_checkpoint_loads(tmp_path):
+    """The ablation's one-set model (dual_queries false: no dynamic queries, num_dynamic still
+    set in its config) loads as it was saved, not as a model to grow dynamic queries into."""
+    cfg = tiny_config(dual_queries=False)
+    model = ODG(cfg)
+    save_checkpoint(tmp_path / "single.pt", model)
+    loaded, loaded_cfg = load_model(tmp_path / "single.pt")
+    assert not loaded_cfg.dual_queries and loaded.num_dynamic == 0
+    for key, value in model.state_dict().items():
+        assert torch.equal(loaded.state_dict()[key], value), key
