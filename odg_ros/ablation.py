@@ -83,8 +83,9 @@ def plot(summary: dict, path: Path) -> None:
     reference, others = summary["variants"][0], summary["variants"][1:]
     keys = [key for key, _ in METRICS if reference["mean"][key] is not None]
     labels = dict(METRICS)
-    fig, axes = plt.subplots(1, len(keys), figsize=(2.2 * len(keys), 3.4), sharey=False)
-    for ax, key in zip(axes if len(keys) > 1 else [axes], keys):
+    fig, axes = plt.subplots(1, len(keys), figsize=(2.2 * len(keys), 3.4), squeeze=False)
+    axes = axes[0]
+    for ax, key in zip(axes, keys):
         low, high = reference["range"][key]
         ax.axhspan(low - reference["mean"][key], high - reference["mean"][key], color="0.85",
                    label=f"{reference['name']} seed range")
@@ -95,9 +96,8 @@ def plot(summary: dict, path: Path) -> None:
         ax.set_xticks(range(len(others)), [v["name"] for v in others], rotation=60, ha="right",
                       fontsize=8)
         ax.set_title(f"{labels[key]} ({reference['mean'][key]:.2f})", fontsize=9)
-    axes_list = axes if len(keys) > 1 else [axes]
-    axes_list[0].set_ylabel(f"change vs {reference['name']} (points)")
-    axes_list[0].legend(fontsize=7, loc="lower left")
+    axes[0].set_ylabel(f"change vs {reference['name']} (points)")
+    axes[0].legend(fontsize=7, loc="lower left")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)

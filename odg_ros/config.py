@@ -71,6 +71,16 @@ class ModelConfig:
         return self.num_dynamic + self.num_static
 
     @property
+    def dynamic_queries(self) -> int:
+        """Dynamic queries the model has: ``num_dynamic``, or 0 for one query set (the
+        ablation: every query static, no box head)."""
+        return self.num_dynamic if self.dual_queries else 0
+
+    @property
+    def static_queries(self) -> int:
+        return self.num_queries - self.dynamic_queries
+
+    @property
     def gaussians_per_layer(self) -> list[int]:
         return [self.num_queries * k for k in self.points_per_layer]
 

@@ -136,15 +136,13 @@ def query_budget(model, cfg, fraction: float):
     queries (at least one of each kind the model has); every other weight is shared."""
     from .network import ODG
 
-    D = model.num_dynamic
-    S = cfg.num_queries - D if cfg.dual_queries else cfg.num_queries
+    D, S = cfg.dynamic_queries, cfg.static_queries
     d = max(1, round(D * fraction)) if D else 0
     s = max(1, round(S * fraction))
     keep_d = torch.linspace(0, D - 1, d).round().long() if d else torch.zeros(0, dtype=torch.long)
     keep_s = D + torch.linspace(0, S - 1, s).round().long()
     keep = torch.cat([keep_d, keep_s])
-    new_cfg = cfg.replace(num_dynamic=d, num_static=s) if cfg.dual_queries else \
-        cfg.replace(num_dynamic=0, num_static=s)
+    new_cfg = cfg.replace(num_dynamic=d, num_static=s)
     state = model.state_dict()
     state["queries.features"] = state["queries.features"][keep]
     state["queries.init_points"] = state["queries.init_points"][keep]
@@ -238,7 +236,7 @@ class ConfigRun:
         self.scores = {name: OccScore(job["dataset"], rayiou=job.get("rayiou", True))
                        for name in SUBSETS}
         self.box_scores = {name: DetectionScore() for name in SUBSETS} \
-            if self.cfg.num_dynamic else None
+            if self.cfg.dynamic_queries else None
         self.timer, self.per_sample, self.error = StageTimer(self.device), [], None
         self.history = self.sample_timer = self.output = self.grid = None
 

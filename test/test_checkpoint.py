@@ -113,12 +113,3 @@ def test_single_query_set_checkpoint_loads(tmp_path):
     for key, value in model.state_dict().items():
         assert torch.equal(loaded.state_dict()[key], value), key
 
-
-def test_single_query_set_has_no_box_score(tmp_path):
-    """Without dynamic queries there is no box head: eval reports no box mAP (not 0)."""
-    from helpers import write_tiny_split
-    from odg_ros.train.evaluate import evaluate
-    cfg = tiny_config(dual_queries=False)
-    data = write_tiny_split(tmp_path / "split", 2)
-    result = evaluate(ODG(cfg).eval(), cfg, str(data), rayiou=False, progress=False)
-    assert "boxes" not in result and result["samples"] > 0

@@ -12,7 +12,7 @@ from odg_ros.network.checkpoint import load_model, save_checkpoint
 from odg_ros.train.calibrate import calibrate_thresholds
 from odg_ros.train.evaluate import evaluate
 
-from helpers import write_tiny_checkpoint, write_tiny_split
+from helpers import tiny_config, write_tiny_checkpoint, write_tiny_split
 
 
 @pytest.fixture(scope="module")
@@ -141,6 +141,19 @@ def test_eval_overrides_reach_the_model(tiny_split, capsys, tmp_path):
     # a knock-out of a trained component runs on the same weights
     assert main(args + ["--set", "ego_compensation=false", "--set", "das_attention=false"]) == 0
     assert json.loads(capsys.readouterr().out)["samples"] == 3
+
+
+def test_single_query_set_has_no_box_score(tmp_path):
+    """One query set (dual_queries false, its config still holding num_dynamic) has no box
+    head: eval reports no box mAP (not 0) and calibration picks no box threshold."""
+    from odg_ros.network import ODG
+    cfg = tiny_config(dual_queries=False)
+    assert cfg.num_dynamic and (cfg.dynamic_queries, cfg.static_queries) == (0, cfg.num_queries)
+    data = str(write_tiny_split(tmp_path / "split", 2))
+    model = ODG(cfg).eval()
+    result = evaluate(model, cfg, data, rayiou=False, progress=False)
+    assert "boxes" not in result and result["samples"] > 0
+    assert calibrate_thresholds(model, cfg, data, (0.5,), progress=False)["box"] is None
 
 
 def test_no_thresholds_is_an_error(tiny_split):

@@ -79,7 +79,7 @@ def grow_state_dict(state: dict, model: ODG) -> dict:
       ones start as ``model`` initialised them (zero features, uniform means and boxes).
     Any other shape difference is an error."""
     own = model.state_dict()
-    num_dynamic = model.num_dynamic      # 0 for a single query set (dual_queries false)
+    num_dynamic = model.cfg.dynamic_queries
     old_dynamic = len(state.get("queries.init_box", own["queries.init_box"]))
     grown = dict(state)
     for key, tensor in state.items():

@@ -24,13 +24,12 @@ class ODG(nn.Module):
     def __init__(self, cfg: ModelConfig):
         super().__init__()
         self.cfg = cfg
-        num_dynamic = cfg.num_dynamic if cfg.dual_queries else 0
-        num_static = cfg.num_static + (0 if cfg.dual_queries else cfg.num_dynamic)
-        self.num_dynamic = num_dynamic
+        self.num_dynamic = cfg.dynamic_queries
         self.backbone = ResNet(cfg.backbone, cfg.frozen_stages, cfg.norm_eval)
         self.neck = FPN(self.backbone.out_channels, cfg.fpn_channels)
-        self.queries = DualGaussianQueries(num_dynamic, num_static, cfg.embed_dims, cfg.pc_range)
-        self.decoder = Decoder(cfg, num_dynamic)
+        self.queries = DualGaussianQueries(cfg.dynamic_queries, cfg.static_queries,
+                                           cfg.embed_dims, cfg.pc_range)
+        self.decoder = Decoder(cfg, cfg.dynamic_queries)
         # True: sample the camera-rows layout (2-D grid_sample); False: the plain per-camera
         # 3-D layout, kept as the reference the fast path is tested and benchmarked against
         self.fast_sampling = True

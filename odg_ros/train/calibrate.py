@@ -36,7 +36,7 @@ def calibrate_thresholds(model, cfg, infos, thresholds=DEFAULT_THRESHOLDS,
         raise ValueError("no thresholds to try")
     dataset = OccDataset(infos, cfg, train=False)
     scores = {float(t): OccScore(dataset.dataset, rayiou=False) for t in thresholds}
-    boxes = DetectionScore() if cfg.num_dynamic else None
+    boxes = DetectionScore() if cfg.dynamic_queries else None
     used = 0
     for _, batch, output in predict_split(model, dataset, limit, device, progress=progress,
                                           desc="calibrate"):

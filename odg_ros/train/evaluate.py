@@ -63,7 +63,7 @@ def evaluate(model, cfg, infos, occ_root=None, save_pred: str | None = None, dev
     data_cfg = cfg if frames is None else cfg.replace(num_frames=frames)
     dataset = OccDataset(infos, data_cfg, occ_root=occ_root, train=False)
     score = OccScore(dataset.dataset, rayiou=rayiou)
-    boxes = DetectionScore() if cfg.num_dynamic and cfg.dual_queries else None  # a box head
+    boxes = DetectionScore() if cfg.dynamic_queries else None
     origins = LidarOrigins(dataset.infos) if rayiou else None
     if save_pred:
         Path(save_pred).mkdir(parents=True, exist_ok=True)
