@@ -107,6 +107,10 @@ def test_box_ap_and_box_threshold_from_an_oracle(tiny_split):
     assert result["mAP"] == result["per_class"]["car"]["AP@0.5"] == expected
     assert result["per_class"]["truck"]["AP"] is None
     assert (result["gt_boxes"], result["pred_boxes"]) == (3, 6)
+    # the boxes reach the score whole (centre, w l h, yaw, velocity in the GT's order): the
+    # true-positive errors of the GT returned as predictions are 0
+    errors = [result[k] for k in ("mATE", "mASE", "mAOE", "mAVE")]
+    assert errors == pytest.approx([0.0] * 4, abs=1e-4)
     found = calibrate_thresholds(oracle(), cfg, str(data), (0.5,), progress=False)["box"]
     assert found["threshold"] == pytest.approx(0.55)
     assert (found["precision"], found["recall"], found["f1"]) == (1.0, 1.0, 1.0)
@@ -118,7 +122,8 @@ def test_eval_command_reports_grid_and_boxes(tiny_split, capsys):
                  "--no-rayiou", "--json"]) == 0
     result = json.loads(capsys.readouterr().out)
     assert result["samples"] == 3 and "mIoU" in result and "mIoU_dynamic" in result
-    assert set(result["boxes"]) >= {"mAP", "AP@0.5", "AP@4", "per_class", "gt_boxes"}
+    assert set(result["boxes"]) >= {"mAP", "AP@0.5", "AP@4", "mATE", "mAVE", "per_class",
+                                    "gt_boxes"}
     assert result["boxes"]["gt_boxes"] == 3
     assert main(["eval", "--checkpoint", str(checkpoint), "--data", str(data),
                  "--no-rayiou"]) == 0
