@@ -10,9 +10,10 @@ from nuscenes.eval.detection.data_classes import DetectionBox
 from pyquaternion import Quaternion
 
 from odg_ros.classes import BOX_CLASSES
-from odg_ros.metrics.detection import (TP_ERRORS, DetectionScore, angle_difference,
-                                       average_precision, format_detection, greedy_match,
-                                       running_mean, true_positive_error, true_positive_errors)
+from odg_ros.metrics.detection import (REPORTED_ERRORS, TP_ERRORS, DetectionScore,
+                                       angle_difference, average_precision, format_detection,
+                                       greedy_match, running_mean, true_positive_error,
+                                       true_positive_errors)
 
 DEVKIT_TP_METRIC = {"ATE": "trans_err", "ASE": "scale_err", "AOE": "orient_err", "AVE": "vel_err"}
 
@@ -249,6 +250,13 @@ def test_tp_errors_match_nuscenes_devkit(seed):
             assert ours[name] == pytest.approx(calc_tp(data, 0.1, DEVKIT_TP_METRIC[name]),
                                                abs=1e-12), (label, name)
             compared += 1
+        # the zero-velocity bar: the devkit's AVE of the same predictions standing still
+        if BOX_CLASSES[label] in ("car", "pedestrian"):
+            still = [(p * np.r_[np.ones(7), 0.0, 0.0], *rest) for p, *rest in split]
+            assert ours["AVE_zero"] == pytest.approx(
+                calc_tp(devkit_metric_data(still, label), 0.1, "vel_err"), abs=1e-12)
+        else:
+            assert ours["AVE_zero"] is None
     assert compared >= 8
 
 
@@ -274,7 +282,8 @@ def test_tp_error_hand_values():
     assert (result["mATE"], result["mASE"], result["mAOE"], result["mAVE"]) == \
         pytest.approx((1.0, 0.5, 0.25, 5.0))
     assert result["per_class"]["car"]["AVE"] == pytest.approx(5.0)
-    assert "mAVE 5.000 m/s" in format_detection(result)
+    assert result["mAVE_zero"] == pytest.approx(3.0)      # |(3, 0)|: the GT's own speed
+    assert "mAVE 5.000 m/s (zero velocities: 3.000)" in format_detection(result)
 
 
 def test_tp_errors_take_the_worst_value_below_ten_percent_recall():
@@ -284,7 +293,7 @@ def test_tp_errors_take_the_worst_value_below_ten_percent_recall():
     gt[:, 3:6] = 1.0
     score = DetectionScore()
     score.add(gt[:1], [0], [0.5], gt, np.zeros(20, int))
-    assert score.class_tp_errors(0) == dict.fromkeys(TP_ERRORS, 1.0)
+    assert score.class_tp_errors(0) == dict.fromkeys(REPORTED_ERRORS, 1.0)
     assert true_positive_error(np.zeros(3, bool), np.ones(3), np.zeros(0), 5) == 1.0
 
 

@@ -20,7 +20,9 @@ all 9 entries (cx, cy, cz, w, l, h, yaw, vx, vy): at the 2 m threshold each true
 each error's running mean over the true positives in score order is read off at the scores
 where recall crosses 101 interpolation points and averaged over the points from recall > 10 %
 to the highest recall reached (1.0, the worst value, when that is not above 10 %). mATE ...
-mAVE average the classes that have GT boxes.
+mAVE average the classes that have GT boxes. Beside them, AVE_zero / mAVE_zero: the AVE of the
+same matches had every predicted velocity been zero -- the bar a velocity head has to clear
+(for parked things zero is right, so a head that has not learned motion scores about this).
 
 What the nuScenes benchmark does and this does not: per-class evaluation ranges (here the
 caller keeps the boxes inside the occupancy grid), removal of GT boxes without LiDAR/radar
@@ -41,6 +43,7 @@ MIN_PRECISION = 0.1
 RECALL_POINTS = 101
 TP_DISTANCE = 2.0
 TP_ERRORS = ("ATE", "ASE", "AOE", "AVE")
+REPORTED_ERRORS = TP_ERRORS + ("AVE_zero",)
 # as the benchmark: a cone has no heading or speed to get right, a barrier no speed
 UNDEFINED_ERRORS = {"traffic_cone": ("AOE", "AVE"), "barrier": ("AVE",)}
 
@@ -173,12 +176,12 @@ class DetectionScore:
 
     def _class_matches(self, label: int, threshold: float, with_errors: bool = False):
         """Every prediction of class ``label``: (scores [N], true positive at ``threshold`` m
-        [N], position [N], and with_errors its TP errors [N, 4], NaN rows for false
-        positives), each sample's predictions in the devkit's order -- score descending, ties
+        [N], position [N], and with_errors its ``REPORTED_ERRORS`` [N, 5], NaN rows for
+        false positives), each sample's predictions in the devkit's order -- score descending, ties
         by the later box first; position: the box's index over all samples (samples in order,
         boxes in order), the devkit's tie-break across samples."""
         scores, matched, position = [np.zeros(0)], [np.zeros(0, bool)], [np.zeros(0, int)]
-        errors = [np.zeros((0, len(TP_ERRORS)))]
+        errors = [np.zeros((0, len(REPORTED_ERRORS)))]
         offset = 0
         for (boxes, labels, pred_scores), (gt_boxes, gt_labels) in self.samples:
             mine = np.flatnonzero(labels == label)
@@ -189,11 +192,15 @@ class DetectionScore:
             assigned = greedy_assign(boxes[order][:, :2], gt_mine[:, :2], threshold)
             matched.append(assigned >= 0)
             if with_errors:
-                sample_errors = np.full((len(order), len(TP_ERRORS)), np.nan)
+                sample_errors = np.full((len(order), len(REPORTED_ERRORS)), np.nan)
                 hit = assigned >= 0
                 if hit.any():
-                    sample_errors[hit] = true_positive_errors(
-                        boxes[order][hit], gt_mine[assigned[hit]], BOX_CLASSES[label])
+                    pred, gt = boxes[order][hit], gt_mine[assigned[hit]]
+                    still = pred.copy()
+                    still[:, 7:9] = 0.0
+                    name = BOX_CLASSES[label]
+                    sample_errors[hit, :4] = true_positive_errors(pred, gt, name)
+                    sample_errors[hit, 4] = true_positive_errors(still, gt, name)[:, 3]
                 errors.append(sample_errors)
             offset += len(labels)
         found = np.concatenate(scores), np.concatenate(matched), np.concatenate(position)
@@ -206,8 +213,8 @@ class DetectionScore:
                    for pred, gt in self.samples for boxes in (pred[0], gt[0]))
 
     def class_tp_errors(self, label: int, threshold: float = TP_DISTANCE) -> dict | None:
-        """{'ATE', 'ASE', 'AOE', 'AVE'} of one class (None for the errors the class has not);
-        None without GT of that class or without 9-entry boxes."""
+        """{'ATE', 'ASE', 'AOE', 'AVE', 'AVE_zero'} of one class (None for the errors the
+        class has not); None without GT of that class or without 9-entry boxes."""
         num_gt = sum(int((gt[1] == label).sum()) for _, gt in self.samples)
         if num_gt == 0 or not self.has_full_boxes:
             return None
@@ -215,9 +222,9 @@ class DetectionScore:
         order = np.lexsort((-position, -scores))
         scores, matched, errors = scores[order], matched[order], errors[order][matched[order]]
         undefined = UNDEFINED_ERRORS.get(BOX_CLASSES[label], ())
-        return {name: None if name in undefined else
+        return {name: None if name.split("_")[0] in undefined else
                 true_positive_error(matched, scores, errors[:, k], num_gt)
-                for k, name in enumerate(TP_ERRORS)}
+                for k, name in enumerate(REPORTED_ERRORS)}
 
     def class_ap(self, label: int, threshold: float) -> float | None:
         """AP of one class at one distance threshold; None without GT of that class."""
@@ -252,15 +259,15 @@ class DetectionScore:
                 "f1": float(f1[best])}
 
     def result(self) -> dict:
-        """{'mAP', 'AP@<t>' (mean over classes), 'mATE' .. 'mAVE', 'per_class': {name: {'AP',
-        'AP@<t>', 'ATE' .. 'AVE'}}, 'gt_boxes', 'pred_boxes', 'samples'}; AP in percent, the
-        errors in metres, 1 - IoU, radians, m/s (4 decimals); None where no class has GT (or
-        the boxes have no 9 entries, for the errors)."""
+        """{'mAP', 'AP@<t>' (mean over classes), 'mATE' .. 'mAVE', 'mAVE_zero', 'per_class':
+        {name: {'AP', 'AP@<t>', 'ATE' .. 'AVE', 'AVE_zero'}}, 'gt_boxes', 'pred_boxes',
+        'samples'}; AP in percent, the errors in metres, 1 - IoU, radians, m/s (4 decimals);
+        None where no class has GT (or the boxes have no 9 entries, for the errors)."""
         per_class, by_threshold = {}, {t: [] for t in self.thresholds}
-        by_error = {name: [] for name in TP_ERRORS}
+        by_error = {name: [] for name in REPORTED_ERRORS}
         for label, name in enumerate(BOX_CLASSES):
             values = {t: self.class_ap(label, t) for t in self.thresholds}
-            errors = self.class_tp_errors(label) or dict.fromkeys(TP_ERRORS)
+            errors = self.class_tp_errors(label) or dict.fromkeys(REPORTED_ERRORS)
             for error, v in errors.items():
                 if v is not None:
                     by_error[error].append(v)
@@ -301,7 +308,9 @@ def format_detection(result: dict) -> str:
     if has_errors:
         lines.append(f"  TP errors at {TP_DISTANCE:g} m: mATE {result['mATE']:.3f} m, "
                      f"mASE {result['mASE']:.3f}, mAOE {result['mAOE']:.3f} rad, "
-                     + ("mAVE -" if result["mAVE"] is None else f"mAVE {result['mAVE']:.3f} m/s"))
+                     + ("mAVE -" if result["mAVE"] is None else
+                        f"mAVE {result['mAVE']:.3f} m/s (zero velocities: "
+                        f"{result['mAVE_zero']:.3f})"))
     error = lambda v: "-" if v is None else f"{v:.3f}"  # noqa: E731
     for name, values in result["per_class"].items():
         if values["AP"] is not None:
