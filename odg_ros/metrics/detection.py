@@ -222,7 +222,7 @@ class DetectionScore:
         order = np.lexsort((-position, -scores))
         scores, matched, errors = scores[order], matched[order], errors[order][matched[order]]
         undefined = UNDEFINED_ERRORS.get(BOX_CLASSES[label], ())
-        return {name: None if name.split("_")[0] in undefined else
+        return {name: None if name.removesuffix("_zero") in undefined else
                 true_positive_error(matched, scores, errors[:, k], num_gt)
                 for k, name in enumerate(REPORTED_ERRORS)}
 
