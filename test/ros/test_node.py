@@ -286,9 +286,14 @@ def test_node_output_equals_offline_model_and_yaml_parameters_apply(
         assert stamp == pytest.approx(sets[k][0], abs=1e-6)   # CAM_FRONT's stamp
         assert len(msg.confidence) == labels.size and msg.memory_order == "xyz_c"
 
-    # the other outputs of the last set agree with the grid
-    assert h.spin_until(lambda: h.received["objects"] and h.received["markers"]
-                        and h.received["cloud"] and h.received["bev"], 10)
+    # the other outputs of the last set agree with the grid; they arrive after it (depth-1
+    # latest-wins publishers), so wait for the last set's stamp on each, not for any message
+    last_stamp = h.received["grid"][-1].header.stamp
+    assert h.spin_until(lambda: all(
+        h.received[k] and h.received[k][-1].header.stamp == last_stamp
+        for k in ("objects", "cloud", "bev"))
+        and h.received["markers"] and h.received["markers"][-1].markers[0].header.stamp
+        == last_stamp, 30), "the last set's cloud, bev, objects and markers did not all arrive"
     last = np.frombuffer(bytes(h.received["grid"][-1].labels), np.uint8)
     assert h.received["cloud"][-1].width == int((last != 17).sum())
     assert len(h.received["objects"][-1].objects) == expected[-1][1]
