@@ -289,11 +289,16 @@ def test_node_output_equals_offline_model_and_yaml_parameters_apply(
     # the other outputs of the last set agree with the grid; they arrive after it (depth-1
     # latest-wins publishers), so wait for the last set's stamp on each, not for any message
     last_stamp = h.received["grid"][-1].header.stamp
-    assert h.spin_until(lambda: all(
-        h.received[k] and h.received[k][-1].header.stamp == last_stamp
-        for k in ("objects", "cloud", "bev"))
-        and h.received["markers"] and h.received["markers"][-1].markers[0].header.stamp
-        == last_stamp, 30), "the last set's cloud, bev, objects and markers did not all arrive"
+
+    def has_last_set(topic):
+        if not h.received[topic]:
+            return False
+        newest = h.received[topic][-1]
+        header = newest.markers[0].header if topic == "markers" else newest.header  # DELETEALL
+        return header.stamp == last_stamp
+
+    assert h.spin_until(lambda: all(map(has_last_set, ("objects", "cloud", "bev", "markers"))),
+                        30), "the last set's cloud, bev, objects and markers did not all arrive"
     last = np.frombuffer(bytes(h.received["grid"][-1].labels), np.uint8)
     assert h.received["cloud"][-1].width == int((last != 17).sum())
     assert len(h.received["objects"][-1].objects) == expected[-1][1]
