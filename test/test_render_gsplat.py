@@ -177,3 +177,30 @@ def test_saturated_opacities_match_with_our_alpha_cap():
     np.testing.assert_allclose(rendered.numpy(), expected.numpy(), rtol=1e-7, atol=1e-9)
     gsplat_capped, _, _ = gsplat_composite(g, cam_from_ego, intrinsics)
     assert (gsplat_capped - expected).abs().max() > 1e-3
+
+
+def test_projection_gradients_match_gsplat():
+    """The same function, so the same gradients: d(centre, inverse covariance, depth) w.r.t.
+    means, scales and quaternions through our projection (Lagrange-identity determinant,
+    clamped Jacobian) equal autograd through gsplat's, float64."""
+    rng = np.random.default_rng(6)
+    cam_from_ego, intrinsics = rig(rng, 2)
+    g = random_gaussians(rng, 300)
+    params = {k: g[k].clone().requires_grad_(True) for k in ("means", "scales", "rotations")}
+    ours = project_gaussians(params["means"], params["scales"], params["rotations"],
+                             g["opacities"], cam_from_ego, intrinsics, HW, NEAR)
+    cam, gauss = ours.camera, ours.gaussian
+    ours_out = torch.cat([ours.mean2d, ours.depth[:, None], torch.stack(
+        [ours.cov_yy / ours.det, -ours.cov_xy / ours.det, ours.cov_xx / ours.det], dim=-1)], -1)
+    _, means2d, depths, conics = gsplat_projection({**g, **params}, cam_from_ego, intrinsics)
+    theirs_out = torch.cat([means2d[cam, gauss], depths[cam, gauss, None],
+                            conics[cam, gauss]], dim=-1)
+    # Scale each output column to order 1 so no one term dominates the comparison.
+    weights = (torch.tensor(rng.normal(size=ours_out.shape))
+               / theirs_out.detach().abs().clamp_min(1e-3))
+    ours_grads = torch.autograd.grad((ours_out * weights).sum(), list(params.values()))
+    theirs_grads = torch.autograd.grad((theirs_out * weights).sum(), list(params.values()))
+    for name, a, b in zip(params, ours_grads, theirs_grads):
+        assert a.abs().max() > 0, name
+        np.testing.assert_allclose(a.numpy(), b.numpy(), rtol=1e-6,
+                                   atol=1e-9 * b.abs().max().item(), err_msg=name)
