@@ -9,8 +9,6 @@ pixel of every camera. One deliberate difference: gsplat caps alpha at 0.999, th
 rasteriser and DESIGN.md at 0.99 (ours). The scenes below keep opacities under 0.95, where
 neither cap can act, except the saturated test, which composites with our cap.
 """
-import math
-
 import numpy as np
 import pytest
 import torch
@@ -18,10 +16,12 @@ from gsplat.cuda import _torch_impl as gsplat_reference
 
 from odg_ros.render import render_cameras
 from odg_ros.render.projection import ALPHA_MAX, ALPHA_MIN, BLUR_PX2, project_gaussians
+from test_render import look_transform
 
 NEAR = 0.05
 HW = (36, 64)
 GSPLAT_ALPHA_MAX = 0.999
+GSPLAT_TRANSMITTANCE_STOP = 1e-4   # the forward kernel's literal (ours: splat.TRANSMITTANCE_MIN)
 
 
 def rig(rng, num_cameras):
@@ -30,14 +30,7 @@ def rig(rng, num_cameras):
     cam_from_ego, intrinsics = [], []
     for _ in range(num_cameras):
         yaw, pitch = rng.uniform(-np.pi, np.pi), rng.uniform(-0.3, 0.3)
-        forward = np.array([math.cos(pitch) * math.cos(yaw), math.cos(pitch) * math.sin(yaw),
-                            math.sin(pitch)])
-        right = np.cross(forward, [0.0, 0.0, 1.0])
-        right /= np.linalg.norm(right)
-        ego_from_cam = np.eye(4)
-        ego_from_cam[:3, :3] = np.stack([right, np.cross(forward, right), forward], axis=1)
-        ego_from_cam[:3, 3] = rng.uniform(-1.5, 1.5, 3)
-        cam_from_ego.append(np.linalg.inv(ego_from_cam))
+        cam_from_ego.append(look_transform(yaw, pitch, rng.uniform(-1.5, 1.5, 3)))
         focal = rng.uniform(30.0, 70.0)
         intrinsics.append([[focal * rng.uniform(0.9, 1.1), 0.0, HW[1] * rng.uniform(0.4, 0.6)],
                            [0.0, focal, HW[0] * rng.uniform(0.4, 0.6)], [0.0, 0.0, 1.0]])
@@ -72,14 +65,26 @@ def gsplat_projection(g, cam_from_ego, intrinsics):
     return radii, means2d, depths, conics
 
 
+def pixel_centres():
+    """u, v [H * W] of every pixel centre, row-major."""
+    v, u = torch.meshgrid(torch.arange(HW[0], dtype=torch.float64) + 0.5,
+                          torch.arange(HW[1], dtype=torch.float64) + 0.5, indexing="ij")
+    return u.flatten(), v.flatten()
+
+
+def conic_power(conic, mean2d, u, v):
+    """gsplat's exponent 0.5 d^T conic d at pixels (u, v) for one splat."""
+    a, b, c = conic
+    du, dv = mean2d[0] - u, mean2d[1] - v
+    return 0.5 * (a * du * du + c * dv * dv) + b * du * dv
+
+
 def gsplat_composite(g, cam_from_ego, intrinsics, alpha_max=GSPLAT_ALPHA_MAX):
     """Every pixel of every camera composited as gsplat's forward kernel does (float64).
     Returns [N, H * W, C + 2]: features, depth, accumulated alpha (row-major pixels); the
     pixels (u, v) [H * W, 2]; and which pixels reached the early stop [N, H * W]."""
     radii, means2d, depths, conics = gsplat_projection(g, cam_from_ego, intrinsics)
-    v, u = torch.meshgrid(torch.arange(HW[0], dtype=torch.float64) + 0.5,
-                          torch.arange(HW[1], dtype=torch.float64) + 0.5, indexing="ij")
-    pixel_u, pixel_v = u.flatten(), v.flatten()
+    pixel_u, pixel_v = pixel_centres()
     out, stopped = [], []
     for cam in range(cam_from_ego.shape[0]):
         listed = (radii[cam] > 0).all(-1).nonzero().flatten()
@@ -88,13 +93,11 @@ def gsplat_composite(g, cam_from_ego, intrinsics, alpha_max=GSPLAT_ALPHA_MAX):
         done = torch.zeros_like(pixel_u, dtype=torch.bool)
         values = torch.zeros(pixel_u.shape[0], g["features"].shape[1] + 2, dtype=torch.float64)
         for i in order.tolist():
-            a, b, c = conics[cam, i]
-            du, dv = means2d[cam, i, 0] - pixel_u, means2d[cam, i, 1] - pixel_v
-            power = 0.5 * (a * du * du + c * dv * dv) + b * du * dv
+            power = conic_power(conics[cam, i], means2d[cam, i], pixel_u, pixel_v)
             alpha = torch.clamp_max(g["opacities"][i] * torch.exp(-power), alpha_max)
             hit = ~done & (power >= 0) & (alpha >= ALPHA_MIN)
             next_t = transmittance * (1.0 - alpha)
-            done = done | (hit & (next_t <= 1e-4))
+            done = done | (hit & (next_t <= GSPLAT_TRANSMITTANCE_STOP))
             hit = hit & ~done
             weight = torch.where(hit, alpha * transmittance, torch.zeros_like(alpha))
             value = torch.cat([g["features"][i], depths[cam, i, None],
@@ -136,16 +139,13 @@ def test_projection_matches_gsplat(seed):
                                rtol=1e-7, atol=1e-12)
     assert (radii[cam, gauss] > 0).all(), "we keep a splat gsplat culls"
 
-    v, u = torch.meshgrid(torch.arange(HW[0], dtype=torch.float64) + 0.5,
-                          torch.arange(HW[1], dtype=torch.float64) + 0.5, indexing="ij")
+    u, v = pixel_centres()
     kept = set(zip(cam.tolist(), gauss.tolist()))
     checked = 0
     for c, i in (radii > 0).all(-1).nonzero().tolist():
         if (c, i) in kept:
             continue
-        a, b, cc = conics[c, i]
-        du, dv = means2d[c, i, 0] - u, means2d[c, i, 1] - v
-        power = 0.5 * (a * du * du + cc * dv * dv) + b * du * dv
+        power = conic_power(conics[c, i], means2d[c, i], u, v)
         alpha = g["opacities"][i] * torch.exp(-power)
         assert not ((power >= 0) & (alpha >= ALPHA_MIN)).any(), (c, i)
         checked += 1
