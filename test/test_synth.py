@@ -10,8 +10,9 @@ import pytest
 from odg_ros.classes import FREE_LABEL, OCC_CLASSES
 from odg_ros.data import lidarseg
 from odg_ros.data.nuscenes_tables import NuScenesTables, pose_matrix
-from odg_ros.data.synth import occupancy, rig, sensors
-from odg_ros.data.synth.generate import (camera_time, generate, keyframe_time, scene_world)
+from odg_ros.data.synth import occupancy, rig, sensors, shading
+from odg_ros.data.synth.generate import (DEFAULT_IMAGE_HW, camera_time, generate, keyframe_time,
+                                         scene_world)
 from odg_ros.data.synth.primitives import BOX, ELLIPSOID, FRUSTUM, Primitives, contains, make
 from odg_ros.data.synth.raycast import _intersect
 from odg_ros.data.synth.shapes import CATEGORY_TO_OCC
@@ -444,7 +445,13 @@ def test_nuscenes_devkit_opens_the_dataroot(world_dir):
 # scenes and the calibration keyframes, seed 18 the second held-out world), checked equal to the
 # labels.npz files `odg synth --scenes 24 --seconds 8 --seed 1` / `--scenes 8 --seed 18` wrote on
 # the machine whose evals reproduced the card to the last digit (2026-11-24). Per keyframe: voxels
-# per Occ3D class (index 17 = free), ego xy (m), ego yaw (rad), annotated things.
+# per Occ3D class (index 17 = free), ego xy (m), ego yaw (rad), annotated things; and the first
+# CAM_FRONT image (its JPEG on disk is this array saved at quality 90, byte for byte): mean and
+# standard deviation per RGB channel.
+CARD_IMAGES = {
+    1: ((134.445, 140.302, 146.666), (45.131, 48.014, 54.910)),
+    18: ((136.520, 141.744, 149.193), (45.921, 46.039, 48.330)),
+}
 CARD_WORLDS = {
     (1, 0): ([64, 483, 39, 0, 5755, 0, 29, 301, 26, 664, 377, 13402, 13207, 5776, 0, 15176, 4984,
               579717], (612.917, 1436.047), 1.6011, 446),
@@ -477,3 +484,18 @@ def test_card_worlds_are_the_ones_the_shipped_checkpoint_was_scored_on(seed):
         np.testing.assert_allclose(T[:2, 3], ego_xy, atol=2e-3)
         assert np.arctan2(T[1, 0], T[0, 0]) == pytest.approx(ego_yaw, abs=2e-4)
         assert len(world.boxes(t)[0]) == things
+    # the pictures the network sees: shading, textures and camera rig
+    cam = rig.cameras(DEFAULT_IMAGE_HW)[0]
+    t = camera_time(0, cam.name)
+    prims = world.prims_at(t)
+    T_global_cam = world.ego_pose(t) @ cam.T_ego_from_cam
+    hits, dirs = sensors.render_camera(prims, T_global_cam, cam.intrinsics, DEFAULT_IMAGE_HW)
+    noise_seed = np.random.SeedSequence([seed, 0, 0, 0]).generate_state(1)[0]
+    image = shading.shade(world, prims, hits, T_global_cam[:3, 3], dirs, DEFAULT_IMAGE_HW,
+                          noise_seed, camera_gain=1.0).reshape(-1, 3)
+    mean, std = CARD_IMAGES[seed]
+    assert cam.name == "CAM_FRONT"
+    np.testing.assert_allclose(image.mean(0), mean, atol=0.02,
+                               err_msg=f"seed {seed}: odg synth renders other images than the card's")
+    np.testing.assert_allclose(image.std(0), std, atol=0.02,
+                               err_msg=f"seed {seed}: odg synth renders other images than the card's")
