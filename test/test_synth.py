@@ -1,5 +1,6 @@
 """The synthetic world (odg synth): determinism, nuScenes tables, GT vs rendering, boxes,
-velocities, LiDAR files, devkit compatibility. Tiny worlds (small images, few keyframes)."""
+velocities, LiDAR files, devkit compatibility. Tiny worlds (small images, few keyframes); and
+fingerprints of the worlds the shipped checkpoint's card was measured on (no files written)."""
 import filecmp
 import json
 import os
