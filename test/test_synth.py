@@ -11,9 +11,9 @@ import pytest
 from odg_ros.classes import FREE_LABEL, OCC_CLASSES
 from odg_ros.data import lidarseg
 from odg_ros.data.nuscenes_tables import NuScenesTables, pose_matrix
-from odg_ros.data.synth import occupancy, rig, sensors, shading
-from odg_ros.data.synth.generate import (DEFAULT_IMAGE_HW, camera_time, generate, keyframe_time,
-                                         scene_world)
+from odg_ros.data.synth import occupancy, rig, sensors
+from odg_ros.data.synth.generate import (DEFAULT_IMAGE_HW, camera_image, camera_time, generate,
+                                         keyframe_time, scene_world)
 from odg_ros.data.synth.primitives import BOX, ELLIPSOID, FRUSTUM, Primitives, contains, make
 from odg_ros.data.synth.raycast import _intersect
 from odg_ros.data.synth.shapes import CATEGORY_TO_OCC
@@ -444,33 +444,32 @@ def test_nuscenes_devkit_opens_the_dataroot(world_dir):
 
 # Fingerprints of the first scene of the card's worlds (model/odg_cpu.md: seed 1 holds the val
 # scenes and the calibration keyframes, seed 18 the second held-out world), checked equal to the
-# labels.npz files `odg synth --scenes 24 --seconds 8 --seed 1` / `--scenes 8 --seed 18` wrote on
-# the machine whose evals reproduced the card to the last digit (2026-11-24). Per keyframe: voxels
-# per Occ3D class (index 17 = free), ego xy (m), ego yaw (rad), annotated things; and the first
-# CAM_FRONT image (its JPEG on disk is this array saved at quality 90, byte for byte): mean and
-# standard deviation per RGB channel.
-CARD_IMAGES = {
-    1: ((134.445, 140.302, 146.666), (45.131, 48.014, 54.910)),
-    18: ((136.520, 141.744, 149.193), (45.921, 46.039, 48.330)),
-}
+# files `odg synth --scenes 24 --seconds 8 --seed 1` / `--scenes 8 --seed 18` wrote on the machine
+# whose evals reproduced the card to the last digit (2026-11-24). Per keyframe: voxels per Occ3D
+# class (index 17 = free; equal to labels.npz voxel for voxel), ego xy (m), ego yaw (rad),
+# annotated things. Per world: the first CAM_FRONT image (its JPEG on disk is this array saved at
+# quality 90, byte for byte), mean and standard deviation per RGB channel.
 CARD_WORLDS = {
-    (1, 0): ([64, 483, 39, 0, 5755, 0, 29, 301, 26, 664, 377, 13402, 13207, 5776, 0, 15176, 4984,
-              579717], (612.917, 1436.047), 1.6011, 446),
-    (1, 15): ([34, 528, 23, 0, 3425, 0, 29, 220, 0, 0, 717, 11819, 2695, 4832, 9074, 23960, 5341,
-               577303], (611.390, 1486.384), 1.6011, 446),
-    (18, 0): ([26, 0, 18, 0, 246, 0, 133, 151, 21, 0, 0, 9399, 3839, 5767, 2657, 43376, 4793,
-               569574], (1552.129, 626.369), 0.2430, 381),
-    (18, 15): ([34, 734, 13, 0, 369, 0, 66, 221, 48, 0, 0, 12177, 5151, 3381, 3835, 34315, 2136,
-                577520], (1594.094, 629.154), -1.3278, 381),
+    1: {"keyframes": {
+            0: ([64, 483, 39, 0, 5755, 0, 29, 301, 26, 664, 377, 13402, 13207, 5776, 0, 15176,
+                 4984, 579717], (612.917, 1436.047), 1.6011, 446),
+            15: ([34, 528, 23, 0, 3425, 0, 29, 220, 0, 0, 717, 11819, 2695, 4832, 9074, 23960,
+                  5341, 577303], (611.390, 1486.384), 1.6011, 446)},
+        "cam_front": ((134.445, 140.302, 146.666), (45.131, 48.014, 54.910))},
+    18: {"keyframes": {
+            0: ([26, 0, 18, 0, 246, 0, 133, 151, 21, 0, 0, 9399, 3839, 5767, 2657, 43376, 4793,
+                 569574], (1552.129, 626.369), 0.2430, 381),
+            15: ([34, 734, 13, 0, 369, 0, 66, 221, 48, 0, 0, 12177, 5151, 3381, 3835, 34315, 2136,
+                  577520], (1594.094, 629.154), -1.3278, 381)},
+         "cam_front": ((136.520, 141.744, 149.193), (45.921, 46.039, 48.330))},
 }
 
 
-@pytest.mark.parametrize("seed", [1, 18])
+@pytest.mark.parametrize("seed", sorted(CARD_WORLDS))
 def test_card_worlds_are_the_ones_the_shipped_checkpoint_was_scored_on(seed):
+    card = CARD_WORLDS[seed]
     world = scene_world(seed, 0, 8.0)
-    for (s, k), (counts, ego_xy, ego_yaw, things) in CARD_WORLDS.items():
-        if s != seed:
-            continue
+    for k, (counts, ego_xy, ego_yaw, things) in card["keyframes"].items():
         t = keyframe_time(k)
         T = world.ego_pose(t)
         sem = occupancy.voxelize(world, world.prims_at(t), T)
@@ -485,18 +484,12 @@ def test_card_worlds_are_the_ones_the_shipped_checkpoint_was_scored_on(seed):
         np.testing.assert_allclose(T[:2, 3], ego_xy, atol=2e-3)
         assert np.arctan2(T[1, 0], T[0, 0]) == pytest.approx(ego_yaw, abs=2e-4)
         assert len(world.boxes(t)[0]) == things
-    # the pictures the network sees: shading, textures and camera rig
+    # the pictures the network sees: shading, textures, noise and camera rig
     cam = rig.cameras(DEFAULT_IMAGE_HW)[0]
-    t = camera_time(0, cam.name)
-    prims = world.prims_at(t)
-    T_global_cam = world.ego_pose(t) @ cam.T_ego_from_cam
-    hits, dirs = sensors.render_camera(prims, T_global_cam, cam.intrinsics, DEFAULT_IMAGE_HW)
-    noise_seed = np.random.SeedSequence([seed, 0, 0, 0]).generate_state(1)[0]
-    image = shading.shade(world, prims, hits, T_global_cam[:3, 3], dirs, DEFAULT_IMAGE_HW,
-                          noise_seed, camera_gain=1.0).reshape(-1, 3)
-    mean, std = CARD_IMAGES[seed]
     assert cam.name == "CAM_FRONT"
-    np.testing.assert_allclose(image.mean(0), mean, atol=0.02,
-                               err_msg=f"seed {seed}: odg synth renders other images than the card's")
-    np.testing.assert_allclose(image.std(0), std, atol=0.02,
-                               err_msg=f"seed {seed}: odg synth renders other images than the card's")
+    *_, image = camera_image(world, seed, 0, 0, 0, cam, DEFAULT_IMAGE_HW)
+    pixels = image.reshape(-1, 3)
+    mean, std = card["cam_front"]
+    message = f"seed {seed}: odg synth renders other images than the card's"
+    np.testing.assert_allclose(pixels.mean(0), mean, atol=0.02, err_msg=message)
+    np.testing.assert_allclose(pixels.std(0), std, atol=0.02, err_msg=message)

@@ -72,6 +72,19 @@ def camera_time(m: int, name: str) -> float:
     return m / rig.CAMERA_HZ + rig.CAMERA_DELAY_S[name]
 
 
+def camera_image(world: World, seed: int, index: int, m: int, ci: int, cam: rig.Camera, hw):
+    """Camera ``cam`` (rig index ci) of camera set m of scene ``index``, exactly as ``generate``
+    renders it: (exposure time, primitives then, ray hits, RGB uint8 image)."""
+    t = camera_time(m, cam.name)
+    prims = world.prims_at(t)
+    T_global_cam = world.ego_pose(t) @ cam.T_ego_from_cam
+    hits, dirs = sensors.render_camera(prims, T_global_cam, cam.intrinsics, hw)
+    noise_seed = np.random.SeedSequence([seed, index, m, ci]).generate_state(1)[0]
+    image = shading.shade(world, prims, hits, T_global_cam[:3, 3], dirs, hw, noise_seed,
+                          camera_gain=1.0 + 0.04 * np.sin(ci * 2.1 + index))
+    return t, prims, hits, image
+
+
 def split_scenes(names: list[str]) -> dict:
     """Every fourth scene (at least one when there are two or more) goes to val."""
     val = [n for i, n in enumerate(names) if i % 4 == 3]
@@ -151,13 +164,8 @@ class _SceneWriter:
         """Render camera set m (its six images at their own stamps). Returns keyframe data."""
         out = []
         for ci, cam in enumerate(self.cams):
-            t = camera_time(m, cam.name)
-            prims = self.world.prims_at(t)
-            T_global_cam = self.world.ego_pose(t) @ cam.T_ego_from_cam
-            hits, dirs = sensors.render_camera(prims, T_global_cam, cam.intrinsics, self.hw)
-            seed = np.random.SeedSequence([self.seed, self.index, m, ci]).generate_state(1)[0]
-            image = shading.shade(self.world, prims, hits, T_global_cam[:3, 3], dirs, self.hw, seed,
-                                  camera_gain=1.0 + 0.04 * np.sin(ci * 2.1 + self.index))
+            t, prims, hits, image = camera_image(self.world, self.seed, self.index, m, ci, cam,
+                                                 self.hw)
             rec = self._sample_data(cam.name, t, key, k, "jpg", self.hw[0], self.hw[1])
             path = os.path.join(self.out, rec["filename"])
             os.makedirs(os.path.dirname(path), exist_ok=True)
