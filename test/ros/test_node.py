@@ -217,8 +217,14 @@ class Harness:
         from rcl_interfaces.srv import GetParameters
         client = self.node.create_client(GetParameters, f"{NODE}/get_parameters")
         assert self.spin_until(lambda: client.service_is_ready(), 30)
-        future = client.call_async(GetParameters.Request(names=names))
-        assert self.spin_until(future.done, 30)
+        # Fast DDS drops a response whose reader it has not matched within 100 ms ("failed to
+        # send response (timeout)" in the node's log), which a loaded machine can exceed even
+        # after service_is_ready(); the request is read-only, so sending it again is safe.
+        for _ in range(3):
+            future = client.call_async(GetParameters.Request(names=names))
+            if self.spin_until(future.done, 15):
+                break
+        assert future.done(), "no get_parameters response in three tries"
         from rclpy.parameter import parameter_value_to_python
         return {n: parameter_value_to_python(v) for n, v in zip(names, future.result().values)}
 
