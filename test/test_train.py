@@ -8,7 +8,8 @@ import sys
 import pytest
 import torch
 
-from odg_ros.data.dataset import OccDataset
+from odg_ros.data.dataset import OccDataset, replay_history_draws
+from odg_ros.losses.criterion import ODGCriterion
 from odg_ros.network import ODG
 from odg_ros.network.checkpoint import load_model, save_checkpoint
 from odg_ros.train.schedule import warmup_cosine
@@ -85,28 +86,109 @@ def test_resume_mid_epoch_trains_what_the_interrupted_run_had_not(tmp_path):
     assert sorted(order[:5]) == sorted(order[5:]) and len(set(order[:5])) == 5  # each epoch: all
     assert order[:5] != order[5:]  # reshuffled (this seed; 1 in 120 orders would repeat)
     assert trained_samples(stopped) == order
-    # Killed after step 8 with the last checkpoint at step 6: steps 7-8 are trained again and
-    # logged once.
-    killed = tmp_path / "killed"
-    interrupted = Trainer(cfg, five, options(killed, epochs=2, checkpoint_every=3))
-    real_step = interrupted.train_step
+
+
+def _kill_at(trainer, step):
+    """``trainer.fit()`` raises KeyboardInterrupt before training step ``step + 1``."""
+    real_step = trainer.train_step
 
     def step_until_killed(batch):
-        if interrupted.step == 8:
+        if trainer.step == step:
             raise KeyboardInterrupt
         return real_step(batch)
+    trainer.train_step = step_until_killed
 
-    interrupted.train_step = step_until_killed
+
+def _logged_terms(out):
+    return [{k: v for k, v in row.items() if k != "seconds"}
+            for row in read_log(out / "train_log.csv")]
+
+
+def _weights(path):
+    return torch.load(path, map_location="cpu", weights_only=False)["model"]
+
+
+@pytest.fixture(scope="module")
+def three(tmp_path_factory):
+    """One scene of 3 keyframes: from the second on, 6 earlier camera sets, so the training
+    history interval is drawn from 4-6."""
+    return write_tiny_split(tmp_path_factory.mktemp("three"), 3)
+
+
+@pytest.fixture(scope="module")
+def never_stopped(three, tmp_path_factory):
+    """workers -> output folder of 2 epochs x 3 steps trained without a stop."""
+    runs = {}
+
+    def run(workers):
+        if workers not in runs:
+            out = tmp_path_factory.mktemp(f"whole{workers}")
+            Trainer(tiny_config(num_frames=2), three,
+                    options(out, epochs=2, workers=workers)).fit()
+            runs[workers] = out
+        return runs[workers]
+    return run
+
+
+@pytest.mark.parametrize("workers, killed_at, checkpoint_every", [
+    (0, 5, 2),   # mid-epoch: resumes at step 4 (epoch 1, one step in)
+    (0, 4, 3),   # resumes at step 3, an epoch boundary (the next loader seed is still to draw)
+    (1, 5, 2),   # one loader worker: its history-interval draws are replayed
+])
+def test_resumed_run_is_the_run_never_stopped(three, never_stopped, tmp_path, workers,
+                                              killed_at, checkpoint_every):
+    """Killed and resumed, a run logs the same samples and loss terms at every step and ends
+    with the same weights, to the last bit, as the run never stopped: dropout, render pixels
+    and the history intervals continue from where they were. The steps after the checkpoint
+    are trained again and logged once, a row cut short by the kill dropped."""
+    cfg = tiny_config(num_frames=2)
+    killed = tmp_path / "killed"
+    interrupted = Trainer(cfg, three, options(killed, epochs=2, workers=workers,
+                                              checkpoint_every=checkpoint_every))
+    _kill_at(interrupted, killed_at)
     with pytest.raises(KeyboardInterrupt):
         interrupted.fit()
-    assert len(read_log(killed / "train_log.csv")) == 8
+    assert len(read_log(killed / "train_log.csv")) == killed_at
     with open(killed / "train_log.csv", "a") as log_file:
-        log_file.write("1")  # the start of a row the kill cut short (step 1x)
-    resumed = Trainer(cfg, five, options(killed, epochs=2, checkpoint_every=3, resume=True))
-    assert resumed.step == 6
+        log_file.write("1")  # the start of a row the kill cut short
+    resumed = Trainer(cfg, three, options(killed, epochs=2, workers=workers,
+                                          checkpoint_every=checkpoint_every, resume=True))
+    assert resumed.step == killed_at // checkpoint_every * checkpoint_every
     resumed.fit()
-    assert trained_samples(killed) == order
-    assert [int(r["step"]) for r in read_log(killed / "train_log.csv")] == list(range(1, 11))
+    whole = never_stopped(workers)
+    assert [int(r["step"]) for r in read_log(killed / "train_log.csv")] == list(range(1, 7))
+    assert _logged_terms(killed) == _logged_terms(whole)
+    assert _same(_weights(killed / "final.pt"), _weights(whole / "final.pt"))
+
+
+def test_a_checkpoint_without_random_state_still_resumes(split, tmp_path, caplog):
+    """Files written before the RNG state was saved resume with a warning (not exactly)."""
+    cfg = tiny_config(num_frames=2)
+    Trainer(cfg, split, options(tmp_path, epochs=1)).fit()
+    payload = torch.load(tmp_path / "latest.pt", weights_only=False)
+    del payload["rng"]
+    torch.save(payload, tmp_path / "latest.pt")
+    with caplog.at_level("WARNING"):
+        resumed = Trainer(cfg, split, options(tmp_path, epochs=2, resume=True))
+    assert "holds no random-number state" in caplog.text
+    assert resumed.fit()["steps"] == 4
+
+
+def test_replayed_history_draws_leave_the_rng_where_loading_the_samples_would(tmp_path):
+    paths = [write_tiny_split(tmp_path / name, 5) for name in ("a", "b")]
+    cfg = tiny_config(num_frames=2)
+    both = training_dataset([str(p) for p in paths], cfg)
+    earlier, then = [7, 1, 9, 3, 6, 8], 4
+    torch.manual_seed(3)
+    for index in earlier:
+        both[index]
+    loaded = [both.datasets[0].history_choices(then)[1] for _ in range(8)]
+    torch.manual_seed(3)
+    replay_history_draws(both, earlier)
+    assert [both.datasets[0].history_choices(then)[1] for _ in range(8)] == loaded
+    torch.manual_seed(3)
+    replay_history_draws(both, earlier[1:])  # one draw fewer: a different stream (can fail)
+    assert [both.datasets[0].history_choices(then)[1] for _ in range(8)] != loaded
 
 
 def test_init_from_a_shipped_checkpoint_with_a_smaller_final_point_budget(split, tmp_path):
@@ -154,19 +236,19 @@ def test_several_infos_files_train_together_each_from_its_own_dataroot(tmp_path)
         training_dataset([], cfg)
 
 
-def test_nonfinite_step_is_skipped_counted_and_not_applied(split, tmp_path):
+def test_nonfinite_step_is_skipped_counted_and_not_applied(split, tmp_path, monkeypatch):
     cfg = tiny_config(num_frames=2)
     trainer = Trainer(cfg, split, options(tmp_path, epochs=1))
-    real = trainer.criterion.__call__
+    real = ODGCriterion.__call__
     calls = {"n": 0}
 
-    def poisoned(output, batch):
+    def poisoned(criterion, output, batch):
         calls["n"] += 1
-        losses = real(output, batch)
+        losses = real(criterion, output, batch)
         if calls["n"] == 1:
             losses["loss"] = losses["loss"] * float("nan")
         return losses
-    trainer.criterion = poisoned
+    monkeypatch.setattr(ODGCriterion, "__call__", poisoned)
     before = {k: v.clone() for k, v in trainer.model.state_dict().items()}
     terms, applied = trainer.train_step(next(iter(trainer.loader)))
     assert not applied
@@ -178,21 +260,57 @@ def test_nonfinite_step_is_skipped_counted_and_not_applied(split, tmp_path):
     assert applied and terms["loss"] == terms["loss"]
 
 
+KILLED_AT_STEP_3 = """
+import sys
+from odg_ros.cli import main
+from odg_ros.train.trainer import Trainer
+real_step = Trainer.train_step
+
+
+def step_until_killed(trainer, batch):
+    if trainer.step == 3:
+        raise SystemExit(3)
+    return real_step(trainer, batch)
+
+
+Trainer.train_step = step_until_killed
+sys.exit(main())
+"""
+
+
 def test_ddp_two_cpu_processes_with_torchrun(split, tmp_path):
+    """Two ranks in sync, one log and checkpoint; killed after step 3 (checkpoint at 2) and
+    resumed, the run ends with the weights of the run never stopped: each rank's RNG state
+    comes back to that rank."""
     env = dict(os.environ, GLOO_SOCKET_IFNAME="lo", MASTER_ADDR="127.0.0.1",
                OMP_NUM_THREADS="1")
-    out = tmp_path / "ddp"
-    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2",
-           "-m", "odg_ros.cli", "train", "--preset", "odg_cpu", "--data", str(split),
-           "--out", str(out), "--steps", "2", "--workers", "0", "--render-pixels", "32",
-           "--device", "cpu", "--set", "backbone=resnet18", "--set", "image_size=[64,176]",
-           "--set", "num_frames=2", "--set", "embed_dims=64", "--set", "fpn_channels=64",
-           "--set", "num_static=20", "--set", "num_dynamic=6", "--set", "ffn_dims=128",
-           "--set", "points_per_layer=[1,2,2,4,4,8]", "--set", "mixing_out_points=8"]
-    result = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600)
+    killer = tmp_path / "killed_at_step_3.py"
+    killer.write_text(KILLED_AT_STEP_3)
+
+    def torchrun(program, out, *extra):
+        cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone",
+               "--nproc_per_node", "2", *program, "train", "--preset", "odg_cpu",
+               "--data", str(split), "--out", str(out), "--steps", "4",
+               "--checkpoint-every", "2", "--workers", "0", "--render-pixels", "32",
+               "--device", "cpu", "--set", "backbone=resnet18", "--set", "image_size=[64,176]",
+               "--set", "num_frames=2", "--set", "embed_dims=64", "--set", "fpn_channels=64",
+               "--set", "num_static=20", "--set", "num_dynamic=6", "--set", "ffn_dims=128",
+               "--set", "points_per_layer=[1,2,2,4,4,8]", "--set", "mixing_out_points=8",
+               *extra]
+        return subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600)
+
+    whole = tmp_path / "whole"
+    result = torchrun(["-m", "odg_ros.cli"], whole)
     assert result.returncode == 0, result.stderr[-3000:]
     assert '"world_size": 2' in result.stdout
-    rows = read_log(out / "train_log.csv")
-    assert len(rows) == 2  # 2 samples over 2 ranks: 1 step per epoch; only rank 0 logs
-    model, _ = load_model(out / "final.pt")  # both ranks stayed in sync: one checkpoint
-    assert (out / "final.pt").exists()
+    rows = read_log(whole / "train_log.csv")
+    assert len(rows) == 4  # 2 samples over 2 ranks: 1 step per epoch; only rank 0 logs
+    load_model(whole / "final.pt")  # both ranks stayed in sync: one checkpoint
+
+    killed = tmp_path / "killed"
+    assert torchrun([str(killer)], killed).returncode != 0
+    assert len(read_log(killed / "train_log.csv")) == 3
+    result = torchrun(["-m", "odg_ros.cli"], killed, "--resume")
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert _logged_terms(killed) == _logged_terms(whole)
+    assert _same(_weights(killed / "final.pt"), _weights(whole / "final.pt"))

@@ -39,10 +39,12 @@ Waymo infos (``dataset: "waymo"``): the cameras are the keyframe's ``cams`` in t
 order (5), the GT is loaded with occ_io.load_occ3d_waymo (free = 15).
 
 Works with DataLoader workers: ``__init__`` keeps only the infos in memory, every file is
-opened and closed inside ``__getitem__``; the random interval uses torch's per-worker RNG.
+opened and closed inside ``__getitem__``; the random interval uses torch's per-worker RNG
+(``replay_history_draws`` brings a resumed run's worker to where the stopped one was).
 """
 from __future__ import annotations
 
+import bisect
 from pathlib import Path
 
 import numpy as np
@@ -157,6 +159,14 @@ class OccDataset(torch.utils.data.Dataset):
         return len(self.infos)
 
     # ---------------------------------------------------------------- history sets
+    def history_choices(self, index: int) -> tuple[list[dict], list[int]]:
+        """(earlier camera sets newest first, the ones history frames 1.. take); in training
+        this draws the random interval from torch's global RNG (the worker's in a loader)."""
+        num_history = self.cfg.num_frames - 1
+        longest = TRAIN_INTERVAL[1] if self.train else EVAL_INTERVAL
+        sets = self.earlier_sets(index, num_history * longest)
+        return sets, select_history(len(sets), num_history, self.train)
+
     def _complete(self, cam_set) -> bool:
         return all(name in cam_set for name in self.camera_names)
 
@@ -248,10 +258,7 @@ class OccDataset(torch.utils.data.Dataset):
     # ---------------------------------------------------------------- sample
     def __getitem__(self, index: int) -> dict:
         info = self.infos[index]
-        num_history = self.cfg.num_frames - 1
-        longest = TRAIN_INTERVAL[1] if self.train else EVAL_INTERVAL
-        sets = self.earlier_sets(index, num_history * longest)
-        choices = select_history(len(sets), num_history, self.train)
+        sets, choices = self.history_choices(index)
 
         P_ref0 = _pose(info["ego_pose"], f"keyframe {info['token']} ego_pose")
         stamp0 = info["timestamp"]
@@ -312,3 +319,16 @@ class OccDataset(torch.utils.data.Dataset):
             "token": info["token"],
             "has_occ": has_occ,
         }
+
+
+def replay_history_draws(dataset: torch.utils.data.Dataset, indices) -> None:
+    """Draw the random history intervals of samples ``indices`` of ``dataset`` (an OccDataset
+    or a ConcatDataset of them) in that order, as ``__getitem__`` would, loading nothing: it
+    brings a fresh loader worker's RNG to where an interrupted run's worker had it."""
+    ends = getattr(dataset, "cumulative_sizes", None)
+    for index in indices:
+        if ends is None:
+            dataset.history_choices(index)
+            continue
+        part = bisect.bisect_right(ends, index)
+        dataset.datasets[part].history_choices(index - (ends[part - 1] if part else 0))

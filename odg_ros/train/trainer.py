@@ -2,7 +2,11 @@
 
 AdamW (lr 2e-4, weight decay 0.01, backbone lr x 0.1), warm-up + cosine schedule, gradient
 clipping at 35, mixed precision on CUDA, atomic checkpoints with optimizer and scheduler
-state, ``resume``, a tqdm bar and a CSV log of every loss term. A step whose loss or
+state, ``resume``, a tqdm bar and a CSV log of every loss term. A resumed run is the run never
+stopped, to the last bit on CPU: the checkpoint holds every process's random-number state
+(dropout, render pixels) and a fresh loader worker replays the history-interval draws of the
+samples before it (exact with 0 or 1 loader workers; with more, the workers are dealt other
+batches after a resume and the intervals differ). A step whose loss or
 gradient is not finite is skipped (no optimizer update), counted and logged.
 
 Distributed: started by ``torchrun`` (env WORLD_SIZE/RANK/LOCAL_RANK), torch DDP with gloo on
@@ -11,6 +15,7 @@ CPU and NCCL on CUDA. The skip decision is all-reduced so every rank skips the s
 from __future__ import annotations
 
 import csv
+import functools
 import logging
 import os
 import random
@@ -26,7 +31,7 @@ from tqdm import tqdm
 
 from ..config import ModelConfig
 from ..data.batch import collate
-from ..data.dataset import OccDataset
+from ..data.dataset import OccDataset, replay_history_draws
 from ..losses.criterion import ODGCriterion
 from ..network import ODG
 from ..network.backbone import load_torchvision_state_dict
@@ -146,6 +151,8 @@ class Trainer:
         else:
             device = opts.device
         self.device = torch.device(device)
+        if self.device.type == "cuda":
+            torch.cuda.set_device(self.device)  # all_gather_object's NCCL tensors go there
         seed = opts.seed + self.rank
         torch.manual_seed(seed), np.random.seed(seed), random.seed(seed)
 
@@ -183,6 +190,7 @@ class Trainer:
         self.scaler = torch.amp.GradScaler("cuda", enabled=self.amp_dtype == torch.float16)
         self.step = 0
         self.skipped_steps = 0
+        self._resumed_rng: dict | None = None
         self.out_dir = Path(opts.out_dir)
         if opts.resume:
             self._resume()
@@ -196,13 +204,43 @@ class Trainer:
         return self.out_dir / "latest.pt"
 
     def save(self, path: Path | None = None) -> None:
+        """Collective under DDP (every rank's RNG state goes into rank 0's file)."""
+        rng = [self._rng_state()]
+        if self.world > 1:
+            rng = [None] * self.world
+            dist.all_gather_object(rng, self._rng_state())
         if self.rank != 0:
             return
         save_checkpoint(path or self.latest_path, self.model, extra={
             "optimizer": self.optimizer.state_dict(), "scheduler": self.scheduler.state_dict(),
             "scaler": self.scaler.state_dict(), "step": self.step,
-            "skipped_steps": self.skipped_steps, "total_steps": self.total_steps,
+            "skipped_steps": self.skipped_steps, "total_steps": self.total_steps, "rng": rng,
             "train_options": {k: str(v) for k, v in vars(self.opts).items()}})
+
+    def _rng_state(self) -> dict:
+        state = {"torch": torch.get_rng_state(), "criterion": self.criterion.generator.get_state()}
+        if self.device.type == "cuda":
+            state["cuda"] = torch.cuda.get_rng_state(self.device)
+        return state
+
+    def _set_rng_state(self, state: dict) -> None:
+        torch.set_rng_state(state["torch"])
+        self.criterion.generator.set_state(state["criterion"])
+        if "cuda" in state and self.device.type == "cuda":
+            torch.cuda.set_rng_state(state["cuda"], self.device)
+
+    def _fetched_indices(self) -> list[int]:
+        """This rank's sample indices of steps 1..self.step, in the order its loader fetched
+        them (whole epochs, drop_last, then the current epoch's start)."""
+        sampler = EpochSampler(self.dataset, self.world, self.rank, self.opts.seed)
+        epochs, done = divmod(self.step, self.steps_per_epoch)
+        fetched = []
+        for epoch in range(epochs + 1):
+            count = (self.steps_per_epoch if epoch < epochs else done) * self.opts.batch_size
+            if count:
+                sampler.set_epoch(epoch)
+                fetched += list(sampler)[:count]
+        return fetched
 
     def _resume(self) -> None:
         if not self.latest_path.exists():
@@ -214,6 +252,17 @@ class Trainer:
         self.scaler.load_state_dict(payload["scaler"])
         self.step = payload["step"]
         self.skipped_steps = payload.get("skipped_steps", 0)
+        rng = payload.get("rng")
+        if rng is not None and len(rng) == self.world:
+            self._resumed_rng = rng[self.rank]
+        else:
+            log.warning("--resume: %s holds no random-number state for %d processes; from step "
+                        "%d on, dropout, render pixels and history intervals differ from a run "
+                        "never stopped", self.latest_path, self.world, self.step + 1)
+        if self._resumed_rng is not None and self.opts.workers > 1:
+            log.warning("--resume with %d loader workers: they are dealt other batches than "
+                        "before the stop, so the history intervals differ from a run never "
+                        "stopped (0 or 1 workers resume exactly)", self.opts.workers)
         log.info("resumed from %s at step %d", self.latest_path, self.step)
 
     # ------------------------------------------------------------------ one step
@@ -281,9 +330,23 @@ class Trainer:
         start, first_loss, last_loss = time.time(), None, None
         epoch, steps_done_in_epoch = divmod(self.step, self.steps_per_epoch)
         self.sampler.start_at(epoch, steps_done_in_epoch * self.opts.batch_size)
+        rng, self._resumed_rng = self._resumed_rng, None
+        if rng is not None and self.opts.workers == 1:
+            self.loader.worker_init_fn = functools.partial(
+                _replay_in_worker, self._fetched_indices())
+        if rng is not None and self.opts.workers == 0 and steps_done_in_epoch == 0:
+            # The stopped run would have drawn the next epoch's loader seed from this state.
+            self._set_rng_state(rng)
+            rng = None
         try:
             while self.step < self.total_steps:
-                for batch in self.loader:
+                batches = iter(self.loader)
+                if rng is not None:
+                    # Making the iterator drew a loader seed, which the stopped run had drawn
+                    # before this state: at its first epoch (workers) or this epoch's start.
+                    self._set_rng_state(rng)
+                    rng = None
+                for batch in batches:
                     if self.step >= self.total_steps:
                         break
                     t0 = time.time()
@@ -359,3 +422,8 @@ class Trainer:
             names += [f"occ_chamfer_l{layer}", f"occ_focal_l{layer}", f"box_l1_l{layer}",
                       f"box_focal_l{layer}", f"render_depth_l{layer}", f"render_sem_l{layer}"]
         return names
+
+
+def _replay_in_worker(indices: list[int], worker_id: int) -> None:
+    info = torch.utils.data.get_worker_info()
+    replay_history_draws(info.dataset, indices)
