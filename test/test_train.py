@@ -13,7 +13,7 @@ from odg_ros.losses.criterion import ODGCriterion
 from odg_ros.network import ODG
 from odg_ros.network.checkpoint import load_model, save_checkpoint
 from odg_ros.train.schedule import warmup_cosine
-from odg_ros.train.trainer import Trainer, TrainOptions, training_dataset
+from odg_ros.train.trainer import Trainer, TrainOptions, process_device, training_dataset
 
 from helpers import tiny_config, write_tiny_split
 
@@ -33,6 +33,18 @@ def options(out, **kw):
 def read_log(path):
     with open(path) as f:
         return list(csv.DictReader(f))
+
+
+def test_each_process_trains_on_its_own_gpu(monkeypatch):
+    """Under torchrun a bare ``cuda`` (and ``auto`` on a GPU machine) is the local rank's GPU,
+    never every rank on GPU 0 (``torch.cuda.set_device`` also needs the index)."""
+    assert process_device("cpu", 1) == torch.device("cpu")
+    assert process_device("cuda", 1) == torch.device("cuda", 1)
+    assert process_device("cuda:0", 1) == torch.device("cuda", 0)
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    assert process_device("auto", 1) == torch.device("cpu")
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    assert process_device("auto", 1) == torch.device("cuda", 1)
 
 
 def test_schedule_warms_up_then_decays():

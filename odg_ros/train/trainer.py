@@ -76,6 +76,17 @@ def distributed_context():
     return rank, world, int(os.environ.get("LOCAL_RANK", "0"))
 
 
+def process_device(name: str, local_rank: int) -> torch.device:
+    """``auto``: this process's GPU (its torchrun local rank) when CUDA is there, else the CPU;
+    a bare ``cuda`` means this process's GPU too, ``cuda:N`` GPU N."""
+    if name == "auto":
+        name = "cuda" if torch.cuda.is_available() else "cpu"
+    device = torch.device(name)
+    if device.type == "cuda" and device.index is None:
+        device = torch.device("cuda", local_rank)
+    return device
+
+
 def to_device(batch: dict, device) -> dict:
     out = {}
     for key, value in batch.items():
@@ -146,11 +157,7 @@ class Trainer:
         """``infos``: one infos path/dict, or a list of them (several dataroots train together)."""
         self.cfg, self.opts = cfg, opts
         self.rank, self.world, local_rank = distributed_context()
-        if opts.device == "auto":
-            device = f"cuda:{local_rank}" if torch.cuda.is_available() else "cpu"
-        else:
-            device = opts.device
-        self.device = torch.device(device)
+        self.device = process_device(opts.device, local_rank)
         if self.device.type == "cuda":
             torch.cuda.set_device(self.device)  # all_gather_object's NCCL tensors go there
         seed = opts.seed + self.rank
