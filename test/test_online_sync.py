@@ -100,6 +100,22 @@ def test_dead_camera_keeps_memory_bounded():
     assert len(sets) == 3
 
 
+def test_a_set_dropped_for_room_is_not_dropped_again_when_its_lagging_camera_comes():
+    """One camera lags (a reader matched late gets its backlog in a burst): the oldest waiting
+    sets are dropped to stay within max_pending, and that camera's messages for them are late,
+    not new partial sets to drop a second time: each set is emitted or dropped exactly once."""
+    msgs = messages(8)
+    sync = CameraSetSync(CAMS, slop=0.05, max_pending=4)
+    assert feed(sync, [m for m in msgs if m[0] != "CAM_BACK"]) == []
+    assert sync.counters["dropped_incomplete"] == 4          # sets 0-3, for room
+    sets = feed(sync, [m for m in msgs if m[0] == "CAM_BACK"])
+    assert [s.payloads["CAM_FRONT"][0] for s in sets] == [4, 5, 6, 7]
+    assert sync.counters["late_messages"] == 4
+    assert sync.counters["dropped_incomplete"] == 4
+    assert sync.counters["sets_emitted"] + sync.counters["dropped_incomplete"] == 8
+    assert sync.num_pending == 0
+
+
 def test_late_message_after_its_set_was_dropped():
     msgs = messages(3)
     late = [m for m in msgs if m[2] == (1, "CAM_BACK")]

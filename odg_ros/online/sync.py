@@ -17,7 +17,9 @@ Messages are fed one by one as ``(camera, stamp, payload)``; arrival order is fr
   One more than ``time_jump`` seconds older than the newest stamp seen is a time jump
   (a bag restarted): everything pending is cleared and synchronisation starts over.
 * At most ``max_pending`` sets wait; opening one more drops the oldest (a dead camera
-  therefore costs bounded memory, and shows up in ``dropped_incomplete``).
+  therefore costs bounded memory, and shows up in ``dropped_incomplete``). The rest of a set
+  dropped that way is late when it comes (a lagging camera's backlog): a set is emitted or
+  dropped once, never dropped again as a new partial set.
 """
 from __future__ import annotations
 
@@ -85,9 +87,11 @@ class CameraSetSync:
         self._pending: list[_Pending] = []
         self._last_emitted: float | None = None   # newest stamp of the last emitted set
         self._newest_seen: float | None = None
+        self._evicted: list[tuple[float, float]] = []  # (low, high) of sets dropped for room
 
     def reset(self) -> None:
         self._pending.clear()
+        self._evicted.clear()
         self._last_emitted = None
         self._newest_seen = None
 
@@ -115,6 +119,9 @@ class CameraSetSync:
             if any(p.stamps.get(camera) == stamp for p in self._pending):
                 self.counters["duplicate_messages"] += 1
                 return []
+            if any(max(high, stamp) - min(low, stamp) <= self.slop for low, high in self._evicted):
+                self.counters["late_messages"] += 1  # its set was dropped for room
+                return []
             target = _Pending()
             self._pending.append(target)
         target.stamps[camera] = stamp
@@ -124,7 +131,8 @@ class CameraSetSync:
         if len(target.stamps) == len(self.camera_names):
             return [self._emit(target)]
         while len(self._pending) > self.max_pending:
-            self._pending.pop(0)
+            evicted = self._pending.pop(0)
+            self._evicted = (self._evicted + [(evicted.low, evicted.high)])[-self.max_pending:]
             self.counters["dropped_incomplete"] += 1
         return []
 
@@ -150,6 +158,8 @@ class CameraSetSync:
         self.counters["dropped_incomplete"] += len(stale)
         self._pending = [p for p in self._pending if p not in stale]
         self._last_emitted = complete.high
+        # Sets dropped for room before this one: their messages are now late by stamp alone.
+        self._evicted = [span for span in self._evicted if span[1] > complete.high]
         self.counters["sets_emitted"] += 1
         order = self.camera_names
         return CameraSet(stamps={c: complete.stamps[c] for c in order},
