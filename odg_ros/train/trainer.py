@@ -212,10 +212,11 @@ class Trainer:
 
     def save(self, path: Path | None = None) -> None:
         """Collective under DDP (every rank's RNG state goes into rank 0's file)."""
-        rng = [self._rng_state()]
+        state = self._rng_state()
+        rng = [state]
         if self.world > 1:
             rng = [None] * self.world
-            dist.all_gather_object(rng, self._rng_state())
+            dist.all_gather_object(rng, state)
         if self.rank != 0:
             return
         save_checkpoint(path or self.latest_path, self.model, extra={
