@@ -7,7 +7,9 @@ import sys
 
 import pytest
 import torch
+import torch.distributed as dist
 
+from odg_ros.cli import main as cli_main
 from odg_ros.data.dataset import OccDataset, replay_history_draws
 from odg_ros.losses.criterion import ODGCriterion
 from odg_ros.network import ODG
@@ -326,3 +328,30 @@ def test_ddp_two_cpu_processes_with_torchrun(split, tmp_path):
     assert result.returncode == 0, result.stderr[-3000:]
     assert _logged_terms(killed) == _logged_terms(whole)
     assert _same(_weights(killed / "final.pt"), _weights(whole / "final.pt"))
+
+
+def test_train_command_ends_its_process_group(split, tmp_path):
+    """A torchrun rank destroys its gloo group before the interpreter shuts down, after a run
+    and after a failure: left to the shutdown, gloo's threads can abort a finished run (CI saw
+    rank 1 end with SIGABRT, "terminate called without an active exception")."""
+    def one_rank_group():
+        dist.init_process_group("gloo", store=dist.HashStore(), rank=0, world_size=1)
+
+    tiny = ["--preset", "odg_cpu", "--steps", "1", "--workers", "0", "--render-pixels", "16",
+            "--device", "cpu", "--set", "backbone=resnet18", "--set", "image_size=[64,176]",
+            "--set", "num_frames=2", "--set", "embed_dims=64", "--set", "fpn_channels=64",
+            "--set", "num_static=20", "--set", "num_dynamic=6", "--set", "ffn_dims=128",
+            "--set", "points_per_layer=[1,2,2,4,4,8]", "--set", "mixing_out_points=8"]
+    try:
+        one_rank_group()
+        assert cli_main(["train", "--data", str(split), "--out", str(tmp_path / "run"),
+                         *tiny]) == 0
+        assert not dist.is_initialized()
+        one_rank_group()
+        with pytest.raises(FileNotFoundError):
+            cli_main(["train", "--data", str(tmp_path / "missing.pkl"),
+                      "--out", str(tmp_path / "failed"), *tiny])
+        assert not dist.is_initialized()
+    finally:
+        if dist.is_initialized():
+            dist.destroy_process_group()

@@ -7,7 +7,7 @@ import logging
 import yaml
 
 from ..config import load_preset
-from ..train.trainer import Trainer, TrainOptions
+from ..train.trainer import Trainer, TrainOptions, end_distributed
 
 
 def parse_overrides(items: list[str]) -> dict:
@@ -64,8 +64,11 @@ def run(args) -> int:
                         checkpoint_every=args.checkpoint_every, device=args.device,
                         backbone_weights=args.backbone_weights, init_checkpoint=args.init,
                         resume=args.resume)
-    trainer = Trainer(cfg, args.data, opts)
-    summary = trainer.fit()
+    try:
+        trainer = Trainer(cfg, args.data, opts)
+        summary = trainer.fit()
+    finally:
+        end_distributed()
     if trainer.rank == 0:
         print(json.dumps(summary, indent=2))
     return 0

@@ -76,6 +76,14 @@ def distributed_context():
     return rank, world, int(os.environ.get("LOCAL_RANK", "0"))
 
 
+def end_distributed() -> None:
+    """Destroys the process group while the interpreter is still whole: left to its shutdown,
+    gloo's worker threads can abort a finished run (SIGABRT, "terminate called without an
+    active exception")."""
+    if dist.is_initialized():
+        dist.destroy_process_group()
+
+
 def process_device(name: str, local_rank: int) -> torch.device:
     """``auto``: this process's GPU (its torchrun local rank) when CUDA is there, else the CPU;
     a bare ``cuda`` means this process's GPU too, ``cuda:N`` GPU N."""
