@@ -1,4 +1,4 @@
-"""Our renderer against gsplat's own code, on CPU.
+"""Our renderer against gsplat's own code, on CPU; and our gsplat backend (the last tests).
 
 gsplat's rasteriser is CUDA-only, but the package ships pure-PyTorch versions of its
 projection (`gsplat.cuda._torch_impl`, what gsplat's own tests check its kernels against).
@@ -204,3 +204,174 @@ def test_projection_gradients_match_gsplat():
         assert a.abs().max() > 0, name
         np.testing.assert_allclose(a.numpy(), b.numpy(), rtol=1e-6,
                                    atol=1e-9 * b.abs().max().item(), err_msg=name)
+
+
+# --------------------------------------------------------------------------------------------
+# odg_ros.render.gsplat_backend: our code calling gsplat.rasterization.
+# On CPU, gsplat.rasterization's own Python runs with its four CUDA kernels replaced by
+# gsplat's pure-PyTorch versions (projection, tile intersections) and by the forward kernel's
+# rules written out (rasterisation, per tile as the kernel does); that checks everything of
+# ours (conventions, layouts, reading pixels back, gradients) but the kernels themselves,
+# which gsplat's own tests check against the same pure-PyTorch code. On a CUDA machine the
+# last test runs the real kernels.
+
+def _projection_without_cuda(means, covars, quats, scales, viewmats, Ks, width, height,
+                             eps2d=0.3, packed=True, near_plane=0.01, far_plane=1e10,
+                             radius_clip=0.0, sparse_grad=False, calc_compensations=False,
+                             camera_model="pinhole", opacities=None):
+    assert not packed and covars is None and camera_model == "pinhole" and radius_clip == 0.0
+    covars, _ = gsplat_reference._quat_scale_to_covar_preci(quats, scales, True, False,
+                                                            triu=False)
+    return gsplat_reference._fully_fused_projection(
+        means, covars, viewmats, Ks, width, height, eps2d=eps2d, near_plane=near_plane,
+        far_plane=far_plane, calc_compensations=calc_compensations)
+
+
+def _tiles_without_cuda(means2d, radii, depths, tile_size, tile_width, tile_height,
+                        segmented=False, packed=False, n_images=None, image_ids=None,
+                        gaussian_ids=None):
+    assert not packed and not segmented
+    return gsplat_reference._isect_tiles(means2d, radii, depths, tile_size, tile_width,
+                                         tile_height)
+
+
+def _rasterize_without_cuda(means2d, conics, colors, opacities, width, height, tile_size,
+                            isect_offsets, flatten_ids, backgrounds=None, masks=None,
+                            packed=False, absgrad=False):
+    """RasterizeToPixels3DGSFwd.cu's rules, tile by tile over the tile's depth-sorted list."""
+    assert not packed and backgrounds is None and masks is None
+    images, tiles_y, tiles_x = isect_offsets.shape
+    ends = torch.cat([isect_offsets.flatten()[1:].long(),
+                      torch.tensor([flatten_ids.numel()])])
+    means2d, conics = means2d.reshape(-1, 2), conics.reshape(-1, 3)
+    colors, opacities = colors.reshape(-1, colors.shape[-1]), opacities.reshape(-1)
+    out = means2d.new_zeros(images, height, width, colors.shape[-1])
+    alpha_out = means2d.new_zeros(images, height, width, 1)
+    for tile, (start, end) in enumerate(zip(isect_offsets.flatten().long().tolist(),
+                                            ends.tolist())):
+        image, ty, tx = tile // (tiles_y * tiles_x), tile // tiles_x % tiles_y, tile % tiles_x
+        rows = slice(ty * tile_size, min((ty + 1) * tile_size, height))
+        cols = slice(tx * tile_size, min((tx + 1) * tile_size, width))
+        v, u = torch.meshgrid(torch.arange(rows.start, rows.stop, dtype=means2d.dtype) + 0.5,
+                              torch.arange(cols.start, cols.stop, dtype=means2d.dtype) + 0.5,
+                              indexing="ij")
+        transmittance = torch.ones_like(u)
+        done = torch.zeros_like(u, dtype=torch.bool)
+        value = u.new_zeros(u.shape + (colors.shape[-1],))
+        for i in flatten_ids[start:end].long().tolist():
+            power = conic_power(conics[i], means2d[i], u, v)
+            alpha = torch.clamp_max(opacities[i] * torch.exp(-power), GSPLAT_ALPHA_MAX)
+            hit = ~done & (power >= 0) & (alpha >= ALPHA_MIN)
+            next_t = transmittance * (1.0 - alpha)
+            done = done | (hit & (next_t <= GSPLAT_TRANSMITTANCE_STOP))
+            hit = hit & ~done
+            weight = torch.where(hit, alpha * transmittance, torch.zeros_like(alpha))
+            value = value + weight[..., None] * colors[i]
+            transmittance = torch.where(hit, next_t, transmittance)
+        out[image, rows, cols] = value
+        alpha_out[image, rows, cols, 0] = 1.0 - transmittance
+    return out, alpha_out
+
+
+@pytest.fixture
+def gsplat_kernels_on_cpu(monkeypatch):
+    import gsplat.rendering
+    monkeypatch.setattr(gsplat.rendering, "fully_fused_projection", _projection_without_cuda)
+    monkeypatch.setattr(gsplat.rendering, "isect_tiles", _tiles_without_cuda)
+    monkeypatch.setattr(gsplat.rendering, "isect_offset_encode",
+                        gsplat_reference._isect_offset_encode)
+    monkeypatch.setattr(gsplat.rendering, "rasterize_to_pixels", _rasterize_without_cuda)
+
+
+def render_with(renderer, g, cam_from_ego, intrinsics, pixels):
+    results = renderer(g["means"], g["scales"], g["rotations"], g["opacities"], g["features"],
+                       cam_from_ego, intrinsics, pixels, HW, near=NEAR)
+    return torch.cat([torch.cat([r.features, r.depth[:, None], r.alpha[:, None]], dim=-1)
+                      for r in results])
+
+
+def test_gsplat_backend_renders_what_ours_does(gsplat_kernels_on_cpu):
+    """Same features, depth and alpha at every pixel centre (float64), and a point anywhere in
+    a pixel reads that pixel's centre; gradients w.r.t. every Gaussian attribute agree."""
+    from odg_ros.render.gsplat_backend import render_cameras_gsplat
+    rng = np.random.default_rng(7)
+    cam_from_ego, intrinsics = rig(rng, 2)
+    g = random_gaussians(rng, 300)
+    # Five between gsplat's default near plane (0.01 m) and ours (0.05 m): culled by both.
+    in_camera = torch.tensor([[0.01, -0.01, 0.03, 1.0], [0.0, 0.0, 0.02, 1.0],
+                              [-0.01, 0.0, 0.04, 1.0], [0.0, 0.01, 0.045, 1.0],
+                              [0.005, 0.005, 0.015, 1.0]], dtype=torch.float64)
+    g["means"][:5] = (torch.linalg.inv(cam_from_ego[0]) @ in_camera.T).T[:, :3]
+    g["scales"][:5] = 0.005
+    g["opacities"][:5] = 0.9
+    g = {k: v.requires_grad_(True) for k, v in g.items()}
+    centres = torch.stack(pixel_centres(), dim=-1)
+    ours = render_with(render_cameras, g, cam_from_ego, intrinsics, [centres, centres.flip(0)])
+    theirs = render_with(render_cameras_gsplat, g, cam_from_ego, intrinsics,
+                         [centres, centres.flip(0)])
+    assert (ours[:, -1] > 0.1).float().mean() > 0.3   # a real picture
+    np.testing.assert_allclose(theirs.detach().numpy(), ours.detach().numpy(), rtol=1e-7,
+                               atol=1e-9)
+
+    weights = torch.tensor(rng.normal(size=ours.shape))
+    ours_grads = torch.autograd.grad((ours * weights).sum(), list(g.values()))
+    theirs_grads = torch.autograd.grad((theirs * weights).sum(), list(g.values()))
+    for name, a, b in zip(g, ours_grads, theirs_grads):
+        assert a.abs().max() > 0, name
+        np.testing.assert_allclose(b.numpy(), a.numpy(), rtol=1e-6,
+                                   atol=1e-9 * a.abs().max().item(), err_msg=name)
+
+    inside = centres + torch.tensor(rng.uniform(-0.5, 0.4999, centres.shape))
+    inside[-1] = torch.tensor([float(HW[1]), float(HW[0])])   # the far corner: last pixel
+    anywhere = render_with(render_cameras_gsplat, g, cam_from_ego, intrinsics,
+                           [inside, inside.flip(0)])
+    np.testing.assert_array_equal(anywhere.detach().numpy(), theirs.detach().numpy())
+
+
+def test_render_loss_takes_the_gsplat_backend(gsplat_kernels_on_cpu):
+    """The render loss (float32, LiDAR-like targets at pixel centres) is the same with either
+    renderer, gradients included: what ``odg train --renderer gsplat`` changes is the kernels."""
+    from odg_ros.losses.render_loss import render_loss
+    from odg_ros.render.gsplat_backend import render_cameras_gsplat
+    rng = np.random.default_rng(9)
+    cam_from_ego, intrinsics = rig(rng, 2)
+    g = random_gaussians(rng, 200)
+    logits = torch.tensor(rng.normal(size=(1, 200, 17)), requires_grad=True)
+    centres = torch.stack(pixel_centres(), dim=-1)
+    targets = [[torch.cat([centres[rows], torch.tensor(rng.uniform(1.0, 20.0, (300, 1))),
+                           torch.tensor(rng.integers(0, 18, (300, 1)))], dim=-1).float()
+                for rows in (rng.choice(len(centres), 300, replace=False) for _ in range(2))]]
+    losses = []
+    for renderer in (None, render_cameras_gsplat):
+        result = render_loss(g["means"][None], g["scales"][None], g["rotations"][None],
+                             g["opacities"][None], logits, targets, cam_from_ego[None],
+                             intrinsics[None], HW, renderer=renderer, near=NEAR)
+        grad, = torch.autograd.grad(result.depth + result.semantic, logits)
+        losses.append((result.depth.item(), result.semantic.item(), result.num_labelled, grad))
+    (depth, semantic, labelled, grad), (g_depth, g_semantic, g_labelled, g_grad) = losses
+    assert labelled == g_labelled > 0 and grad.abs().max() > 0
+    assert g_depth == pytest.approx(depth, rel=1e-5)
+    assert g_semantic == pytest.approx(semantic, rel=1e-5)
+    np.testing.assert_allclose(g_grad.numpy(), grad.numpy(), rtol=1e-4, atol=1e-6)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(),
+                    reason="gsplat's rasteriser has CUDA kernels only; no GPU on this machine")
+def test_gsplat_cuda_kernels_render_what_ours_does():
+    """gsplat's real CUDA kernels against our renderer, float32 on the GPU."""
+    from odg_ros.render.gsplat_backend import render_cameras_gsplat
+    rng = np.random.default_rng(8)
+    cam_from_ego, intrinsics = (t.float().cuda() for t in rig(rng, 3))
+    g = {k: v.float().cuda().requires_grad_(True)
+         for k, v in random_gaussians(rng, 3000).items()}
+    centres = torch.stack(pixel_centres(), dim=-1).float().cuda()
+    ours = render_with(render_cameras, g, cam_from_ego, intrinsics, [centres] * 3)
+    theirs = render_with(render_cameras_gsplat, g, cam_from_ego, intrinsics, [centres] * 3)
+    assert (ours[:, -1] > 0.1).float().mean() > 0.3
+    scale = ours.detach().abs().amax(dim=0)
+    assert ((theirs - ours).detach().abs() <= 1e-4 * scale + 1e-5).all()
+    weights = torch.randn(ours.shape, device="cuda")
+    ours_grads = torch.autograd.grad((ours * weights).sum(), list(g.values()))
+    theirs_grads = torch.autograd.grad((theirs * weights).sum(), list(g.values()))
+    for name, a, b in zip(g, ours_grads, theirs_grads):
+        assert (b - a).norm() <= 1e-3 * a.norm(), name

@@ -15,7 +15,8 @@ from odg_ros.losses.criterion import ODGCriterion
 from odg_ros.network import ODG
 from odg_ros.network.checkpoint import load_model, save_checkpoint
 from odg_ros.train.schedule import warmup_cosine
-from odg_ros.train.trainer import Trainer, TrainOptions, process_device, training_dataset
+from odg_ros.train.trainer import (Trainer, TrainOptions, process_device, training_dataset,
+                                  training_renderer)
 
 from helpers import tiny_config, write_tiny_split
 
@@ -47,6 +48,16 @@ def test_each_process_trains_on_its_own_gpu(monkeypatch):
     assert process_device("auto", 1) == torch.device("cpu")
     monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
     assert process_device("auto", 1) == torch.device("cuda", 1)
+
+
+def test_render_loss_renderer_is_ours_or_gsplat_on_cuda():
+    from odg_ros.render.gsplat_backend import render_cameras_gsplat
+    assert training_renderer("torch", torch.device("cpu")) is None   # the criterion's default
+    assert training_renderer("gsplat", torch.device("cuda", 0)) is render_cameras_gsplat
+    with pytest.raises(ValueError, match="needs a CUDA device"):
+        training_renderer("gsplat", torch.device("cpu"))
+    with pytest.raises(ValueError, match="torch or gsplat"):
+        training_renderer("inria", torch.device("cpu"))
 
 
 def test_schedule_warms_up_then_decays():

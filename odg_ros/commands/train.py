@@ -41,6 +41,9 @@ def add_arguments(parser):
                         help="ablation: no Gaussian-splatting rendering supervision")
     parser.add_argument("--render-pixels", type=int, default=512,
                         help="supervised LiDAR pixels per camera and step")
+    parser.add_argument("--renderer", choices=("torch", "gsplat"), default="torch",
+                        help="render loss: our PyTorch renderer (any device), or gsplat's CUDA "
+                             "rasteriser (whole images, alpha capped at 0.999 not 0.99)")
     parser.add_argument("--no-history-grad", action="store_true",
                         help="backbone gradients through the current frame only (faster, "
                              "SparseBEV's stop_prev_grad)")
@@ -59,7 +62,7 @@ def run(args) -> int:
                         batch_size=args.batch_size, lr=args.lr, warmup_steps=args.warmup,
                         backbone_lr_mult=args.backbone_lr_mult,
                         workers=args.workers, seed=args.seed, render=not args.no_render,
-                        render_pixels_per_camera=args.render_pixels,
+                        render_pixels_per_camera=args.render_pixels, renderer=args.renderer,
                         history_grad=not args.no_history_grad,
                         checkpoint_every=args.checkpoint_every, device=args.device,
                         backbone_weights=args.backbone_weights, init_checkpoint=args.init,

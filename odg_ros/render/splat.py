@@ -25,10 +25,11 @@ T from a float64 segmented cumulative sum of log(1 - alpha), and pixels that rea
 early stop leave the later batches. The weighted sums are CSR sparse x dense products.
 Memory is O(contributing pairs) plus one batch of candidates.
 
-The code is device-agnostic PyTorch but has only been run on CPU; there is no gsplat backend
-(none could be tested here). test/test_render_gsplat.py checks this renderer against gsplat's
-own pure-PyTorch projection composited with its CUDA kernel's rules, at every pixel. The one
-difference is deliberate: gsplat caps alpha at 0.999, Inria and DESIGN.md at 0.99 (ALPHA_MAX).
+The code is device-agnostic PyTorch but has only been run on CPU; on CUDA, gsplat_backend.py
+renders the same with gsplat's rasteriser. test/test_render_gsplat.py checks this renderer
+against gsplat's own pure-PyTorch projection composited with its CUDA kernel's rules, at every
+pixel. The one difference is deliberate: gsplat caps alpha at 0.999, Inria and DESIGN.md at
+0.99 (ALPHA_MAX).
 """
 from __future__ import annotations
 

@@ -56,6 +56,7 @@ class TrainOptions:
     seed: int = 0
     render: bool = True
     render_pixels_per_camera: int = 512
+    renderer: str = "torch"               # "gsplat": gsplat's CUDA rasteriser for the render loss
     history_grad: bool = True             # False: no backbone gradient through past frames
     checkpoint_every: int = 500
     device: str = "auto"
@@ -93,6 +94,25 @@ def process_device(name: str, local_rank: int) -> torch.device:
     if device.type == "cuda" and device.index is None:
         device = torch.device("cuda", local_rank)
     return device
+
+
+def training_renderer(name: str, device: torch.device):
+    """The render loss's renderer: ``torch`` ours (None: the criterion's default), ``gsplat``
+    gsplat's rasteriser, which has CUDA kernels only."""
+    if name == "torch":
+        return None
+    if name != "gsplat":
+        raise ValueError(f"renderer must be torch or gsplat, got {name!r}")
+    if device.type != "cuda":
+        raise ValueError(f"--renderer gsplat needs a CUDA device (gsplat's rasteriser has no "
+                         f"CPU kernels); this run is on {device}")
+    try:
+        import gsplat  # noqa: F401
+    except ImportError as error:
+        raise ValueError("--renderer gsplat needs gsplat installed (pip install gsplat)") \
+            from error
+    from ..render.gsplat_backend import render_cameras_gsplat
+    return render_cameras_gsplat
 
 
 def to_device(batch: dict, device) -> dict:
@@ -198,7 +218,8 @@ class Trainer:
             self.optimizer, lambda s: warmup_cosine(s, self.total_steps, opts.warmup_steps))
         self.criterion = ODGCriterion(cfg, render=opts.render,
                                       render_pixels_per_camera=opts.render_pixels_per_camera,
-                                      seed=seed)
+                                      seed=seed, renderer=training_renderer(opts.renderer,
+                                                                            self.device))
         self.amp_dtype = None
         if self.device.type == "cuda":
             self.amp_dtype = torch.bfloat16 if torch.cuda.is_bf16_supported() else torch.float16
