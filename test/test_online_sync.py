@@ -116,6 +116,74 @@ def test_a_set_dropped_for_room_is_not_dropped_again_when_its_lagging_camera_com
     assert sync.num_pending == 0
 
 
+# The demo bag's rig (odg_ros/data/synth/rig.py, as nuScenes): the cameras fire 0..42.6 ms
+# after the set start, in this order, and the next set starts 40.7 ms after the last camera:
+# closer than the slop, so the last camera of a set also fits the first ones of the next.
+BAG_OFFSETS = {"CAM_FRONT_LEFT": 0.0, "CAM_FRONT": 0.0076, "CAM_FRONT_RIGHT": 0.0155,
+               "CAM_BACK_RIGHT": 0.0230, "CAM_BACK": 0.0327, "CAM_BACK_LEFT": 0.0426}
+
+
+@pytest.mark.parametrize("stalled", [0, 2])
+def test_the_last_camera_of_a_set_joins_its_own_set_not_the_next_one(stalled):
+    """The node's executor stalls (inference on a loaded machine) while set ``stalled`` is
+    half taken; the next round takes one message per ready camera topic, in subscription
+    order (the model's camera order), so CAM_FRONT_LEFT of the next set comes before
+    CAM_BACK_LEFT of this one. CAM_BACK_LEFT fits both within the slop; it belongs to its own
+    set. (Joining the next set's lone CAM_FRONT_LEFT instead made a third partial set out of
+    two: 2 sets lost, 3 counted dropped_incomplete -- odg demo's unaccounted = -1 seen in CI.)"""
+    def message(k, cam):
+        return cam, 100.0 + k / 12 + BAG_OFFSETS[cam], (k, cam)
+
+    in_bag_order = sorted(BAG_OFFSETS, key=BAG_OFFSETS.get)
+    msgs = []
+    for k in range(6):
+        if k == stalled:
+            msgs += [message(k, c) for c in in_bag_order[:3]]
+            ready = [message(k, c) for c in in_bag_order[3:]] + [message(k + 1, in_bag_order[0])]
+            msgs += sorted(ready, key=lambda m: CAMS.index(m[0]))
+        elif k == stalled + 1:
+            msgs += [message(k, c) for c in in_bag_order[1:]]
+        else:
+            msgs += [message(k, c) for c in in_bag_order]
+    sync = CameraSetSync(CAMS, slop=0.05)
+    sets = feed(sync, msgs)
+    assert sync.counters["sets_emitted"] + sync.counters["dropped_incomplete"] == 6
+    assert [s.payloads["CAM_FRONT"][0] for s in sets] == list(range(6))
+    for k, s in enumerate(sets):
+        assert_clean_set(s, k)
+    assert sync.num_pending == 0
+
+
+def test_every_set_is_emitted_or_dropped_once_whatever_the_executor_stalls():
+    """The node's single-threaded executor, modelled: one queue per camera topic (sensor QoS:
+    keep last 5, the oldest overwritten), stalls of 2 ms to 0.9 s between rounds, each round
+    taking one message per ready topic in subscription order. Whatever the stalls, each set
+    the sync saw a message of is emitted or counted dropped_incomplete exactly once."""
+    in_bag_order = sorted(BAG_OFFSETS, key=BAG_OFFSETS.get)
+    stalls = (0.002, 0.002, 0.005, 0.01, 0.03, 0.06, 0.1, 0.2, 0.4, 0.6, 0.9)
+    for seed in range(200):
+        rng = random.Random(seed)
+        published = sorted((k / 12 + BAG_OFFSETS[c], in_bag_order.index(c), c, k)
+                           for k in range(13) for c in CAMS)
+        queues = {c: [] for c in CAMS}
+        sync = CameraSetSync(CAMS, slop=0.05)
+        seen, sets, now = set(), [], 0.0
+        while published or any(queues.values()):
+            now += rng.choice(stalls)
+            while published and published[0][0] <= now:
+                stamp, _, cam, k = published.pop(0)
+                queues[cam] = (queues[cam] + [(stamp, k)])[-5:]
+            for cam in CAMS:
+                if queues[cam]:
+                    stamp, k = queues[cam].pop(0)
+                    seen.add(k)
+                    sets += sync.add(cam, 100.0 + stamp, (k, cam))
+        for s in sets:
+            assert_clean_set(s, s.payloads["CAM_FRONT"][0])
+        assert len(sets) + sync.counters["dropped_incomplete"] == len(seen), seed
+        assert sync.num_pending == 0, seed
+
+
 def test_late_message_after_its_set_was_dropped():
     msgs = messages(3)
     late = [m for m in msgs if m[2] == (1, "CAM_BACK")]

@@ -7,8 +7,14 @@ most ``slop`` seconds (0.05 by default).
 Messages are fed one by one as ``(camera, stamp, payload)``; arrival order is free
 (jitter, reordering between and within sets). Rules, all deterministic:
 
-* A message joins the pending set that lacks its camera and stays within ``slop`` with it
-  (the one whose stamps are closest, if several); otherwise it opens a new pending set.
+* A message joins the pending set that lacks its camera and stays within ``slop`` with it;
+  otherwise it opens a new pending set. If several fit, it joins the one whose reference
+  stamp is closest to its own, a message's reference stamp being its stamp minus its camera's
+  offset from the reference (first) camera in the last emitted set (0 before the first).
+  The slop is wider than the gap between two sets (nuScenes: the last camera fires ~41 ms
+  before the next set's first), so the last camera of a set also fits the first cameras of
+  the next one; by stamps alone it could join them, leaving both sets incomplete and a third
+  partial set (counted dropped_incomplete: one set counted twice).
 * A message whose camera already has exactly that stamp in a pending set is a duplicate
   (dropped, counted).
 * When a set becomes complete it is emitted; every pending set older than it can no longer
@@ -88,6 +94,9 @@ class CameraSetSync:
         self._last_emitted: float | None = None   # newest stamp of the last emitted set
         self._newest_seen: float | None = None
         self._evicted: list[tuple[float, float]] = []  # (low, high) of sets dropped for room
+        # camera -> its stamp minus the reference camera's in the last emitted set (the rig's
+        # firing pattern: kept across a reset)
+        self._offsets: dict[str, float] = {}
 
     def reset(self) -> None:
         self._pending.clear()
@@ -144,7 +153,9 @@ class CameraSetSync:
             low, high = min(pending.low, stamp), max(pending.high, stamp)
             if high - low > self.slop:
                 continue
-            distance = max(abs(stamp - pending.low), abs(stamp - pending.high))
+            reference = sum(s - self._offsets.get(c, 0.0) for c, s in pending.stamps.items())
+            distance = abs(stamp - self._offsets.get(camera, 0.0)
+                           - reference / len(pending.stamps))
             if best is None or distance < best_distance:
                 best, best_distance = pending, distance
         return best
@@ -162,5 +173,6 @@ class CameraSetSync:
         self._evicted = [span for span in self._evicted if span[1] > complete.high]
         self.counters["sets_emitted"] += 1
         order = self.camera_names
+        self._offsets = {c: complete.stamps[c] - complete.stamps[order[0]] for c in order}
         return CameraSet(stamps={c: complete.stamps[c] for c in order},
                          payloads={c: complete.payloads[c] for c in order})
