@@ -229,6 +229,18 @@ def test_time_jump_backwards_restarts():
     assert sync.counters["late_messages"] == 0
 
 
+def test_sets_waiting_at_a_time_jump_are_counted_dropped():
+    """The bag loops while two sets wait for cameras: they can never complete, and each set
+    seen is still emitted or counted dropped once."""
+    sync = CameraSetSync(CAMS, slop=0.05, time_jump=1.0)
+    first = messages(3, start=200.0)
+    waiting = [m for m in first if m[0] != "CAM_BACK" or m[1] < 200.05]  # sets 2, 3 lack one
+    assert len(feed(sync, waiting)) == 1 and sync.num_pending == 2
+    again = feed(sync, messages(2, start=100.0))
+    assert len(again) == 2 and sync.counters["time_jumps"] == 1
+    assert sync.counters["dropped_incomplete"] == 2 and sync.num_pending == 0
+
+
 def test_small_step_backwards_is_late_not_a_jump():
     sync = CameraSetSync(CAMS, slop=0.05, time_jump=1.0)
     feed(sync, messages(5, start=200.0))

@@ -117,6 +117,7 @@ class CameraSetSync:
             raise ValueError(f"{camera}: non-finite stamp {stamp}")
         if self._newest_seen is not None and stamp < self._newest_seen - self.time_jump:
             self.counters["time_jumps"] += 1
+            self.counters["dropped_incomplete"] += len(self._pending)  # cannot complete now
             self.reset()
         if self._last_emitted is not None and stamp <= self._last_emitted:
             self.counters["late_messages"] += 1
