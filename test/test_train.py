@@ -60,6 +60,17 @@ def test_render_loss_renderer_is_ours_or_gsplat_on_cuda():
         training_renderer("inria", torch.device("cpu"))
 
 
+@pytest.mark.skipif(not torch.cuda.is_available(),
+                    reason="gsplat's rasteriser has CUDA kernels only; no GPU on this machine")
+def test_trains_on_cuda_with_the_gsplat_renderer(split, tmp_path):
+    cfg = tiny_config(num_frames=2)
+    trainer = Trainer(cfg, split, options(tmp_path, epochs=2, device="cuda", renderer="gsplat"))
+    summary = trainer.fit()
+    rows = read_log(tmp_path / "train_log.csv")
+    assert summary["steps"] == 4 and summary["skipped_steps"] == 0
+    assert all(float(r["render_depth_l1"]) > 0 for r in rows)
+
+
 def test_schedule_warms_up_then_decays():
     assert warmup_cosine(0, 100, 10) == pytest.approx(1 / 3)
     assert warmup_cosine(10, 100, 10) == pytest.approx(1.0)
