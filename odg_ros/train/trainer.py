@@ -109,7 +109,7 @@ def training_renderer(name: str, device: torch.device):
     try:
         import gsplat  # noqa: F401
     except ImportError as error:
-        raise ValueError("--renderer gsplat needs gsplat installed (pip install gsplat)") \
+        raise ValueError("--renderer gsplat needs gsplat (pip install gsplat==1.5.3)") \
             from error
     from ..render.gsplat_backend import render_cameras_gsplat
     return render_cameras_gsplat
