@@ -117,6 +117,17 @@ def render_all_pixels(g, cam_from_ego, intrinsics, pixels):
                         for r in results])
 
 
+def assert_same_gradients(actual, desired, inputs, weights):
+    """d(sum(weights * output)) w.r.t. each of ``inputs`` (name -> tensor): actual's equal
+    desired's (rtol 1e-6, float64), and neither is all zero."""
+    actual_grads = torch.autograd.grad((actual * weights).sum(), list(inputs.values()))
+    desired_grads = torch.autograd.grad((desired * weights).sum(), list(inputs.values()))
+    for name, a, d in zip(inputs, actual_grads, desired_grads):
+        assert a.abs().max() > 0 and d.abs().max() > 0, name
+        np.testing.assert_allclose(a.numpy(), d.numpy(), rtol=1e-6,
+                                   atol=1e-9 * d.abs().max().item(), err_msg=name)
+
+
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_projection_matches_gsplat(seed):
     """Projected centre, inverse 2D covariance and depth of every splat we keep equal
@@ -198,12 +209,7 @@ def test_projection_gradients_match_gsplat():
     # Scale each output column to order 1 so no one term dominates the comparison.
     weights = (torch.tensor(rng.normal(size=ours_out.shape))
                / theirs_out.detach().abs().clamp_min(1e-3))
-    ours_grads = torch.autograd.grad((ours_out * weights).sum(), list(params.values()))
-    theirs_grads = torch.autograd.grad((theirs_out * weights).sum(), list(params.values()))
-    for name, a, b in zip(params, ours_grads, theirs_grads):
-        assert a.abs().max() > 0, name
-        np.testing.assert_allclose(a.numpy(), b.numpy(), rtol=1e-6,
-                                   atol=1e-9 * b.abs().max().item(), err_msg=name)
+    assert_same_gradients(ours_out, theirs_out, params, weights)
 
 
 # --------------------------------------------------------------------------------------------
@@ -313,13 +319,7 @@ def test_gsplat_backend_renders_what_ours_does(gsplat_kernels_on_cpu):
     np.testing.assert_allclose(theirs.detach().numpy(), ours.detach().numpy(), rtol=1e-7,
                                atol=1e-9)
 
-    weights = torch.tensor(rng.normal(size=ours.shape))
-    ours_grads = torch.autograd.grad((ours * weights).sum(), list(g.values()))
-    theirs_grads = torch.autograd.grad((theirs * weights).sum(), list(g.values()))
-    for name, a, b in zip(g, ours_grads, theirs_grads):
-        assert a.abs().max() > 0, name
-        np.testing.assert_allclose(b.numpy(), a.numpy(), rtol=1e-6,
-                                   atol=1e-9 * a.abs().max().item(), err_msg=name)
+    assert_same_gradients(theirs, ours, g, torch.tensor(rng.normal(size=ours.shape)))
 
     inside = centres + torch.tensor(rng.uniform(-0.5, 0.4999, centres.shape))
     inside[-1] = torch.tensor([float(HW[1]), float(HW[0])])   # the far corner: last pixel

@@ -19,7 +19,7 @@ from typing import Sequence
 import torch
 
 from .projection import BLUR_PX2
-from .splat import TILE_SIZE, RenderResult, _check_inputs
+from .splat import TILE_SIZE, RenderResult, checked_gaussians
 
 
 def render_cameras_gsplat(means: torch.Tensor, scales: torch.Tensor, rotations: torch.Tensor,
@@ -28,13 +28,11 @@ def render_cameras_gsplat(means: torch.Tensor, scales: torch.Tensor, rotations: 
                           pixels: Sequence[torch.Tensor], image_hw: Sequence[int],
                           near: float = 0.05, tile_size: int = TILE_SIZE) -> list[RenderResult]:
     """``render_cameras`` (same arguments, same RenderResults) by ``gsplat.rasterization``."""
-    height, width = _check_inputs(means, scales, rotations, opacities, features, cam_from_ego,
-                                  intrinsics, pixels, image_hw, near, tile_size)
+    (height, width), (means, scales, rotations, opacities, features) = checked_gaussians(
+        means, scales, rotations, opacities, features, cam_from_ego, intrinsics, pixels,
+        image_hw, near, tile_size)
     from gsplat import rasterization
 
-    if means.dtype in (torch.float16, torch.bfloat16):
-        means, scales, rotations, opacities, features = (
-            t.float() for t in (means, scales, rotations, opacities, features))
     with torch.autocast(means.device.type, enabled=False):
         # "RGB+D": the features, then depth composited with the same weights (gsplat "D").
         images, alphas, _ = rasterization(

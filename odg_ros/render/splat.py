@@ -99,14 +99,24 @@ def render_cameras(means: torch.Tensor, scales: torch.Tensor, rotations: torch.T
     bf16's 8 mantissa bits (a 704 px image has a 4 px step there) and the sparse products
     have no half-precision CPU kernels.
     """
-    height, width = _check_inputs(means, scales, rotations, opacities, features, cam_from_ego,
-                                  intrinsics, pixels, image_hw, near, tile_size)
-    if means.dtype in (torch.float16, torch.bfloat16):
-        means, scales, rotations, opacities, features = (
-            t.float() for t in (means, scales, rotations, opacities, features))
+    (height, width), (means, scales, rotations, opacities, features) = checked_gaussians(
+        means, scales, rotations, opacities, features, cam_from_ego, intrinsics, pixels,
+        image_hw, near, tile_size)
     with torch.autocast(means.device.type, enabled=False):
         return _render_cameras(means, scales, rotations, opacities, features, cam_from_ego,
                                intrinsics, pixels, height, width, near, tile_size)
+
+
+def checked_gaussians(means, scales, rotations, opacities, features, cam_from_ego, intrinsics,
+                      pixels, image_hw, near, tile_size):
+    """What every renderer does first: clear errors for malformed input, half-precision
+    Gaussians in float32. Returns ((H, W), (means, scales, rotations, opacities, features))."""
+    height, width = _check_inputs(means, scales, rotations, opacities, features, cam_from_ego,
+                                  intrinsics, pixels, image_hw, near, tile_size)
+    gaussians = (means, scales, rotations, opacities, features)
+    if means.dtype in (torch.float16, torch.bfloat16):
+        gaussians = tuple(t.float() for t in gaussians)
+    return (height, width), gaussians
 
 
 def _render_cameras(means, scales, rotations, opacities, features, cam_from_ego, intrinsics,
