@@ -1,7 +1,10 @@
 """Training: the loss goes down, resume continues exactly, non-finite steps are skipped and
 counted, several infos files train together, DDP with 2 CPU processes (gloo) via torchrun."""
 import csv
+import errno
 import os
+import re
+import shutil
 import subprocess
 import sys
 
@@ -14,6 +17,7 @@ from odg_ros.data.dataset import OccDataset, replay_history_draws
 from odg_ros.losses.criterion import ODGCriterion
 from odg_ros.network import ODG
 from odg_ros.network.checkpoint import load_model, save_checkpoint
+from odg_ros.train import trainer as trainer_module
 from odg_ros.train.schedule import warmup_cosine
 from odg_ros.train.trainer import (Trainer, TrainOptions, process_device, training_dataset,
                                   training_renderer)
@@ -377,3 +381,27 @@ def test_train_command_ends_its_process_group(split, tmp_path):
     finally:
         if dist.is_initialized():
             dist.destroy_process_group()
+
+
+def test_a_run_without_room_for_its_checkpoints_stops_before_training(split, tmp_path,
+                                                                     monkeypatch):
+    """The room asked for is two checkpoints of the size the run really writes (weights and
+    AdamW moments); without it the run stops before its first step, saying how much."""
+    done = tmp_path / "done"
+    Trainer(tiny_config(num_frames=2), split, options(done, max_steps=1)).fit()
+    written = (done / "final.pt").stat().st_size
+    disk = shutil.disk_usage(tmp_path)
+    monkeypatch.setattr(trainer_module.shutil, "disk_usage",
+                        lambda path: disk._replace(free=int(1.9 * written)))
+    cut_short = tmp_path / "cut_short"
+    with pytest.raises(OSError, match=r"no room for the checkpoints in .*cut_short: latest.pt "
+                                      r"and final.pt take about (\d+) MB each") as raised:
+        Trainer(tiny_config(num_frames=2), split, options(cut_short, max_steps=1)).fit()
+    assert raised.value.errno == errno.ENOSPC
+    each = int(re.search(r"about (\d+) MB each", str(raised.value)).group(1)) * 1e6
+    assert abs(each - written) < 0.02 * written + 1e6
+    assert not (cut_short / "train_log.csv").exists()
+    # the files a resumed run replaces count as room
+    monkeypatch.setattr(trainer_module.shutil, "disk_usage",
+                        lambda path: disk._replace(free=int(0.1 * written)))
+    Trainer(tiny_config(num_frames=2), split, options(done, epochs=2, resume=True)).fit()

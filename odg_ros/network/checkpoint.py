@@ -70,7 +70,7 @@ def save_checkpoint(path, model: ODG, extra: dict | None = None,
         os.unlink(tmp)
         # torch reports a full disk as e.g. "[enforce fail at inline_container.cc] unexpected
         # pos 576 vs 534", which names neither the file nor the cause
-        free, needed = shutil.disk_usage(path.parent).free, _tensor_bytes(payload)
+        free, needed = shutil.disk_usage(path.parent).free, tensor_bytes(payload)
         if free < needed:
             raise OSError(errno.ENOSPC, f"no room to write the checkpoint {path}: it needs "
                           f"about {needed / 1e6:.0f} MB, {free / 1e6:.0f} MB are free on its "
@@ -81,14 +81,14 @@ def save_checkpoint(path, model: ODG, extra: dict | None = None,
             os.unlink(tmp)
 
 
-def _tensor_bytes(obj) -> int:
+def tensor_bytes(obj) -> int:
     """Bytes of the tensors in a nested checkpoint payload."""
     if isinstance(obj, torch.Tensor):
         return obj.numel() * obj.element_size()
     if isinstance(obj, dict):
-        return sum(_tensor_bytes(v) for v in obj.values())
+        return sum(tensor_bytes(v) for v in obj.values())
     if isinstance(obj, (list, tuple)):
-        return sum(_tensor_bytes(v) for v in obj)
+        return sum(tensor_bytes(v) for v in obj)
     return 0
 
 

@@ -15,10 +15,12 @@ CPU and NCCL on CUDA. The skip decision is all-reduced so every rank skips the s
 from __future__ import annotations
 
 import csv
+import errno
 import functools
 import logging
 import os
 import random
+import shutil
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -35,7 +37,7 @@ from ..data.dataset import OccDataset, replay_history_draws
 from ..losses.criterion import ODGCriterion
 from ..network import ODG
 from ..network.backbone import load_torchvision_state_dict
-from ..network.checkpoint import load_weights, save_checkpoint
+from ..network.checkpoint import load_weights, save_checkpoint, tensor_bytes
 from .schedule import warmup_cosine
 
 log = logging.getLogger(__name__)
@@ -239,6 +241,20 @@ class Trainer:
     def latest_path(self) -> Path:
         return self.out_dir / "latest.pt"
 
+    def check_room_for_checkpoints(self) -> None:
+        """Refuse to start a run whose checkpoints cannot be written: otherwise it would fail at
+        its first checkpoint, or after its last step on final.pt. Each file holds the weights
+        and the AdamW moments; writing one needs a temporary copy beside the file it replaces."""
+        each = tensor_bytes(self.model.state_dict()) + 2 * sum(
+            p.numel() * p.element_size() for p in self.model.parameters() if p.requires_grad)
+        replaced = sum(p.stat().st_size for p in (self.latest_path, self.out_dir / "final.pt")
+                       if p.exists())
+        needed, free = 2 * each - replaced, shutil.disk_usage(self.out_dir).free
+        if free < needed:
+            raise OSError(errno.ENOSPC, f"no room for the checkpoints in {self.out_dir}: "
+                          f"latest.pt and final.pt take about {each / 1e6:.0f} MB each, "
+                          f"{needed / 1e6:.0f} MB more are needed, {free / 1e6:.0f} MB are free")
+
     def save(self, path: Path | None = None) -> None:
         """Collective under DDP (every rank's RNG state goes into rank 0's file)."""
         state = self._rng_state()
@@ -358,6 +374,8 @@ class Trainer:
     # ------------------------------------------------------------------ loop
     def fit(self) -> dict:
         self.out_dir.mkdir(parents=True, exist_ok=True)
+        if self.rank == 0:
+            self.check_room_for_checkpoints()
         log_path = self.out_dir / "train_log.csv"
         writer = None
         header = self._trim_log(log_path, self.step) if self.rank == 0 else None
