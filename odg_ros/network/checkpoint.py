@@ -67,7 +67,8 @@ def save_checkpoint(path, model: ODG, extra: dict | None = None,
         torch.save(payload, tmp)
         os.replace(tmp, path)
     except (OSError, RuntimeError) as exc:
-        os.unlink(tmp)
+        if os.path.exists(tmp):
+            os.unlink(tmp)  # before measuring the room: its partial bytes are not free
         # torch reports a full disk as e.g. "[enforce fail at inline_container.cc] unexpected
         # pos 576 vs 534", which names neither the file nor the cause
         free, needed = shutil.disk_usage(path.parent).free, tensor_bytes(payload)
