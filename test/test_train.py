@@ -401,7 +401,13 @@ def test_a_run_without_room_for_its_checkpoints_stops_before_training(split, tmp
     each = int(re.search(r"about (\d+) MB each", str(raised.value)).group(1)) * 1e6
     assert abs(each - written) < 0.02 * written + 1e6
     assert not (cut_short / "train_log.csv").exists()
-    # the files a resumed run replaces count as room
-    monkeypatch.setattr(trainer_module.shutil, "disk_usage",
-                        lambda path: disk._replace(free=int(0.1 * written)))
-    Trainer(tiny_config(num_frames=2), split, options(done, epochs=2, resume=True)).fit()
+    # a resumed run's latest.pt counts as room, but the temporary copy of final.pt is written
+    # beside it and the old final.pt: one checkpoint more
+    def resume_with_free(fraction):
+        monkeypatch.setattr(trainer_module.shutil, "disk_usage",
+                            lambda path: disk._replace(free=int(fraction * written)))
+        Trainer(tiny_config(num_frames=2), split, options(done, epochs=2, resume=True)).fit()
+
+    with pytest.raises(OSError, match="no room for the checkpoints"):
+        resume_with_free(0.9)
+    resume_with_free(1.1)

@@ -244,12 +244,13 @@ class Trainer:
     def check_room_for_checkpoints(self) -> None:
         """Refuse to start a run whose checkpoints cannot be written: otherwise it would fail at
         its first checkpoint, or after its last step on final.pt. Each file holds the weights
-        and the AdamW moments; writing one needs a temporary copy beside the file it replaces."""
+        and the AdamW moments, and is written as a temporary copy beside the file it replaces:
+        the disk is fullest while final.pt's copy is written beside latest.pt and the old
+        final.pt, so a resumed run, whose files already exist, still needs room for one more."""
         each = tensor_bytes(self.model.state_dict()) + 2 * sum(
             p.numel() * p.element_size() for p in self.model.parameters() if p.requires_grad)
-        replaced = sum(p.stat().st_size for p in (self.latest_path, self.out_dir / "final.pt")
-                       if p.exists())
-        needed, free = 2 * each - replaced, shutil.disk_usage(self.out_dir).free
+        latest = self.latest_path.stat().st_size if self.latest_path.exists() else 0
+        needed, free = each + max(each - latest, 0), shutil.disk_usage(self.out_dir).free
         if free < needed:
             raise OSError(errno.ENOSPC, f"no room for the checkpoints in {self.out_dir}: "
                           f"latest.pt and final.pt take about {each / 1e6:.0f} MB each, "
