@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # The checks that need a CUDA GPU, for a machine with PyTorch built for CUDA (a lent GPU box
-# without PyPI included): run from the repository root, each part well inside 10 minutes.
+# without PyPI included): run from the repository root, each part meant to end inside one
+# ten-minute call of the device tool (not yet timed on a GPU: gsplat's JIT build is the unknown).
 #
 #   make gpu-wheels                        # on a machine with PyPI: gsplat's wheel into .whl/
 #   bash tools/gpu_checks.sh PART [OUT]    # on the GPU machine (carry .whl there)
