@@ -59,7 +59,9 @@ class SweepConfig:
     queries: fraction of the learned queries kept; precision: fp32 | bf16 | fp16 (autocast);
     ring: cached history in a ``FeatureRing`` (else re-laid out every step);
     fast_sampling: camera-rows sampling (else the plain 3-D path); compile: torch.compile
-    the decoder (per-layer timing is then off: hooks would break the graph); model: another
+    the decoder (per-layer timing is then off: hooks would break the graph); cuda_graphs:
+    compiled with mode "reduce-overhead", which replays the decoder's kernels as CUDA graphs
+    (CUDA only: one launch instead of thousands of small ones); model: another
     checkpoint path or preset name (a preset: random weights, timing only) instead of the
     sweep's own model."""
 
@@ -72,6 +74,7 @@ class SweepConfig:
     ring: bool = True
     fast_sampling: bool = True
     compile: bool = False
+    cuda_graphs: bool = False
     model: str | None = None
 
     def __post_init__(self):
@@ -84,8 +87,8 @@ class SweepConfig:
 def default_configs(num_frames: int, device: str = "cpu",
                     score_threshold: float = 0.5) -> list[SweepConfig]:
     """History 1, 2, .., k; pruning at PRUNE_FACTORS x score_threshold; query budgets 1/2
-    and 1/4 (the tiny variants); bf16 autocast; the plain path; on CUDA also fp16 and
-    torch.compile."""
+    and 1/4 (the tiny variants); bf16 autocast; the plain path; on CUDA also fp16,
+    torch.compile and CUDA graphs."""
     k = num_frames
     histories = sorted({h for h in (1, 2, 4, 8) if h < k})
     configs = [SweepConfig(f"full-h{k}", frames=k)]
@@ -100,6 +103,9 @@ def default_configs(num_frames: int, device: str = "cpu",
         configs += [SweepConfig(f"fp16-h{k}", frames=k, precision="fp16"),
                     SweepConfig(f"compile-h{k}", frames=k, compile=True),
                     SweepConfig(f"compile-bf16-h{k}", frames=k, compile=True,
+                                precision="bf16"),
+                    SweepConfig(f"graphs-h{k}", frames=k, cuda_graphs=True),
+                    SweepConfig(f"graphs-bf16-h{k}", frames=k, cuda_graphs=True,
                                 precision="bf16")]
     return configs
 
@@ -171,10 +177,13 @@ def prepare_model(checkpoint, preset: str, device: str, config: SweepConfig):
                          f"{cfg.num_frames}")
     if config.queries < 1:
         model, cfg = query_budget(model, cfg, config.queries)
+    if config.cuda_graphs and torch.device(device).type != "cuda":
+        raise ValueError(f"{config.name}: CUDA graphs need a CUDA device, not {device}")
     model.fast_sampling = config.fast_sampling
     model = model.to(device).eval()
-    if config.compile:
-        model.decoder = torch.compile(model.decoder)
+    if config.compile or config.cuda_graphs:
+        model.decoder = torch.compile(
+            model.decoder, mode="reduce-overhead" if config.cuda_graphs else "default")
     return model, cfg
 
 
@@ -251,7 +260,8 @@ class ConfigRun:
         b = self.batch
         self.step.prime(self.history)
         timer = timer or self.sample_timer
-        with DecoderHooks(self.model, timer) if not self.config.compile else nullcontext():
+        compiled = self.config.compile or self.config.cuda_graphs
+        with DecoderHooks(self.model, timer) if not compiled else nullcontext():
             self.output, self.grid, _ = self.step(b["images"][:, 0], b["ego2img"],
                                                   b["ego_warp"], b["time_delta"], timer)
         timer.flush()

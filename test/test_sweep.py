@@ -13,8 +13,9 @@ from odg_ros.benchmark import LAYER_PARTS, bench_online_step
 from odg_ros.network import ODG
 from odg_ros.network.checkpoint import load_model
 from odg_ros.network.decoder import PruneRule
-from odg_ros.sweep import (SweepConfig, adaptive_tradeoff, pareto_front, query_budget,
-                           quiet_and_busy, run_sweep, select_configs, spread_indices)
+from odg_ros.sweep import (SweepConfig, adaptive_tradeoff, pareto_front, prepare_model,
+                           query_budget, quiet_and_busy, run_sweep, select_configs,
+                           spread_indices)
 from odg_ros.train.evaluate import evaluate
 
 from helpers import tiny_config, write_tiny_checkpoint, write_tiny_split
@@ -112,6 +113,19 @@ def test_select_configs_by_name_and_from_json(tmp_path):
         select_configs(str(path), 4)
     with pytest.raises(ValueError):
         SweepConfig("x", queries=0.0)
+
+
+def test_cuda_sweeps_compile_the_decoder_and_replay_it_as_cuda_graphs(tmp_path, monkeypatch):
+    names = [c.name for c in select_configs(None, 4, device="cuda")]
+    assert {"fp16-h4", "compile-h4", "compile-bf16-h4", "graphs-h4", "graphs-bf16-h4"} <= set(names)
+    checkpoint = write_tiny_checkpoint(tmp_path / "tiny.pt", image_size=(32, 88), num_frames=3)
+    modes = []
+    monkeypatch.setattr(torch, "compile", lambda module, mode=None: modes.append(mode) or module)
+    prepare_model(checkpoint, "odg_cpu", "cpu", SweepConfig("c", compile=True))
+    assert modes == ["default"]
+    with pytest.raises(ValueError, match="g: CUDA graphs need a CUDA device, not cpu"):
+        prepare_model(checkpoint, "odg_cpu", "cpu", SweepConfig("g", cuda_graphs=True))
+    assert modes == ["default"]
 
 
 # ------------------------------------------------------------------------ model variants

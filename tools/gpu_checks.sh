@@ -14,9 +14,12 @@
 #          renderer / gsplat / training test on this machine
 #   bench  one online step of ODG-T and ODG-L at paper resolution (6 x 256 x 704, 8 frames), fp32
 #          and bf16, per stage, and of the shipped odg_cpu checkpoint
-#   train  a one-scene synthetic world; the shipped checkpoint scored on it on CUDA and on the
-#          CPU (the same grid, to float noise), and training speed of odg_cpu and ODG-T with our
-#          renderer and with gsplat's
+#   sweep  speed against error on this GPU (odg bench --sweep on a one-scene synthetic world):
+#          the shipped checkpoint over history, pruning, query budgets, bf16/fp16,
+#          torch.compile and CUDA graphs; ODG-T and ODG-L likewise (random weights: timing only)
+#   train  the shipped checkpoint scored on that world on CUDA and on the CPU (the same grid,
+#          to float noise), and training speed of odg_cpu and ODG-T with our renderer and
+#          with gsplat's
 # Everything lands in OUT (default out/gpu), at most a few files per part. DEVICE=cpu runs the
 # same commands on the CPU (the CUDA tests skip): how this script is checked without a GPU.
 set -uo pipefail
@@ -104,15 +107,33 @@ part_bench() {
         for p in sys.argv[1:]}, sys.stdout, indent=1)" "$runs"/*.json > "$OUT/bench.json"
 }
 
+WORLD=out/gpu_world  # one 4 s scene (8 keyframes) the training worlds never used
+world() {
+    [ -f "$WORLD/infos_all.pkl" ] && return
+    rm -rf "$WORLD"
+    step "one-scene world" $PY -m odg_ros.cli synth --out "$WORLD" --scenes 1 --seconds 4 \
+        --seed 1000
+    step "infos" $PY -m odg_ros.cli prepare --dataroot "$WORLD" --out "$WORLD/infos_all.pkl" \
+        --split all
+}
+
+part_sweep() {
+    world
+    local limit=8 isolate=--no-isolate  # CUDA peak memory is reset per configuration
+    [ "$DEVICE" = cpu ] && limit=2 isolate=
+    step "sweep of the shipped checkpoint" $PY -m odg_ros.cli bench --sweep \
+        --data "$WORLD/infos_all.pkl" --checkpoint model/odg_cpu.pt --device "$DEVICE" \
+        --out "$OUT/sweep_shipped" --limit $limit --iters 3 $isolate
+    local presets=tools/gpu_sweep_presets.json
+    [ "$DEVICE" = cpu ] && presets=tools/gpu_sweep_presets_cpu.json
+    step "sweep of ODG-T and ODG-L" $PY -m odg_ros.cli bench --sweep --configs "$presets" \
+        --data "$WORLD/infos_all.pkl" --checkpoint model/odg_cpu.pt --device "$DEVICE" \
+        --out "$OUT/sweep_presets" --limit 2 --iters 3 $isolate
+}
+
 part_train() {
-    local world=out/gpu_world runs=out/gpu_runs
-    if [ ! -f "$world/infos_all.pkl" ]; then
-        rm -rf "$world"
-        step "one-scene world" $PY -m odg_ros.cli synth --out "$world" --scenes 1 --seconds 4 \
-            --seed 1000
-        step "infos" $PY -m odg_ros.cli prepare --dataroot "$world" --out "$world/infos_all.pkl" \
-            --split all
-    fi
+    local world=$WORLD runs=out/gpu_runs
+    world
     for d in "$DEVICE" cpu; do
         step "eval on $d" bash -c "$PY -m odg_ros.cli eval --checkpoint model/odg_cpu.pt \
             --data '$world/infos_all.pkl' --device $d --json > '$OUT/eval_$d.json'"
@@ -133,9 +154,9 @@ part_train() {
 }
 
 case "$PART" in
-    build|tests|bench|train) "part_$PART" ;;
-    all) part_build; part_tests; part_bench; part_train ;;
-    *) say "unknown part '$PART' (build, tests, bench, train or all)"; exit 2 ;;
+    build|tests|bench|sweep|train) "part_$PART" ;;
+    all) part_build; part_tests; part_bench; part_sweep; part_train ;;
+    *) say "unknown part '$PART' (build, tests, bench, sweep, train or all)"; exit 2 ;;
 esac
 say "results in $OUT: $(ls "$OUT" | tr '\n' ' ')"
 exit $failed
