@@ -8,10 +8,12 @@
 from __future__ import annotations
 
 import json
+import sys
 
 import torch
 
 from ..benchmark import PRECISIONS, bench_fast_paths, bench_online_step
+from ..network.precision import slow_precision_warning
 from ..config import load_preset
 
 
@@ -90,6 +92,10 @@ def run(args) -> int:
                                progress=not args.json, model=model, ring=not args.no_ring,
                                prune=prune, precision=args.precision)
     result["weights"] = args.checkpoint or "random"
+    slow = slow_precision_warning(args.precision, args.device)
+    if slow:
+        result["warning"] = slow
+        print(f"odg bench: {slow}", file=sys.stderr)
     if args.json:
         print(json.dumps(result, indent=2))
         return 0

@@ -20,3 +20,21 @@ def precision_context(precision: str, device):
         raise ValueError("fp16 autocast is for CUDA; use bf16 on CPU")
     dtype = torch.bfloat16 if precision == "bf16" else torch.float16
     return torch.autocast(device_type=device_type, dtype=dtype)
+
+
+def cpu_has_native_bf16() -> bool:
+    """oneDNN's own test for bf16 kernels on this CPU (AVX512-BF16 or AMX)."""
+    try:
+        return bool(torch.ops.mkldnn._is_mkldnn_bf16_supported())
+    except (AttributeError, RuntimeError):   # a build without oneDNN: nothing to compare
+        return True
+
+
+def slow_precision_warning(precision: str, device) -> str | None:
+    """Why ``precision`` will be slower than fp32 on ``device``, or None. bf16 autocast pays on
+    a CPU with native bf16 kernels; without them every convolution and matrix product converts
+    and emulates (odg_cpu on an AVX2-only EPYC: 2,270 ms a step against 327 ms in fp32)."""
+    if precision == "bf16" and torch.device(device).type == "cpu" and not cpu_has_native_bf16():
+        return ("bf16 on this CPU has no native bf16 kernels (no AVX512-BF16 / AMX): expect "
+                "it several times slower than fp32; use precision fp32 here")
+    return None

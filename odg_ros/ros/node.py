@@ -52,7 +52,7 @@ from odg_ros_msgs.msg import DynamicObject, DynamicObjectArray, SemanticVoxelGri
 
 from ..data.batch import CAMERA_NAMES
 from ..network.checkpoint import load_model
-from ..network.precision import PRECISIONS
+from ..network.precision import PRECISIONS, slow_precision_warning
 from ..online import packing
 from ..online.diagnostics import PipelineStats
 from ..online.errors import BadInput
@@ -95,8 +95,9 @@ PARAMETERS = {
     "preset": ("odg_cpu", "Model preset when no checkpoint is given (odg_t, odg_l, odg_cpu)."),
     "checkpoint": ("", "Checkpoint path; \"\" = random weights (meaningless output)."),
     "device": ("auto", "auto (cuda when available, else cpu), cpu, cuda or cuda:N."),
-    "precision": ("fp32", "Inference precision: fp32, bf16 (autocast; CPU and CUDA) or fp16 "
-                  "(CUDA). Geometry stays float32 either way."),
+    "precision": ("fp32", "Inference precision: fp32, bf16 (autocast; CPU and CUDA; slow on a "
+                  "CPU without native bf16 kernels, warned at start) or fp16 (CUDA). Geometry "
+                  "stays float32 either way."),
     "score_threshold": (-1.0, "Occupancy point score threshold; < 0: the checkpoint's own "
                               "(its config's, calibrated with it)."),
     "box_score_threshold": (-1.0, "Object score threshold; < 0: the checkpoint's own."),
@@ -181,6 +182,9 @@ class OdgNode(Node):
                 f"NO CHECKPOINT GIVEN: preset {p['preset']} with RANDOM WEIGHTS on {device}. "
                 "The published occupancy and objects are meaningless; set the 'checkpoint' "
                 "parameter.")
+        slow = slow_precision_warning(p["precision"], device)
+        if slow:
+            self.get_logger().warning(slow)
         self.cfg = cfg
         history = int(p["history_frames"]) or None
         predictor = OnlinePredictor(model, cfg, device, max_gap=float(p["history_max_gap"]),
