@@ -21,11 +21,16 @@ Messages are fed one by one as ``(camera, stamp, payload)``; arrival order is fr
   be emitted in order, so it is dropped and counted as ``dropped_incomplete``.
 * A message not newer than the last emitted set is late (its set is gone): dropped, counted.
   One more than ``time_jump`` seconds older than the newest stamp seen is a time jump
-  (a bag restarted): everything pending is cleared and synchronisation starts over.
+  (a bag restarted): everything pending is cleared and synchronisation starts over. Until the
+  first set after the jump is emitted, a message more than ``time_jump`` ahead of the new
+  stamps and not newer than the newest stamp before the jump is from before it (an executor
+  takes one message per topic at a time, so a camera's last old message can follow another
+  camera's first new one): late, not a new set that would jump the clock back again.
 * At most ``max_pending`` sets wait; opening one more drops the oldest (a dead camera
   therefore costs bounded memory, and shows up in ``dropped_incomplete``). The rest of a set
-  dropped that way is late when it comes (a lagging camera's backlog): a set is emitted or
-  dropped once, never dropped again as a new partial set.
+  dropped that way is late when it comes (a lagging camera's backlog, however many sets
+  behind, up to ``time_jump``): a set is emitted or dropped once, never dropped again as a new
+  partial set.
 """
 from __future__ import annotations
 
@@ -94,6 +99,7 @@ class CameraSetSync:
         self._last_emitted: float | None = None   # newest stamp of the last emitted set
         self._newest_seen: float | None = None
         self._evicted: list[tuple[float, float]] = []  # (low, high) of sets dropped for room
+        self._newest_before_jump: float | None = None
         # camera -> its stamp minus the reference camera's in the last emitted set (the rig's
         # firing pattern: kept across a reset)
         self._offsets: dict[str, float] = {}
@@ -103,6 +109,7 @@ class CameraSetSync:
         self._evicted.clear()
         self._last_emitted = None
         self._newest_seen = None
+        self._newest_before_jump = None
 
     @property
     def num_pending(self) -> int:
@@ -118,9 +125,16 @@ class CameraSetSync:
         if self._newest_seen is not None and stamp < self._newest_seen - self.time_jump:
             self.counters["time_jumps"] += 1
             self.counters["dropped_incomplete"] += len(self._pending)  # cannot complete now
+            newest_before = self._newest_seen
             self.reset()
+            self._newest_before_jump = newest_before
         if self._last_emitted is not None and stamp <= self._last_emitted:
             self.counters["late_messages"] += 1
+            return []
+        if (self._newest_before_jump is not None and self._newest_seen is not None
+                and self._newest_seen + self.time_jump < stamp
+                <= self._newest_before_jump + self.slop):
+            self.counters["late_messages"] += 1  # from before the jump, taken after it
             return []
         self._newest_seen = stamp if self._newest_seen is None else max(self._newest_seen, stamp)
 
@@ -142,8 +156,11 @@ class CameraSetSync:
             return [self._emit(target)]
         while len(self._pending) > self.max_pending:
             evicted = self._pending.pop(0)
-            self._evicted = (self._evicted + [(evicted.low, evicted.high)])[-self.max_pending:]
+            self._evicted.append((evicted.low, evicted.high))
             self.counters["dropped_incomplete"] += 1
+        # a message older than these would be a time jump: bounded memory for a dead camera
+        self._evicted = [span for span in self._evicted
+                         if span[1] >= self._newest_seen - self.time_jump]
         return []
 
     def _best_pending(self, camera: str, stamp: float) -> _Pending | None:
@@ -170,6 +187,7 @@ class CameraSetSync:
         self.counters["dropped_incomplete"] += len(stale)
         self._pending = [p for p in self._pending if p not in stale]
         self._last_emitted = complete.high
+        self._newest_before_jump = None
         # Sets dropped for room before this one: their messages are now late by stamp alone.
         self._evicted = [span for span in self._evicted if span[1] > complete.high]
         self.counters["sets_emitted"] += 1
