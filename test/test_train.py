@@ -214,6 +214,18 @@ def test_a_checkpoint_without_random_state_still_resumes(split, tmp_path, caplog
     assert resumed.fit()["steps"] == 4
 
 
+def test_resuming_with_another_number_of_loader_workers_says_it_is_not_exact(split, tmp_path,
+                                                                           caplog):
+    cfg = tiny_config(num_frames=2)
+    Trainer(cfg, split, options(tmp_path, epochs=1, workers=0)).fit()
+    with caplog.at_level("WARNING"):
+        Trainer(cfg, split, options(tmp_path, epochs=2, workers=0, resume=True))
+    assert "loader workers" not in caplog.text
+    with caplog.at_level("WARNING"):
+        Trainer(cfg, split, options(tmp_path, epochs=2, workers=1, resume=True))
+    assert "--resume with 1 loader workers, the stopped run had 0" in caplog.text
+
+
 def test_replayed_history_draws_leave_the_rng_where_loading_the_samples_would(tmp_path):
     paths = [write_tiny_split(tmp_path / name, 5) for name in ("a", "b")]
     cfg = tiny_config(num_frames=2)

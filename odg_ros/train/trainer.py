@@ -317,6 +317,13 @@ class Trainer:
             log.warning("--resume with %d loader workers: they are dealt other batches than "
                         "before the stop, so the history intervals differ from a run never "
                         "stopped (0 or 1 workers resume exactly)", self.opts.workers)
+        stopped_with = payload.get("train_options", {}).get("workers")
+        if self._resumed_rng is not None and stopped_with not in (None, str(self.opts.workers)):
+            # the history intervals are drawn in the main process with 0 workers, in the
+            # worker with 1: the random streams of the two runs differ from here on
+            log.warning("--resume with %d loader workers, the stopped run had %s: the history "
+                        "intervals differ from a run never stopped", self.opts.workers,
+                        stopped_with)
         log.info("resumed from %s at step %d", self.latest_path, self.step)
 
     # ------------------------------------------------------------------ one step
