@@ -166,30 +166,40 @@ def test_the_last_camera_of_a_set_joins_its_own_set_not_the_next_one(stalled):
     assert sync.num_pending == 0
 
 
-def test_every_set_is_emitted_or_dropped_once_whatever_the_executor_stalls():
+def executor_run(published, stalls, seed):
     """The node's single-threaded executor, modelled: one queue per camera topic (sensor QoS:
-    keep last 5, the oldest overwritten), stalls of 2 ms to 0.9 s between rounds, each round
-    taking one message per ready topic in subscription order. Whatever the stalls, each set
-    the sync saw a message of is emitted or counted dropped_incomplete exactly once."""
+    keep last 5, the oldest overwritten), a stall drawn from ``stalls`` between rounds, each
+    round taking one message per ready topic in subscription order. published: (publish time,
+    camera, key, stamp) -> (the sync, the sets it emitted, the keys of the sets it saw)."""
     in_bag_order = sorted(BAG_OFFSETS, key=BAG_OFFSETS.get)
+    published = sorted((t, in_bag_order.index(cam), cam, key, stamp)
+                       for t, cam, key, stamp in published)
+    rng = random.Random(seed)
+    queues = {c: [] for c in CAMS}
+    sync = CameraSetSync(CAMS, slop=0.05)
+    seen, sets, now = set(), [], 0.0
+    while published or any(queues.values()):
+        now += rng.choice(stalls)
+        while published and published[0][0] <= now:
+            _, _, cam, key, stamp = published.pop(0)
+            queues[cam] = (queues[cam] + [(stamp, key)])[-5:]
+        for cam in CAMS:
+            if queues[cam]:
+                stamp, key = queues[cam].pop(0)
+                seen.add(key)
+                sets += sync.add(cam, stamp, (key, cam))
+    return sync, sets, seen
+
+
+def test_every_set_is_emitted_or_dropped_once_whatever_the_executor_stalls():
+    """The executor model (executor_run) with stalls of 2 ms to 0.9 s between rounds: whatever
+    the stalls, each set the sync saw a message of is emitted or counted dropped_incomplete
+    exactly once."""
     stalls = (0.002, 0.002, 0.005, 0.01, 0.03, 0.06, 0.1, 0.2, 0.4, 0.6, 0.9)
     for seed in range(200):
-        rng = random.Random(seed)
-        published = sorted((k / 12 + BAG_OFFSETS[c], in_bag_order.index(c), c, k)
-                           for k in range(13) for c in CAMS)
-        queues = {c: [] for c in CAMS}
-        sync = CameraSetSync(CAMS, slop=0.05)
-        seen, sets, now = set(), [], 0.0
-        while published or any(queues.values()):
-            now += rng.choice(stalls)
-            while published and published[0][0] <= now:
-                stamp, _, cam, k = published.pop(0)
-                queues[cam] = (queues[cam] + [(stamp, k)])[-5:]
-            for cam in CAMS:
-                if queues[cam]:
-                    stamp, k = queues[cam].pop(0)
-                    seen.add(k)
-                    sets += sync.add(cam, 100.0 + stamp, (k, cam))
+        sync, sets, seen = executor_run([(k / 12 + BAG_OFFSETS[c], c, k, 100.0 + k / 12
+                                          + BAG_OFFSETS[c]) for k in range(13) for c in CAMS],
+                                        stalls, seed)
         for s in sets:
             assert_clean_set(s, s.payloads["CAM_FRONT"][0])
         assert len(sets) + sync.counters["dropped_incomplete"] == len(seen), seed
@@ -214,29 +224,14 @@ def test_a_bag_loop_with_a_camera_message_from_before_it_taken_after_it():
 
 
 def test_every_set_is_emitted_or_dropped_once_when_the_bag_loops():
-    """The executor model below, with the bag played twice (its stamps jump back 13 sets): one
+    """The executor model (executor_run), the bag played twice (its stamps jump back 13 sets): one
     time jump, and each set seen is emitted or dropped exactly once (before the fix above, 62
     of these 200 executor schedules miscounted, with two jumps)."""
-    in_bag_order = sorted(BAG_OFFSETS, key=BAG_OFFSETS.get)
-    stalls = (0.002, 0.002, 0.005, 0.01, 0.03, 0.06, 0.1)
     for seed in range(200):
-        rng = random.Random(seed)
-        published = sorted((loop * 13 / 12 + k / 12 + BAG_OFFSETS[c], in_bag_order.index(c), c,
-                            (loop, k), 100.0 + k / 12 + BAG_OFFSETS[c])
-                           for loop in (0, 1) for k in range(13) for c in CAMS)
-        queues = {c: [] for c in CAMS}
-        sync = CameraSetSync(CAMS, slop=0.05)
-        seen, sets, now = set(), [], 0.0
-        while published or any(queues.values()):
-            now += rng.choice(stalls)
-            while published and published[0][0] <= now:
-                _, _, cam, key, stamp = published.pop(0)
-                queues[cam] = (queues[cam] + [(stamp, key)])[-5:]
-            for cam in CAMS:
-                if queues[cam]:
-                    stamp, key = queues[cam].pop(0)
-                    seen.add(key)
-                    sets += sync.add(cam, stamp, (key, cam))
+        sync, sets, seen = executor_run(
+            [(loop * 13 / 12 + k / 12 + BAG_OFFSETS[c], c, (loop, k),
+              100.0 + k / 12 + BAG_OFFSETS[c]) for loop in (0, 1) for k in range(13)
+             for c in CAMS], (0.002, 0.002, 0.005, 0.01, 0.03, 0.06, 0.1), seed)
         for s in sets:
             assert len({payload[0] for payload in s.payloads.values()}) == 1, seed
         assert len(sets) + sync.counters["dropped_incomplete"] == len(seen), seed
