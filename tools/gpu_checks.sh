@@ -5,6 +5,9 @@
 #
 #   make gpu-wheels                        # on a machine with PyPI: gsplat's wheel into .whl/
 #   bash tools/gpu_checks.sh PART [OUT]    # on the GPU machine (carry .whl there)
+# With this workplace's device tool: one call per part, each `bash tools/gpu_checks.sh PART
+# $OUT` with carry [".whl"]; the gsplat build in .torch_extensions/ (git-ignored) stays on the
+# machine for the later parts while it is held.
 #
 # PART (in this order; "all" runs every one):
 #   build  gsplat's CUDA kernels, JIT-compiled into .torch_extensions/ (kept for the next parts
