@@ -5,9 +5,10 @@
 #
 #   make gpu-wheels                        # on a machine with PyPI: gsplat's wheel into .whl/
 #   bash tools/gpu_checks.sh PART [OUT]    # on the GPU machine (carry .whl there)
-# With this workplace's device tool: one call per part, each `bash tools/gpu_checks.sh PART
-# $OUT` with carry [".whl"]; the gsplat build in .torch_extensions/ (git-ignored) stays on the
-# machine for the later parts while it is held.
+# With this workplace's device tool (carry [".whl"]; a machine idle for 30 s goes back bare):
+# `bash tools/gpu_checks.sh build $OUT && bash tools/gpu_checks.sh tests $OUT`, then `... bench
+# $OUT && ... sweep $OUT`, then `... build $OUT && ... train $OUT` (only tests and train need
+# the gsplat build, kept in .torch_extensions/ while the machine is held).
 #
 # PART (in this order; "all" runs every one):
 #   build  gsplat's CUDA kernels, JIT-compiled into .torch_extensions/ (kept for the next parts
