@@ -2,6 +2,7 @@
 counted, several infos files train together, DDP with 2 CPU processes (gloo) via torchrun."""
 import csv
 import errno
+import gc
 import os
 import re
 import shutil
@@ -13,6 +14,7 @@ import torch
 import torch.distributed as dist
 
 from odg_ros.cli import main as cli_main
+from odg_ros.commands import train as train_command
 from odg_ros.data.dataset import OccDataset, replay_history_draws
 from odg_ros.losses.criterion import ODGCriterion
 from odg_ros.network import ODG
@@ -368,13 +370,21 @@ def test_ddp_two_cpu_processes_with_torchrun(split, tmp_path):
     assert _same(_weights(killed / "final.pt"), _weights(whole / "final.pt"))
 
 
-def test_train_command_ends_its_process_group(split, tmp_path):
-    """A torchrun rank destroys its gloo group before the interpreter shuts down, after a run
-    and after a failure: left to the shutdown, gloo's threads can abort a finished run (CI saw
-    rank 1 end with SIGABRT, "terminate called without an active exception")."""
+def test_train_command_ends_its_process_group(split, tmp_path, monkeypatch):
+    """A torchrun rank frees its gloo group before the interpreter shuts down, after a run and
+    after a failure: freed by the shutdown, gloo's threads can abort a finished run (SIGABRT,
+    "terminate called without an active exception"; CI saw it on rank 1 of a resumed run).
+    Destroying the group is not enough: the DDP wrapper holds it too, and the Trainer sits in
+    reference cycles, so no Trainer may be left when the group is destroyed."""
     def one_rank_group():
         dist.init_process_group("gloo", store=dist.HashStore(), rank=0, world_size=1)
 
+    trainers_left = []
+
+    def end_and_count(real=train_command.end_distributed):
+        real()
+        trainers_left.append(sum(type(o) is Trainer for o in gc.get_objects()))
+    monkeypatch.setattr(train_command, "end_distributed", end_and_count)
     tiny = ["--preset", "odg_cpu", "--steps", "1", "--workers", "0", "--render-pixels", "16",
             "--device", "cpu", "--set", "backbone=resnet18", "--set", "image_size=[64,176]",
             "--set", "num_frames=2", "--set", "embed_dims=64", "--set", "fpn_channels=64",
@@ -386,10 +396,11 @@ def test_train_command_ends_its_process_group(split, tmp_path):
                          *tiny]) == 0
         assert not dist.is_initialized()
         one_rank_group()
-        with pytest.raises(FileNotFoundError):
-            cli_main(["train", "--data", str(tmp_path / "missing.pkl"),
-                      "--out", str(tmp_path / "failed"), *tiny])
+        with pytest.raises(FileNotFoundError, match="no checkpoint"):  # the model is built
+            cli_main(["train", "--data", str(split), "--out", str(tmp_path / "failed"),
+                      "--resume", *tiny])
         assert not dist.is_initialized()
+        assert trainers_left == [0, 0]
     finally:
         if dist.is_initialized():
             dist.destroy_process_group()

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import json
 import logging
+import traceback
 
 import yaml
 
@@ -68,10 +69,19 @@ def run(args) -> int:
                         backbone_weights=args.backbone_weights, init_checkpoint=args.init,
                         resume=args.resume)
     try:
-        trainer = Trainer(cfg, args.data, opts)
-        summary = trainer.fit()
+        summary, rank = _fit(cfg, args.data, opts)
+    except BaseException as error:
+        traceback.clear_frames(error.__traceback__)  # they hold the Trainer: let it go first
+        raise
     finally:
         end_distributed()
-    if trainer.rank == 0:
+    if rank == 0:
         print(json.dumps(summary, indent=2))
     return 0
+
+
+def _fit(cfg, data, opts) -> tuple[dict, int]:
+    """The Trainer (and the DDP wrapper holding the process group) lives only in here, so
+    that end_distributed can free it."""
+    trainer = Trainer(cfg, data, opts)
+    return trainer.fit(), trainer.rank

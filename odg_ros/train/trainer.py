@@ -17,6 +17,7 @@ from __future__ import annotations
 import csv
 import errno
 import functools
+import gc
 import logging
 import os
 import random
@@ -80,9 +81,12 @@ def distributed_context():
 
 
 def end_distributed() -> None:
-    """Destroys the process group while the interpreter is still whole: left to its shutdown,
+    """Frees the process group while the interpreter is still whole: left to its shutdown,
     gloo's worker threads can abort a finished run (SIGABRT, "terminate called without an
-    active exception")."""
+    active exception"). Destroying the group only drops torch's own references; the DDP
+    wrapper holds it too, and a Trainer sits in reference cycles, so the caller must have let
+    go of its Trainer and the cycles are collected here."""
+    gc.collect()
     if dist.is_initialized():
         dist.destroy_process_group()
 
