@@ -77,6 +77,10 @@ class SweepConfig:
     cuda_graphs: bool = False
     model: str | None = None
 
+    @property
+    def compiled(self) -> bool:
+        return self.compile or self.cuda_graphs
+
     def __post_init__(self):
         if not 0 < self.queries <= 1:
             raise ValueError(f"{self.name}: queries must be a fraction in (0, 1]")
@@ -181,7 +185,7 @@ def prepare_model(checkpoint, preset: str, device: str, config: SweepConfig):
         raise ValueError(f"{config.name}: CUDA graphs need a CUDA device, not {device}")
     model.fast_sampling = config.fast_sampling
     model = model.to(device).eval()
-    if config.compile or config.cuda_graphs:
+    if config.compiled:
         model.decoder = torch.compile(
             model.decoder, mode="reduce-overhead" if config.cuda_graphs else "default")
     return model, cfg
@@ -260,8 +264,7 @@ class ConfigRun:
         b = self.batch
         self.step.prime(self.history)
         timer = timer or self.sample_timer
-        compiled = self.config.compile or self.config.cuda_graphs
-        with DecoderHooks(self.model, timer) if not compiled else nullcontext():
+        with DecoderHooks(self.model, timer) if not self.config.compiled else nullcontext():
             self.output, self.grid, _ = self.step(b["images"][:, 0], b["ego2img"],
                                                   b["ego_warp"], b["time_delta"], timer)
         timer.flush()

@@ -13,8 +13,8 @@ import sys
 import torch
 
 from ..benchmark import PRECISIONS, bench_fast_paths, bench_online_step
-from ..network.precision import slow_precision_warning
 from ..config import load_preset
+from ..network.precision import slow_precision_warning
 
 
 def add_arguments(parser):

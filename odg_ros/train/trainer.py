@@ -317,17 +317,14 @@ class Trainer:
             log.warning("--resume: %s holds no random-number state for %d processes; from step "
                         "%d on, dropout, render pixels and history intervals differ from a run "
                         "never stopped", self.latest_path, self.world, self.step + 1)
-        if self._resumed_rng is not None and self.opts.workers > 1:
-            log.warning("--resume with %d loader workers: they are dealt other batches than "
-                        "before the stop, so the history intervals differ from a run never "
-                        "stopped (0 or 1 workers resume exactly)", self.opts.workers)
-        stopped_with = payload.get("train_options", {}).get("workers")
-        if self._resumed_rng is not None and stopped_with not in (None, str(self.opts.workers)):
-            # the history intervals are drawn in the main process with 0 workers, in the
-            # worker with 1: the random streams of the two runs differ from here on
+        # Exact only with the stopped run's 0 or 1 workers: more are dealt other batches than
+        # before the stop, and 0 and 1 draw the history intervals in different processes.
+        stopped_with = payload.get("train_options", {}).get("workers", "?")
+        exact = self.opts.workers <= 1 and stopped_with in ("?", str(self.opts.workers))
+        if self._resumed_rng is not None and not exact:
             log.warning("--resume with %d loader workers, the stopped run had %s: the history "
-                        "intervals differ from a run never stopped", self.opts.workers,
-                        stopped_with)
+                        "intervals differ from a run never stopped (the same 0 or 1 workers "
+                        "resume exactly)", self.opts.workers, stopped_with)
         log.info("resumed from %s at step %d", self.latest_path, self.step)
 
     # ------------------------------------------------------------------ one step
