@@ -1,7 +1,7 @@
 """What the network returns (shared by losses, post-processing, the node)."""
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields, replace
 
 import torch
 
@@ -42,3 +42,12 @@ class ODGOutput:
     @property
     def last(self) -> LayerOutput:
         return self.layers[-1]
+
+    def cloned(self) -> ODGOutput:
+        """A copy in memory of its own. A decoder compiled into CUDA graphs returns its
+        outputs in static buffers that the next replay of any graph overwrites."""
+        def own(layer: LayerOutput) -> LayerOutput:
+            return replace(layer, **{f.name: getattr(layer, f.name).clone() for f in fields(layer)
+                                     if isinstance(getattr(layer, f.name), torch.Tensor)})
+        return ODGOutput(self.init_means.clone(), [own(layer) for layer in self.layers],
+                         self.num_dynamic)
