@@ -1,29 +1,31 @@
 #!/usr/bin/env bash
 # The checks that need a CUDA GPU, for a machine with PyTorch built for CUDA (a lent GPU box
-# without PyPI included): run from the repository root, each part meant to end inside one
-# ten-minute call of the device tool (not yet timed on a GPU: gsplat's JIT build is the unknown).
+# without PyPI included): run from the repository root. Results of the first run, on an H100:
+# docs/gpu_h100/README.md.
 #
 #   make gpu-wheels                        # on a machine with PyPI: gsplat's wheel into .whl/
 #   bash tools/gpu_checks.sh PART [OUT]    # on the GPU machine (carry .whl there)
-# With this workplace's device tool (carry [".whl"]; a machine idle for 30 s goes back bare):
-# `bash tools/gpu_checks.sh build $OUT && bash tools/gpu_checks.sh tests $OUT`, then `... bench
-# $OUT && ... sweep $OUT`, then `... build $OUT && ... train $OUT` (only tests and train need
-# the gsplat build, kept in .torch_extensions/ while the machine is held).
+# With this workplace's device tool (carry [".whl"]; a machine idle for 30 s goes back bare),
+# three calls, each inside the ten-minute limit (times measured on the H100):
+#   1. build (87 s), tests (29 s), train (5 min)   only these two need the gsplat build
+#   2. bench (64 s), sweep (7 min)
+#   3. presets (4 min: torch.compile takes ~90 s per model)
 #
-# PART (in this order; "all" runs every one):
-#   build  gsplat's CUDA kernels, JIT-compiled into .torch_extensions/ (kept for the next parts
-#          on the same machine), and what the machine is
-#   tests  the tests that only run on CUDA: gsplat's kernels render what our renderer does
-#          (values and gradients), a training run with the gsplat render loss, and every
-#          renderer / gsplat / training test on this machine
-#   bench  one online step of ODG-T and ODG-L at paper resolution (6 x 256 x 704, 8 frames), fp32
-#          and bf16, per stage, and of the shipped odg_cpu checkpoint
-#   sweep  speed against error on this GPU (odg bench --sweep on a one-scene synthetic world):
-#          the shipped checkpoint over history, pruning, query budgets, bf16/fp16,
-#          torch.compile and CUDA graphs; ODG-T and ODG-L likewise (random weights: timing only)
-#   train  the shipped checkpoint scored on that world on CUDA and on the CPU (the same grid,
-#          to float noise), and training speed of odg_cpu and ODG-T with our renderer and
-#          with gsplat's
+# PART ("all" runs every one in this order):
+#   build    gsplat's CUDA kernels, JIT-compiled into .torch_extensions/ (kept for the next
+#            parts on the same machine), and what the machine is
+#   tests    the tests that only run on CUDA: gsplat's kernels render what our renderer does
+#            (values and gradients), a training run with the gsplat render loss, and every
+#            renderer / gsplat / training test on this machine
+#   bench    one online step of ODG-T and ODG-L at paper resolution (6 x 256 x 704, 8 frames),
+#            fp32 and bf16, per stage, and of the shipped odg_cpu checkpoint
+#   sweep    speed against error of the shipped checkpoint on this GPU (odg bench --sweep on a
+#            one-scene synthetic world): history, pruning, query budgets, bf16/fp16,
+#            torch.compile and CUDA graphs
+#   presets  the same for ODG-T and ODG-L at paper resolution (random weights: timing only)
+#   train    the shipped checkpoint scored on that world on CUDA and on the CPU (the same grid,
+#            to float noise), and training speed of odg_cpu and ODG-T with our renderer and
+#            with gsplat's
 # Everything lands in OUT (default out/gpu), at most a few files per part. DEVICE=cpu runs the
 # same commands on the CPU (the CUDA tests skip): how this script is checked without a GPU.
 set -uo pipefail
@@ -128,8 +130,12 @@ part_sweep() {
     step "sweep of the shipped checkpoint" $PY -m odg_ros.cli bench --sweep \
         --data "$WORLD/infos_all.pkl" --checkpoint model/odg_cpu.pt --device "$DEVICE" \
         --out "$OUT/sweep_shipped" --limit $limit --iters 3 $isolate
-    local presets=tools/gpu_sweep_presets.json
-    [ "$DEVICE" = cpu ] && presets=tools/gpu_sweep_presets_cpu.json
+}
+
+part_presets() {
+    world
+    local presets=tools/gpu_sweep_presets.json isolate=--no-isolate
+    [ "$DEVICE" = cpu ] && presets=tools/gpu_sweep_presets_cpu.json isolate=
     step "sweep of ODG-T and ODG-L" $PY -m odg_ros.cli bench --sweep --configs "$presets" \
         --data "$WORLD/infos_all.pkl" --checkpoint model/odg_cpu.pt --device "$DEVICE" \
         --out "$OUT/sweep_presets" --limit 2 --iters 3 $isolate
@@ -158,9 +164,9 @@ part_train() {
 }
 
 case "$PART" in
-    build|tests|bench|sweep|train) "part_$PART" ;;
-    all) part_build; part_tests; part_bench; part_sweep; part_train ;;
-    *) say "unknown part '$PART' (build, tests, bench, sweep, train or all)"; exit 2 ;;
+    build|tests|bench|sweep|presets|train) "part_$PART" ;;
+    all) part_build; part_tests; part_train; part_bench; part_sweep; part_presets ;;
+    *) say "unknown part '$PART' (build, tests, bench, sweep, presets, train or all)"; exit 2 ;;
 esac
 say "results in $OUT: $(ls "$OUT" | tr '\n' ' ')"
 exit $failed
