@@ -269,12 +269,6 @@ class GraphReplayStandIn(torch.nn.Module):
         super().__init__()
         self.inner = module
 
-    def __getattr__(self, name):
-        try:
-            return super().__getattr__(name)
-        except AttributeError:
-            return getattr(self.inner, name)
-
     def forward(self, *args, **kwargs):
         layers = self.inner(*args, **kwargs)
         for i, layer in enumerate(layers):

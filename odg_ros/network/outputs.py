@@ -47,7 +47,8 @@ class ODGOutput:
         """A copy in memory of its own. A decoder compiled into CUDA graphs returns its
         outputs in static buffers that the next replay of any graph overwrites."""
         def own(layer: LayerOutput) -> LayerOutput:
-            return replace(layer, **{f.name: getattr(layer, f.name).clone() for f in fields(layer)
-                                     if isinstance(getattr(layer, f.name), torch.Tensor)})
-        return ODGOutput(self.init_means.clone(), [own(layer) for layer in self.layers],
-                         self.num_dynamic)
+            values = {f.name: getattr(layer, f.name) for f in fields(layer)}
+            return replace(layer, **{name: value.clone() for name, value in values.items()
+                                     if isinstance(value, torch.Tensor)})
+        return replace(self, init_means=self.init_means.clone(),
+                       layers=[own(layer) for layer in self.layers])
