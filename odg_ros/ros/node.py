@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import array
 import signal
+import sys
 import threading
 import time
 import traceback
@@ -39,6 +40,7 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import Point, Pose, Quaternion, Vector3
 from nav_msgs.msg import OccupancyGrid, Odometry
 from rcl_interfaces.msg import ParameterDescriptor, ParameterType
+from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
@@ -52,9 +54,10 @@ from odg_ros_msgs.msg import DynamicObject, DynamicObjectArray, SemanticVoxelGri
 
 from ..data.batch import CAMERA_NAMES
 from ..network.checkpoint import load_model
-from ..network.precision import PRECISIONS, slow_precision_warning
+from ..network.precision import slow_precision_warning
 from ..online import packing
 from ..online.diagnostics import PipelineStats
+from ..online import parameters as node_parameters
 from ..online.errors import BadInput
 from ..online.images import EncodedImage
 from ..online.pipeline import OnlinePipeline, PipelineSettings
@@ -66,54 +69,12 @@ from ..resources import resource_path
 
 NODE_NAME = "odg_node"
 
-# name -> (default, description). The type is the default's type.
-PARAMETERS = {
-    "camera_names": (list(CAMERA_NAMES), "Camera names, in the model's camera order; "
-                     "{camera} in the topic patterns is replaced by each."),
-    "image_transport": ("compressed", "compressed: sensor_msgs/CompressedImage (jpeg/png); "
-                        "raw: sensor_msgs/Image (rgb8, bgr8, rgba8, bgra8, mono8)."),
-    "image_topic": ("/{camera}/image_rect_compressed", "Image topic pattern."),
-    "camera_info_topic": ("/{camera}/camera_info", "CameraInfo topic pattern (K and size)."),
-    "pose_source": ("tf", "tf: ego pose global_frame -> base_frame from /tf; odometry: "
-                    "nav_msgs/Odometry on odometry_topic."),
-    "odometry_topic": ("/odom", "Odometry topic (pose_source: odometry)."),
-    "global_frame": ("map", "Fixed frame of the ego pose."),
-    "base_frame": ("base_link", "Ego frame (the Occ3D grid is centred on it)."),
-    "extrinsics_source": ("rig", "rig: sensor2ego from rig_file; tf: base_frame -> each "
-                          "CameraInfo frame_id from /tf_static or /tf."),
-    "rig_file": ("", "Camera rig YAML (\"\" = the shipped config/rig_nuscenes.yaml)."),
-    "slop": (0.05, "Max stamp spread of one camera set, s."),
-    "history_frames": (0, "Frames the temporal decoder looks at (current included); "
-                       "0 = the model's num_frames."),
-    "history_max_gap": (1.0, "A longer gap between sets restarts the history, s."),
-    "history_interval": (0.45, "Least time between the history frames kept, s (training "
-                               "spaced them ~0.5 s; the current set is always used)."),
-    "max_pose_extrapolation": (0.05, "How far beyond the buffered poses a pose may be "
-                               "extrapolated, s; farther is a pose miss."),
-    "max_future_stamp": (0.5, "Images stamped this far ahead of the node clock are "
-                         "rejected, s."),
-    "preset": ("odg_cpu", "Model preset when no checkpoint is given (odg_t, odg_l, odg_cpu)."),
-    "checkpoint": ("", "Checkpoint path; \"\" = random weights (meaningless output)."),
-    "device": ("auto", "auto (cuda when available, else cpu), cpu, cuda or cuda:N."),
-    "precision": ("fp32", "Inference precision: fp32, bf16 (autocast; CPU and CUDA; slow on a "
-                  "CPU without native bf16 kernels, warned at start) or fp16 (CUDA). Geometry "
-                  "stays float32 either way."),
-    "score_threshold": (-1.0, "Occupancy point score threshold; < 0: the checkpoint's own "
-                              "(its config's, calibrated with it)."),
-    "box_score_threshold": (-1.0, "Object score threshold; < 0: the checkpoint's own."),
-    "output_frame": ("", "frame_id of the outputs; \"\" = base_frame."),
-    "bev_min_z": (-1.0, "Lower end of the BEV obstacle height band, m (grid frame)."),
-    "bev_max_z": (2.0, "Upper end of the BEV obstacle height band, m (grid frame)."),
-    "diagnostics_period": (1.0, "Period of /diagnostics and ~/fps, s."),
-    "warn_throttle": (5.0, "At most one warning per bad-input kind per this many s."),
-}
-CHOICES = {"image_transport": ("compressed", "raw"), "pose_source": ("tf", "odometry"),
-           "precision": PRECISIONS,
-           "extrinsics_source": ("rig", "tf")}
-
-_PARAMETER_TYPES = {bool: ParameterType.PARAMETER_BOOL, int: ParameterType.PARAMETER_INTEGER,
-                    float: ParameterType.PARAMETER_DOUBLE, str: ParameterType.PARAMETER_STRING,
-                    list: ParameterType.PARAMETER_STRING_ARRAY}
+# The parameters' types, defaults, ranges and descriptions: config/odg_node.schema.yaml.
+_PARAMETER_TYPES = {"bool": ParameterType.PARAMETER_BOOL,
+                    "int": ParameterType.PARAMETER_INTEGER,
+                    "float": ParameterType.PARAMETER_DOUBLE,
+                    "string": ParameterType.PARAMETER_STRING,
+                    "string_array": ParameterType.PARAMETER_STRING_ARRAY}
 
 OUTPUT_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
                         reliability=ReliabilityPolicy.RELIABLE,
@@ -153,16 +114,24 @@ def resolve_device(name: str) -> str:
 class OdgNode(Node):
     def __init__(self, **node_kwargs):
         super().__init__(NODE_NAME, **node_kwargs)
-        for name, (default, description) in PARAMETERS.items():
-            descriptor = ParameterDescriptor(description=description,
-                                             type=_PARAMETER_TYPES[type(default)])
-            if name in CHOICES:
-                descriptor.additional_constraints = "one of: " + ", ".join(CHOICES[name])
-            self.declare_parameter(name, default, descriptor)
-        p = {name: self.get_parameter(name).value for name in PARAMETERS}
-        for name, allowed in CHOICES.items():
-            if p[name] not in allowed:
-                raise ValueError(f"parameter {name}={p[name]!r}: expected one of {allowed}")
+        # set first: rclpy destroys a node whose constructor failed when it shuts down
+        self._stop = threading.Event()
+        self._worker = None
+        self.pipeline = None
+        schema = node_parameters.load_schema()
+        for name, parameter in schema.items():
+            # read_only: every parameter is read once at start-up; a later change is refused
+            # instead of being silently ignored.
+            # a float parameter also takes an integer (slop: 1 in a YAML file); the schema
+            # check below converts it
+            descriptor = ParameterDescriptor(description=parameter.description,
+                                             type=_PARAMETER_TYPES[parameter.type],
+                                             additional_constraints=parameter.constraint(),
+                                             read_only=True,
+                                             dynamic_typing=parameter.type == "float")
+            self.declare_parameter(name, parameter.default, descriptor)
+        p = node_parameters.validate({name: self.get_parameter(name).value for name in schema},
+                                     schema)
         self.params = p
         self.base_frame = p["base_frame"]
         self.output_frame = p["output_frame"] or p["base_frame"]
@@ -253,7 +222,6 @@ class OdgNode(Node):
                 TFMessage, "/tf_static", lambda m: self.on_tf(m, True), TF_STATIC_QOS))
 
         self.create_timer(float(p["diagnostics_period"]), self.publish_diagnostics)
-        self._stop = threading.Event()
         self._worker = threading.Thread(target=self._work, name="odg_inference", daemon=True)
         self._worker.start()
         self.get_logger().info(
@@ -425,33 +393,46 @@ class OdgNode(Node):
 
     def destroy_node(self):
         self._stop.set()
-        self.pipeline.close()
-        if self._worker.is_alive():
+        if self.pipeline is not None:
+            self.pipeline.close()
+        if self._worker is not None and self._worker.is_alive():
             self._worker.join(timeout=5.0)
         return super().destroy_node()
 
 
+def wants_help(argv: list[str]) -> bool:
+    """-h / --help among the node's own arguments (those before --ros-args)."""
+    own = argv[1:argv.index("--ros-args")] if "--ros-args" in argv else argv[1:]
+    return "-h" in own or "--help" in own
+
+
 def main(args=None) -> int:
+    argv = list(sys.argv if args is None else args)
+    if wants_help(argv):
+        print(node_parameters.help_text())
+        return 0
     # SIGINT/SIGTERM only set a flag checked between executor steps: an asynchronous
     # KeyboardInterrupt can land inside rclpy's Task construction and leave a half-built task
     # that errors when collected (seen at the end of the demo).
     stop = threading.Event()
-    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
     node = executor = None
     try:
-        node = OdgNode()
+        try:
+            node = OdgNode()
+        except (ValueError, OSError, ParameterException) as error:
+            # configuration errors (bad parameter, missing / corrupt / incompatible checkpoint,
+            # missing rig file): one FATAL line, no traceback
+            rclpy.logging.get_logger(NODE_NAME).fatal(f"cannot start: {error}")
+            return 1
         executor = SingleThreadedExecutor()
         executor.add_node(node)
         while rclpy.ok() and not stop.is_set():
             executor.spin_once(timeout_sec=0.1)
     except ExternalShutdownException:
         pass
-    except (ValueError, FileNotFoundError, OSError) as error:
-        # configuration errors (bad parameter, missing checkpoint / rig file): no traceback
-        rclpy.logging.get_logger(NODE_NAME).fatal(f"cannot start: {error}")
-        return 1
     finally:
         if executor is not None:
             executor.shutdown()

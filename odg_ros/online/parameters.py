@@ -1,0 +1,162 @@
+"""The node's parameters from their one source, config/odg_node.schema.yaml (ROS-free).
+
+The node declares them from here, validates the values it gets, and prints them for
+``odg_node --help``; tools/node_parameters.py writes config/odg.yaml and the README table
+from the same schema, and a test keeps both current.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import yaml
+
+from ..resources import resource_path
+
+SCHEMA = "config/odg_node.schema.yaml"
+TYPES = {"bool": bool, "int": int, "float": float, "string": str, "string_array": list}
+GROUPS = {"inputs": "inputs", "sync": "synchronisation and history", "model": "model",
+          "outputs": "outputs"}
+_KEYS = {"type", "default", "description", "group", "enum", "minimum", "maximum",
+         "exclusive_minimum"}
+
+
+@dataclass(frozen=True)
+class Parameter:
+    name: str
+    type: str
+    default: object
+    description: str
+    group: str
+    enum: tuple | None = None
+    minimum: float | None = None
+    maximum: float | None = None
+    exclusive_minimum: float | None = None
+
+    def constraint(self) -> str:
+        """The allowed values in a few words ('' when any value of the type is allowed)."""
+        if self.enum:
+            return "one of: " + ", ".join(map(str, self.enum))
+        if self.minimum is not None and self.maximum is not None:
+            return f"{self.minimum:g} to {self.maximum:g}"
+        if self.exclusive_minimum is not None:
+            return f"> {self.exclusive_minimum:g}"
+        if self.minimum is not None:
+            return f">= {self.minimum:g}"
+        if self.maximum is not None:
+            return f"<= {self.maximum:g}"
+        return ""
+
+    def check(self, value) -> str | None:
+        """Why ``value`` is not allowed, or None."""
+        expected = TYPES[self.type]
+        if expected is float and isinstance(value, int) and not isinstance(value, bool):
+            value = float(value)
+        if not isinstance(value, expected) or (expected is int and isinstance(value, bool)):
+            return f"{self.name}={value!r}: expected {self.type}"
+        if expected is list and not all(isinstance(v, str) for v in value):
+            return f"{self.name}={value!r}: expected a list of strings"
+        if expected is float and math.isnan(value):
+            return f"{self.name}=nan: expected a number"
+        if self.enum and value not in self.enum:
+            return f"{self.name}={value!r}: expected {self.constraint()}"
+        too_low = (self.minimum is not None and value < self.minimum) or \
+                  (self.exclusive_minimum is not None and value <= self.exclusive_minimum)
+        too_high = self.maximum is not None and value > self.maximum
+        if too_low or too_high:
+            return f"{self.name}={value!r}: expected {self.constraint()}"
+        return None
+
+
+def load_schema(path: str | Path | None = None) -> dict[str, Parameter]:
+    """name -> Parameter, in the schema's order. A malformed schema is a ValueError."""
+    path = Path(path) if path is not None else resource_path(SCHEMA)
+    entries = (yaml.safe_load(Path(path).read_text()) or {}).get("parameters") or {}
+    parameters = {}
+    for name, entry in entries.items():
+        unknown = set(entry) - _KEYS
+        if unknown or entry.get("type") not in TYPES or entry.get("group") not in GROUPS \
+                or not entry.get("description") or "default" not in entry:
+            raise ValueError(f"{path}: parameter {name}: needs type (one of {list(TYPES)}), "
+                             f"default, description and group (one of {list(GROUPS)}); "
+                             f"unknown keys: {sorted(unknown)}")
+        enum = tuple(entry["enum"]) if "enum" in entry else None
+        parameter = Parameter(name=name, type=entry["type"], default=entry["default"],
+                              description=" ".join(str(entry["description"]).split()),
+                              group=entry["group"], enum=enum, minimum=entry.get("minimum"),
+                              maximum=entry.get("maximum"),
+                              exclusive_minimum=entry.get("exclusive_minimum"))
+        problem = parameter.check(parameter.default)
+        if problem:
+            raise ValueError(f"{path}: the default breaks the parameter's own rule: {problem}")
+        parameters[name] = parameter
+    return parameters
+
+
+def validate(values: dict, schema: dict[str, Parameter] | None = None) -> dict:
+    """``values`` with every problem (unknown name, wrong type, out of range) in one ValueError;
+    names not given take their defaults. Floats given as integers become floats."""
+    schema = load_schema() if schema is None else schema
+    problems = [f"unknown parameter {name!r}" for name in values if name not in schema]
+    problems += [p for name, value in values.items() if name in schema
+                 for p in [schema[name].check(value)] if p]
+    if problems:
+        raise ValueError("; ".join(problems))
+    result = {name: parameter.default for name, parameter in schema.items()}
+    for name, value in values.items():
+        result[name] = float(value) if schema[name].type == "float" else value
+    return result
+
+
+def _yaml_value(value) -> str:
+    """A value as one flow-style YAML scalar / list."""
+    return yaml.safe_dump(value, default_flow_style=True, width=10_000).strip() \
+        .removesuffix("\n...").removesuffix("...").strip()
+
+
+def help_text(schema: dict[str, Parameter] | None = None) -> str:
+    """``odg_node --help``: usage and every parameter with its default and allowed values."""
+    schema = load_schema() if schema is None else schema
+    lines = ["usage: odg_node [--help] [--ros-args -p NAME:=VALUE ... "
+             "--params-file config/odg.yaml]", "",
+             "ODG 3D semantic occupancy and moving objects from surround cameras.", "",
+             "parameters (read at start-up; the schema is config/odg_node.schema.yaml):"]
+    for group, title in GROUPS.items():
+        lines.append(f"  {title}:")
+        for p in (p for p in schema.values() if p.group == group):
+            constraint = f"; {p.constraint()}" if p.constraint() else ""
+            lines.append(f"    {p.name} ({p.type}, default {_yaml_value(p.default)}"
+                         f"{constraint})")
+            lines.append(f"        {p.description}")
+    return "\n".join(lines)
+
+
+def markdown_table(schema: dict[str, Parameter] | None = None) -> str:
+    """The README's parameter table."""
+    schema = load_schema() if schema is None else schema
+    rows = ["| Parameter | Type | Default | Allowed | Description |", "|---|---|---|---|---|"]
+    for p in schema.values():
+        default = "the six nuScenes cameras" if p.name == "camera_names" \
+            else f"`{_yaml_value(p.default)}`"
+        rows.append(f"| `{p.name}` | {p.type} | {default} | {p.constraint()} | "
+                    f"{p.description.replace('|', '/')} |")
+    return "\n".join(rows)
+
+
+def params_file_text(schema: dict[str, Parameter] | None = None) -> str:
+    """config/odg.yaml: every parameter at its default, grouped, with its allowed values."""
+    schema = load_schema() if schema is None else schema
+    lines = ["# Parameters of odg_node at their defaults, written from config/odg_node.schema.yaml",
+             "# by tools/node_parameters.py --write (edit the schema, not this file; copy this",
+             "# file to change values). `/**:` applies them whatever the node's name and",
+             "# namespace: odg_node --ros-args --params-file config/odg.yaml",
+             "/**:", "  ros__parameters:"]
+    for group, title in GROUPS.items():
+        lines.append(f"    # --- {title}")
+        for p in (p for p in schema.values() if p.group == group):
+            line = f"    {p.name}: {_yaml_value(p.default)}"
+            if p.constraint():
+                line = f"{line:<44}# {p.constraint()}"
+            lines.append(line)
+    return "\n".join(lines) + "\n"
