@@ -169,3 +169,29 @@ def test_a_really_full_disk(tmp_path):
         gc.collect()
     finally:
         subprocess.run(["umount", "--lazy", str(disk)], check=True)
+
+
+def test_unusable_checkpoints_are_one_clear_error(tmp_path):
+    from odg_ros.network.checkpoint import CheckpointError, load_model
+    with pytest.raises(CheckpointError, match="nope.pt not found"):
+        load_model(tmp_path / "nope.pt")
+    path = tmp_path / "tiny.pt"
+    save_checkpoint(path, ODG(tiny_config()))
+    whole = path.read_bytes()
+    path.write_bytes(whole[:4096])
+    with pytest.raises(CheckpointError, match="not a readable checkpoint file"):
+        load_model(path)
+    torch.save({"weights": 1}, path)
+    with pytest.raises(CheckpointError, match="not an odg_ros checkpoint"):
+        load_model(path)
+    path.write_bytes(whole)
+    payload = torch.load(path, weights_only=False)
+    payload["config"]["no_such_option"] = 1
+    torch.save(payload, path)
+    with pytest.raises(CheckpointError, match="does not fit this version.*no_such_option"):
+        load_model(path)
+    payload["config"].pop("no_such_option")
+    payload["model"].pop(next(iter(payload["model"])))
+    torch.save(payload, path)
+    with pytest.raises(CheckpointError, match="does not fit this version.*Missing key"):
+        load_model(path)

@@ -161,8 +161,40 @@ def load_model(path=None, preset: str = "odg_cpu", device="cpu", **overrides):
         cfg = load_preset(preset, **overrides)
         model = ODG(cfg)
     else:
-        payload = torch.load(path, map_location="cpu", weights_only=False)
-        cfg = ModelConfig(**{**payload["config"], **overrides})
-        model = ODG(cfg)
-        load_weights(model, payload["model"])
+        payload = read_checkpoint(path)
+        try:
+            cfg = ModelConfig(**{**payload["config"], **overrides})
+            model = ODG(cfg)
+            load_weights(model, payload["model"])
+        except (TypeError, ValueError, KeyError, RuntimeError) as error:
+            raise CheckpointError(f"checkpoint {path} does not fit this version of odg_ros: "
+                                  f"{_first_line(error)}") from error
     return model.to(device).eval(), cfg
+
+
+class CheckpointError(ValueError):
+    """A checkpoint that is missing, unreadable or does not fit the model code."""
+
+
+def _first_line(error: BaseException, limit: int = 240) -> str:
+    """The error on one line, cut at ``limit`` characters (state-dict errors list every key)."""
+    text = " ".join(str(error).split())
+    text = text if len(text) <= limit else text[:limit] + "..."
+    return f"{type(error).__name__}: {text}"
+
+
+def read_checkpoint(path) -> dict:
+    """The payload of a checkpoint file ({"config", "model", ...}), or a CheckpointError that
+    says in one line what is wrong with the file."""
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"checkpoint {path} not found")
+    try:
+        payload = torch.load(path, map_location="cpu", weights_only=False)
+    except Exception as error:     # torch raises several kinds for truncated / foreign files
+        raise CheckpointError(f"checkpoint {path} is not a readable checkpoint file "
+                              f"(truncated or another format): {_first_line(error)}") from error
+    if not isinstance(payload, dict) or not {"config", "model"} <= set(payload):
+        raise CheckpointError(f"checkpoint {path} is not an odg_ros checkpoint (no config and "
+                              "model entries)")
+    return payload

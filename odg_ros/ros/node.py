@@ -68,6 +68,7 @@ from ..online.transforms import TransformBuffer
 from ..resources import resource_path
 
 NODE_NAME = "odg_node"
+SHIPPED_CHECKPOINT = "model/odg_cpu.pt"
 
 # The parameters' types, defaults, ranges and descriptions: config/odg_node.schema.yaml.
 _PARAMETER_TYPES = {"bool": ParameterType.PARAMETER_BOOL,
@@ -111,6 +112,15 @@ def resolve_device(name: str) -> str:
     return name
 
 
+def shipped_checkpoint():
+    """The packaged checkpoint (model/odg_cpu.pt), wherever the package is installed."""
+    try:
+        return resource_path(SHIPPED_CHECKPOINT)
+    except FileNotFoundError:
+        raise FileNotFoundError(f"checkpoint shipped: {SHIPPED_CHECKPOINT} is not installed; "
+                                "set the checkpoint parameter to a path (or random)") from None
+
+
 class OdgNode(Node):
     def __init__(self, **node_kwargs):
         super().__init__(NODE_NAME, **node_kwargs)
@@ -141,16 +151,19 @@ class OdgNode(Node):
         device = resolve_device(p["device"])
         thresholds = {k: float(p[k]) for k in ("score_threshold", "box_score_threshold")
                       if float(p[k]) >= 0}
-        if p["checkpoint"]:
-            model, cfg = load_model(p["checkpoint"], device=device, **thresholds)
-            self.get_logger().info(f"loaded {p['checkpoint']} ({cfg.name}) on {device}, "
-                                   f"precision {p['precision']}")
-        else:
+        if not p["checkpoint"].strip():
+            raise ValueError("checkpoint is empty: give a path, shipped (the packaged "
+                             "model/odg_cpu.pt) or random (random weights, for tests)")
+        if p["checkpoint"] == "random":
             model, cfg = load_model(None, p["preset"], device, **thresholds)
             self.get_logger().warning(
-                f"NO CHECKPOINT GIVEN: preset {p['preset']} with RANDOM WEIGHTS on {device}. "
-                "The published occupancy and objects are meaningless; set the 'checkpoint' "
-                "parameter.")
+                f"checkpoint random: preset {p['preset']} with RANDOM WEIGHTS on {device}. "
+                "The published occupancy and objects are meaningless.")
+        else:
+            path = shipped_checkpoint() if p["checkpoint"] == "shipped" else p["checkpoint"]
+            model, cfg = load_model(path, device=device, **thresholds)
+            self.get_logger().info(f"loaded {path} ({cfg.name}) on {device}, "
+                                   f"precision {p['precision']}")
         slow = slow_precision_warning(p["precision"], device)
         if slow:
             self.get_logger().warning(slow)
