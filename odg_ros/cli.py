@@ -1,6 +1,10 @@
 """The ``odg`` command. Each subcommand lives in ``odg_ros/commands/<name>.py`` with
 ``add_arguments(parser)`` and ``run(args) -> int``; only the chosen one is imported, so
-``odg --help`` stays fast and ROS-free subcommands never load rclpy."""
+``odg --help`` stays fast and ROS-free subcommands never load rclpy.
+
+A user's mistake (a bad option, a missing or foreign file) is one line on stderr,
+``odg CMD: error: ...``, and exit code 2; ``--debug`` shows the traceback instead.
+"""
 from __future__ import annotations
 
 import argparse
@@ -22,22 +26,57 @@ SUBCOMMANDS = {
 }
 
 
+def build_parser(name: str):
+    """The argument parser of ``odg NAME`` (imports only that command's module)."""
+    from .commands.common import DefaultsFormatter, Parser
+    module = importlib.import_module(f"odg_ros.commands.{name}")
+    parser = Parser(prog=f"odg {name}", description=SUBCOMMANDS[name],
+                    formatter_class=DefaultsFormatter)
+    module.add_arguments(parser)
+    for action in parser._actions:          # sub-commands (odg bag synth) format alike
+        if isinstance(action, argparse._SubParsersAction):
+            for sub in action.choices.values():
+                sub.formatter_class = DefaultsFormatter
+    return module, parser
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
+    debug = "--debug" in argv
+    argv = [a for a in argv if a != "--debug"]
     if not argv or argv[0] in ("-h", "--help") or argv[0] not in SUBCOMMANDS:
         width = max(map(len, SUBCOMMANDS))
         lines = [f"  {name:<{width}}  {text}" for name, text in SUBCOMMANDS.items()]
-        print("usage: odg <command> [options]\n\ncommands:\n" + "\n".join(lines))
+        print("usage: odg [--debug] <command> [options]   (odg <command> --help: its options)"
+              "\n\ncommands:\n" + "\n".join(lines))
         if argv and argv[0] not in ("-h", "--help"):
-            print(f"\nodg: unknown command {argv[0]!r}", file=sys.stderr)
+            print(f"odg: error: unknown command {argv[0]!r}", file=sys.stderr)
             return 2
         return 0
     name = argv[0]
-    module = importlib.import_module(f"odg_ros.commands.{name}")
-    parser = argparse.ArgumentParser(prog=f"odg {name}", description=SUBCOMMANDS[name])
-    module.add_arguments(parser)
-    args = parser.parse_args(argv[1:])
-    return int(module.run(args) or 0)
+    module, parser = build_parser(name)
+    try:
+        args = parser.parse_args(argv[1:])
+    except SystemExit as exit_:             # --help (0) or a bad argument (2), already printed
+        return int(exit_.code or 0)
+    from .commands.common import USER_ERRORS
+    try:
+        return int(module.run(args) or 0)
+    except KeyboardInterrupt:
+        print(f"odg {name}: interrupted", file=sys.stderr)
+        return 130
+    except USER_ERRORS as error:
+        if debug:
+            raise
+        print(f"odg {name}: error: {one_line(error)}", file=sys.stderr)
+        return 2
+
+
+def one_line(error: BaseException) -> str:
+    text = " ".join(str(error).split())
+    if isinstance(error, OSError) and error.filename and str(error.filename) not in text:
+        text = f"{text}: {error.filename}"
+    return text or type(error).__name__
 
 
 if __name__ == "__main__":

@@ -1,6 +1,7 @@
 """odg prepare on a tiny synthetic world: the infos agree with what the generator placed
 (poses at every camera's stamp, intrinsics, sweeps, boxes and velocities in the ego frame)."""
 import functools
+import json
 import os
 import pickle
 import shutil
@@ -169,3 +170,19 @@ def test_dataset_reads_the_infos(infos):
 def test_missing_tables_give_clear_errors(tmp_path):
     with pytest.raises(FileNotFoundError, match="no nuScenes tables"):
         build_infos(tmp_path, progress=False)
+
+
+def test_prepare_refuses_a_bogus_or_empty_split(world_dir, tmp_path, capsys):
+    out = tmp_path / "infos.pkl"
+    assert cli_main(["prepare", "--dataroot", str(world_dir), "--out", str(out),
+                     "--split", "bogus"]) == 2
+    assert "split 'bogus' not in" in capsys.readouterr().err
+    # a world without val scenes: its tables, and a splits.json with an empty val
+    no_val = tmp_path / "no_val"
+    no_val.mkdir()
+    (no_val / "v1.0-trainval").symlink_to(world_dir / "v1.0-trainval")
+    splits = json.loads((world_dir / "splits.json").read_text())
+    (no_val / "splits.json").write_text(json.dumps({"train": splits["train"], "val": []}))
+    assert cli_main(["prepare", "--dataroot", str(no_val), "--out", str(out),
+                     "--split", "val"]) == 2
+    assert "split 'val' of" in capsys.readouterr().err and not out.exists()

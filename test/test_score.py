@@ -125,7 +125,7 @@ def test_missing_prediction_is_an_error_naming_it(tmp_path, capsys):
     infos_path, gts = write_split(tmp_path, np.random.default_rng(2))
     preds = {t: g for t, (g, _) in gts.items() if t != "s0k1"}
     write_preds(tmp_path / "pred", preds)
-    assert main(["score", "--pred", str(tmp_path / "pred"), "--data", str(infos_path)]) == 1
+    assert main(["score", "--pred", str(tmp_path / "pred"), "--data", str(infos_path)]) == 2
     err = capsys.readouterr().err
     assert "s0k1" in err and "1 of 5 predictions missing" in err
 
@@ -134,13 +134,13 @@ def test_bad_prediction_file_is_a_clear_error(tmp_path, capsys):
     infos_path, gts = write_split(tmp_path, np.random.default_rng(3))
     write_preds(tmp_path / "pred", {t: g for t, (g, _) in gts.items()})
     np.savez(tmp_path / "pred" / "s1k0.npz", occupancy=np.zeros(SHAPE, np.uint8))
-    assert main(["score", "--pred", str(tmp_path / "pred"), "--data", str(infos_path)]) == 1
+    assert main(["score", "--pred", str(tmp_path / "pred"), "--data", str(infos_path)]) == 2
     assert "s1k0.npz: no 'semantics'" in capsys.readouterr().err
     np.savez(tmp_path / "pred" / "s1k0.npz", semantics=np.zeros((200, 200, 8), np.uint8))
-    assert main(["score", "--pred", str(tmp_path / "pred"), "--data", str(infos_path)]) == 1
+    assert main(["score", "--pred", str(tmp_path / "pred"), "--data", str(infos_path)]) == 2
     assert "shape (200, 200, 8)" in capsys.readouterr().err
     np.savez(tmp_path / "pred" / "s1k0.npz", semantics=np.full(SHAPE, 255, np.uint8))
-    assert main(["score", "--pred", str(tmp_path / "pred"), "--data", str(infos_path)]) == 1
+    assert main(["score", "--pred", str(tmp_path / "pred"), "--data", str(infos_path)]) == 2
     assert "outside 0..17" in capsys.readouterr().err
 
 
@@ -155,7 +155,7 @@ def test_occ_root_resolution(tmp_path, capsys):
     write_preds(tmp_path / "pred", {t: g for t, (g, _) in gts.items()})
     assert run_json(capsys, "--pred", tmp_path / "pred", "--data", infos_path)["mIoU"] == 100
     (tmp_path / "data" / "occ").rename(tmp_path / "elsewhere")
-    assert main(["score", "--pred", str(tmp_path / "pred"), "--data", str(infos_path)]) == 1
+    assert main(["score", "--pred", str(tmp_path / "pred"), "--data", str(infos_path)]) == 2
     assert "occupancy GT file not found" in capsys.readouterr().err
     res = run_json(capsys, "--pred", tmp_path / "pred", "--data", infos_path,
                    "--occ-root", tmp_path / "elsewhere")

@@ -10,8 +10,9 @@ odg_ros/ros/bag_layout.py.
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
+
+from .common import UserError
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -47,8 +48,6 @@ def run(args) -> int:
             records = tables.scene_records(scene, with_lidar=not args.no_lidar)
             summary = write_scene_bag(records, out, force=args.force)
             print(f"{scene} -> {summary}")
-    except (FileNotFoundError, FileExistsError, KeyError, ValueError) as error:
-        message = error.args[0] if isinstance(error, KeyError) and error.args else error
-        print(f"odg bag: {message}", file=sys.stderr)
-        return 1
+    except KeyError as error:      # an unknown scene or table row: a user error here
+        raise UserError(error.args[0] if error.args else str(error)) from None
     return 0

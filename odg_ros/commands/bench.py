@@ -15,39 +15,48 @@ import torch
 from ..benchmark import PRECISIONS, bench_fast_paths, bench_online_step
 from ..config import load_preset
 from ..network.precision import slow_precision_warning
+from .common import (UserError, device, existing_file, infos_file, nonnegative_int,
+                     positive_int, preset, resolve_device)
 
 
 def add_arguments(parser):
-    parser.add_argument("--preset", default="odg_t",
+    parser.add_argument("--preset", type=preset, default="odg_t",
                         help="model preset (ignored where --checkpoint gives the model)")
-    parser.add_argument("--device", default="cpu", choices=("cpu", "cuda"))
-    parser.add_argument("--frames", type=int, default=None,
+    parser.add_argument("--device", type=device, default="cpu",
+                        help="cpu, cuda, cuda:N or auto")
+    parser.add_argument("--frames", type=positive_int, default=None,
                         help="history frames K incl. the current one (default: the preset's)")
-    parser.add_argument("--iters", type=int, default=None,
+    parser.add_argument("--iters", type=positive_int, default=None,
                         help="timed iterations, median (default 5; --sweep: 3 per sample)")
-    parser.add_argument("--warmup", type=int, default=1, help="untimed steps first")
-    parser.add_argument("--threads", type=int, default=None, help="torch CPU threads")
-    parser.add_argument("--json", action="store_true")
-    parser.add_argument("--checkpoint", default=None,
+    parser.add_argument("--warmup", type=nonnegative_int, default=1, help="untimed steps first")
+    parser.add_argument("--threads", type=positive_int, default=None,
+                        help="torch CPU threads (default: torch's choice)")
+    parser.add_argument("--json", action="store_true", help="print JSON only")
+    parser.add_argument("--checkpoint", default=None, type=existing_file,
                         help="weights (default: random weights of --preset)")
     parser.add_argument("--precision", default="fp32", choices=PRECISIONS,
                         help="autocast precision (fp16 only on CUDA)")
     parser.add_argument("--prune", type=float, default=None, metavar="T",
-                        help="adaptive inference: PruneRule threshold")
-    parser.add_argument("--prune-after", type=int, default=2, help="first layer pruned after")
+                        help="adaptive inference: PruneRule threshold (default: no pruning)")
+    parser.add_argument("--prune-after", type=nonnegative_int, default=2,
+                        help="first layer pruned after")
     parser.add_argument("--no-ring", action="store_true",
                         help="re-lay out the cached history every step (no FeatureRing)")
     parser.add_argument("--fast-paths", action="store_true",
                         help="compare each fast path with the plain path (random weights)")
     parser.add_argument("--sweep", action="store_true",
                         help="speed vs error over configurations on a split (see sweep.py)")
-    parser.add_argument("--data", default=None, help="--sweep: infos of the split")
-    parser.add_argument("--occ-root", default=None, help="--sweep: GT root")
-    parser.add_argument("--out", default="docs", help="--sweep: folder for the JSON and PNG")
-    parser.add_argument("--limit", type=int, default=8,
+    parser.add_argument("--data", default=None, type=infos_file,
+                        help="--sweep: infos of the split (required there; default: none)")
+    parser.add_argument("--occ-root", default=None,
+                        help="--sweep: GT root (default: the infos' occ_root)")
+    parser.add_argument("--out", default="docs/results",
+                        help="--sweep: folder for the JSON and PNG")
+    parser.add_argument("--limit", type=positive_int, default=8,
                         help="--sweep: N samples spread evenly over the split")
     parser.add_argument("--configs", default=None,
-                        help="--sweep: comma-separated names of default configurations, or a "
+                        help="--sweep: comma-separated names of default configurations (default: "
+                             "all of them), or a "
                              "JSON file with a list of sweep.SweepConfig fields, e.g. "
                              '[{"name": "odg_t", "model": "odg_t"}] (a preset: random '
                              "weights, timing only)")
@@ -59,8 +68,7 @@ def add_arguments(parser):
 
 
 def run(args) -> int:
-    if args.device == "cuda" and not torch.cuda.is_available():
-        raise SystemExit("odg bench: --device cuda but CUDA is not available here")
+    args.device = resolve_device(args.device)
     if args.threads:
         torch.set_num_threads(args.threads)
     if args.iters is None:
@@ -136,7 +144,7 @@ def run_sweep_command(args) -> int:
             print(c)
         return 0
     if not args.data:
-        raise SystemExit("odg bench --sweep needs --data INFOS")
+        raise UserError("--sweep needs --data INFOS")
     if args.checkpoint is None:
         print(f"odg bench --sweep: no --checkpoint, random weights of {args.preset}: the "
               f"timings are real, the scores are not")

@@ -27,20 +27,22 @@ from pathlib import Path
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from odg_ros.demo import DEFAULT_OUT, DEFAULT_RATE, DEFAULT_SECONDS, DEFAULT_SEED
 
+    from .common import existing_file, positive_float, positive_int
+
     parser.add_argument("--out", type=Path, default=DEFAULT_OUT,
                         help=f"folder of the world, bag, logs, demo.json and demo.png "
                              f"(default {DEFAULT_OUT}); a world built there before with the "
                              "same settings is reused")
-    parser.add_argument("--checkpoint", type=Path, default=None,
+    parser.add_argument("--checkpoint", type=existing_file, default=None,
                         help="model checkpoint (default: the shipped model/odg_cpu.pt)")
     parser.add_argument("--seed", type=int, default=DEFAULT_SEED,
                         help=f"seed of the synthetic scene (default {DEFAULT_SEED}; the "
                              "seeds the shipped model trained on are in model/odg_cpu.md)")
-    parser.add_argument("--seconds", type=float, default=DEFAULT_SECONDS,
+    parser.add_argument("--seconds", type=positive_float, default=DEFAULT_SECONDS,
                         help=f"length of the scene (default {DEFAULT_SECONDS:g}; 2 keyframes/s)")
-    parser.add_argument("--image-size", type=int, nargs=2, default=None, metavar=("H", "W"),
+    parser.add_argument("--image-size", type=positive_int, nargs=2, default=None, metavar=("H", "W"),
                         help="camera image size of the scene (default: odg synth's)")
-    parser.add_argument("--rate", type=float, default=DEFAULT_RATE,
+    parser.add_argument("--rate", type=positive_float, default=DEFAULT_RATE,
                         help=f"replay speed, x real time (default {DEFAULT_RATE:g}: 12 Hz "
                              "camera sets every 333 ms, about what the CPU model keeps up with)")
     # network/precision.PRECISIONS, not imported here: `odg demo --help` stays torch-free
@@ -55,9 +57,6 @@ def run(args) -> int:
     def log(text: str) -> None:
         print(text, file=sys.stderr, flush=True)
 
-    if not (args.rate > 0 and args.seconds > 0):
-        log("odg demo: --rate and --seconds must be positive")
-        return 2
     # SIGTERM (a CI timeout, kill) ends the demo like Ctrl-C: its children are stopped.
     previous = None
     if threading.current_thread() is threading.main_thread():

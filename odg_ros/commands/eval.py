@@ -3,34 +3,39 @@ from __future__ import annotations
 
 import json
 
-import torch
-
 from ..metrics.detection import format_detection
 from ..metrics.score import format_table
 from ..network.checkpoint import load_model
 from ..train.evaluate import evaluate
-from .train import parse_overrides
+from .common import (config_overrides, device, existing_dir, existing_file, infos_file,
+                     positive_int, resolve_device)
 
 
 def add_arguments(parser):
-    parser.add_argument("--checkpoint", required=True)
-    parser.add_argument("--data", required=True, help="infos of the split to evaluate")
-    parser.add_argument("--occ-root", default=None, help="GT root (default: <dataroot>/gts)")
-    parser.add_argument("--save-pred", default=None, help="write <token>.npz predictions here")
-    parser.add_argument("--device", default="auto")
-    parser.add_argument("--limit", type=int, default=None, help="first N samples only")
-    parser.add_argument("--no-rayiou", action="store_true")
-    parser.add_argument("--json", action="store_true")
+    parser.add_argument("--checkpoint", required=True, type=existing_file,
+                        help="checkpoint file (odg train / odg export; model/odg_cpu.pt ships)")
+    parser.add_argument("--data", required=True, type=infos_file,
+                        help="infos of the split to evaluate (odg prepare)")
+    parser.add_argument("--occ-root", type=existing_dir, default=None,
+                        help="GT root (default: the infos' occ_root, else <dataroot>/gts)")
+    parser.add_argument("--save-pred", default=None,
+                        help="write <token>.npz predictions here (what odg score --pred reads; "
+                             "default: not saved)")
+    parser.add_argument("--device", type=device, default="auto",
+                        help="auto (cuda when available), cpu, cuda or cuda:N")
+    parser.add_argument("--limit", type=positive_int, default=None,
+                        help="the first N samples only (default: all)")
+    parser.add_argument("--no-rayiou", action="store_true", help="skip RayIoU (faster)")
+    parser.add_argument("--json", action="store_true", help="print JSON only")
     parser.add_argument("--set", action="append", metavar="KEY=VALUE",
                         help="config override at inference, e.g. motion_compensation=false "
                              "(what a trained model loses without a component) or "
-                             "score_threshold=0.3")
+                             "score_threshold=0.3 (default: the checkpoint's config)")
 
 
 def run(args) -> int:
-    device = ("cuda" if torch.cuda.is_available() else "cpu") if args.device == "auto" \
-        else args.device
-    model, cfg = load_model(args.checkpoint, device=device, **parse_overrides(args.set))
+    device = resolve_device(args.device)
+    model, cfg = load_model(args.checkpoint, device=device, **config_overrides(args.set))
     result = evaluate(model, cfg, args.data, occ_root=args.occ_root, save_pred=args.save_pred,
                       device=device, rayiou=not args.no_rayiou, limit=args.limit,
                       progress=not args.json)

@@ -7,18 +7,22 @@ from pathlib import Path
 
 from ..network.checkpoint import compress_state, load_model, load_weights, save_checkpoint
 from ..train.calibrate import DEFAULT_THRESHOLDS, calibrate_thresholds
+from .common import existing_file, infos_file, positive_int
 
 
 def add_arguments(parser):
-    parser.add_argument("--checkpoint", required=True, help="training checkpoint (odg train)")
+    parser.add_argument("--checkpoint", required=True, type=existing_file,
+                        help="training checkpoint (odg train)")
     parser.add_argument("--out", required=True, help="the shipped checkpoint to write")
     parser.add_argument("--compress", choices=("none", "fp16", "int8"), default="int8",
                         help="weight storage (int8: per-output-channel scales, ~4x smaller)")
-    parser.add_argument("--calibrate", default=None, metavar="INFOS",
+    parser.add_argument("--calibrate", default=None, metavar="INFOS", type=infos_file,
                         help="choose score_threshold by mIoU and box_score_threshold by F1 on "
-                             "this split (training keyframes)")
-    parser.add_argument("--limit", type=int, default=None, help="calibration keyframes")
-    parser.add_argument("--thresholds", type=float, nargs="+", default=list(DEFAULT_THRESHOLDS))
+                             "this split (training keyframes; default: keep the checkpoint's)")
+    parser.add_argument("--limit", type=positive_int, default=None,
+                        help="calibration keyframes (default: all of --calibrate)")
+    parser.add_argument("--thresholds", type=float, nargs="+", default=list(DEFAULT_THRESHOLDS),
+                        help="score thresholds tried by --calibrate")
 
 
 def run(args) -> int:

@@ -9,10 +9,12 @@ from torch.utils.flop_counter import FlopCounterMode
 from ..benchmark import online_inputs
 from ..config import PRESET_NAMES, load_preset
 from ..network import ODG
+from .common import preset
 
 
 def add_arguments(parser):
-    parser.add_argument("--preset", default="odg_t", help=f"one of {PRESET_NAMES} or a YAML path")
+    parser.add_argument("--preset", type=preset, default="odg_t",
+                        help=f"one of {', '.join(PRESET_NAMES)}, or a preset YAML file")
     parser.add_argument("--json", action="store_true", help="print JSON only")
 
 

@@ -24,23 +24,21 @@ from ..metrics.score import (OccScore, format_table, load_infos, load_prediction
 
 def add_arguments(parser) -> None:
     parser.add_argument("--pred", required=True, type=Path,
-                        help="directory of <sample_token>.npz predictions (key 'semantics')")
+                        help="directory of <sample_token>.npz predictions (key 'semantics'), "
+                             "as odg eval --save-pred writes them")
     parser.add_argument("--data", required=True, type=Path, help="infos pickle (odg prepare)")
     parser.add_argument("--occ-root", type=Path, default=None,
                         help="GT root the infos' occ_path are relative to (default: the infos' "
                              "occ_root, else <dataroot>/gts)")
     parser.add_argument("--png", type=Path, default=None,
-                        help="also write a per-class bar chart (IoU, RayIoU) to this PNG")
+                        help="also write a per-class bar chart (IoU, RayIoU) to this PNG "
+                             "(default: no chart)")
     parser.add_argument("--json", action="store_true",
                         help="print the scores as JSON (percent, NaN as null) instead of a table")
 
 
 def run(args) -> int:
-    try:
-        result = score_split(args.pred, args.data, args.occ_root)
-    except (FileNotFoundError, ValueError, KeyError) as err:
-        print(f"odg score: error: {err}", file=sys.stderr)
-        return 1
+    result = score_split(args.pred, args.data, args.occ_root)     # errors: one line (cli.py)
     if args.png is not None:
         plot_per_class(result, args.png)
         print(f"per-class chart: {args.png}", file=sys.stderr)

@@ -5,42 +5,38 @@ import json
 import logging
 import traceback
 
-import yaml
-
 from ..config import load_preset
 from ..train.trainer import Trainer, TrainOptions, end_distributed
+from .common import (config_overrides, device, existing_file, infos_file, nonnegative_int,
+                     positive_float, positive_int, preset)
 
-
-def parse_overrides(items: list[str]) -> dict:
-    """``["key=value", ...]`` -> dict with YAML-typed values (e.g. das_attention=false)."""
-    out = {}
-    for item in items or []:
-        if "=" not in item:
-            raise SystemExit(f"--set expects key=value, got {item!r}")
-        key, value = item.split("=", 1)
-        out[key.strip()] = yaml.safe_load(value)
-    return out
+parse_overrides = config_overrides      # eval and the tools import it from here
 
 
 def add_arguments(parser):
-    parser.add_argument("--preset", default="odg_cpu")
-    parser.add_argument("--data", required=True, nargs="+",
+    parser.add_argument("--preset", type=preset, default="odg_cpu",
+                        help="model preset (odg_t, odg_l, odg_cpu) or a preset YAML file")
+    parser.add_argument("--data", required=True, nargs="+", type=infos_file,
                         help="training infos (odg prepare); several files train together")
     parser.add_argument("--out", required=True, help="output dir: checkpoints, train_log.csv")
-    parser.add_argument("--epochs", type=int, default=24)
-    parser.add_argument("--steps", type=int, default=None, help="stop after this many steps")
-    parser.add_argument("--batch-size", type=int, default=1, help="per process")
-    parser.add_argument("--lr", type=float, default=2e-4)
-    parser.add_argument("--warmup", type=int, default=200, help="warm-up steps")
-    parser.add_argument("--backbone-lr-mult", type=float, default=0.1,
+    parser.add_argument("--epochs", type=positive_int, default=24,
+                        help="passes over the data (24 for a full odg_t run: hours on GPUs)")
+    parser.add_argument("--steps", type=positive_int, default=None,
+                        help="stop after this many optimiser steps (default: run all epochs)")
+    parser.add_argument("--batch-size", type=positive_int, default=1, help="samples per process")
+    parser.add_argument("--lr", type=positive_float, default=2e-4, help="peak learning rate")
+    parser.add_argument("--warmup", type=nonnegative_int, default=200, help="warm-up steps")
+    parser.add_argument("--backbone-lr-mult", type=positive_float, default=0.1,
                         help="backbone lr factor (0.1 for an ImageNet-pretrained backbone; "
                              "1.0 when it trains from scratch)")
-    parser.add_argument("--workers", type=int, default=2)
-    parser.add_argument("--device", default="auto", help="auto | cpu | cuda | cuda:N")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--workers", type=nonnegative_int, default=2,
+                        help="data-loading processes per training process (0: in-process)")
+    parser.add_argument("--device", type=device, default="auto",
+                        help="auto (cuda when available), cpu, cuda or cuda:N")
+    parser.add_argument("--seed", type=int, default=0, help="random seed")
     parser.add_argument("--no-render", action="store_true",
                         help="ablation: no Gaussian-splatting rendering supervision")
-    parser.add_argument("--render-pixels", type=int, default=512,
+    parser.add_argument("--render-pixels", type=positive_int, default=512,
                         help="supervised LiDAR pixels per camera and step")
     parser.add_argument("--renderer", choices=("torch", "gsplat"), default="torch",
                         help="render loss: our PyTorch renderer (any device), or gsplat's CUDA "
@@ -49,16 +45,21 @@ def add_arguments(parser):
                         help="backbone gradients through the current frame only (faster, "
                              "SparseBEV's stop_prev_grad)")
     parser.add_argument("--set", action="append", metavar="KEY=VALUE",
-                        help="model config override, e.g. --set das_attention=false")
-    parser.add_argument("--backbone-weights", help="torchvision-layout ResNet .pth to start from")
-    parser.add_argument("--init", help="start from this checkpoint's weights")
-    parser.add_argument("--checkpoint-every", type=int, default=500)
+                        help="model config override, repeatable, e.g. --set das_attention=false "
+                             "(the keys of model/odg_cpu.yaml; default: the preset as it is)")
+    parser.add_argument("--backbone-weights", type=existing_file,
+                        help="torchvision-layout ResNet .pth to start from (default: the "
+                             "preset's backbone from scratch)")
+    parser.add_argument("--init", type=existing_file,
+                        help="start from this checkpoint's weights (default: fresh weights)")
+    parser.add_argument("--checkpoint-every", type=positive_int, default=500,
+                        help="steps between OUT/latest.pt saves")
     parser.add_argument("--resume", action="store_true", help="continue OUT/latest.pt")
 
 
 def run(args) -> int:
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
-    cfg = load_preset(args.preset, **parse_overrides(args.set))
+    cfg = load_preset(args.preset, **config_overrides(args.set))
     opts = TrainOptions(out_dir=args.out, epochs=args.epochs, max_steps=args.steps,
                         batch_size=args.batch_size, lr=args.lr, warmup_steps=args.warmup,
                         backbone_lr_mult=args.backbone_lr_mult,

@@ -38,7 +38,7 @@ from ..data.dataset import OccDataset, replay_history_draws
 from ..losses.criterion import ODGCriterion
 from ..network import ODG
 from ..network.backbone import load_torchvision_state_dict
-from ..network.checkpoint import load_weights, save_checkpoint, tensor_bytes
+from ..network.checkpoint import load_weights, read_checkpoint, save_checkpoint, tensor_bytes
 from .schedule import warmup_cosine
 
 log = logging.getLogger(__name__)
@@ -212,7 +212,7 @@ class Trainer:
         if opts.backbone_weights:
             load_torchvision_state_dict(self.model.backbone, opts.backbone_weights)
         if opts.init_checkpoint:
-            payload = torch.load(opts.init_checkpoint, map_location="cpu", weights_only=False)
+            payload = read_checkpoint(opts.init_checkpoint)
             load_weights(self.model, payload["model"])
         self.model.to(self.device)
         self.optimizer = torch.optim.AdamW(parameter_groups(self.model, opts), lr=opts.lr,

@@ -187,7 +187,7 @@ def test_command_line_errors(tmp_path):
     result = subprocess.run([sys.executable, "-m", "odg_ros.cli", "bag", "nuscenes",
                              "--dataroot", str(tmp_path / "missing"), "--out", str(tmp_path / "b")],
                             capture_output=True, text=True, timeout=60)
-    assert result.returncode == 1 and "dataroot not found" in result.stderr
+    assert result.returncode == 2 and "dataroot not found" in result.stderr
 
 
 def _reference_twist(t, T, i, half=0.1):

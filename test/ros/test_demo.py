@@ -108,8 +108,8 @@ def test_missing_checkpoint_is_a_clear_error(tmp_path):
     result = subprocess.run([sys.executable, "-m", "odg_ros.cli", "demo", "--out",
                              str(tmp_path), "--checkpoint", str(tmp_path / "nope.pt")],
                             capture_output=True, text=True, timeout=60)
-    assert result.returncode == 1
-    assert "checkpoint not found" in result.stderr and "Traceback" not in result.stderr
+    assert result.returncode == 2
+    assert "file not found" in result.stderr and "Traceback" not in result.stderr
 
 
 def test_shipped_checkpoint_missing_names_it(monkeypatch):

@@ -148,7 +148,7 @@ def test_ctrl_c_stops_cleanly(rclpy_module, bag):
 def test_bad_arguments(rclpy_module, tmp_path, bag):
     result = subprocess.run([sys.executable, "-m", "odg_ros.cli", "replay", str(tmp_path)],
                             capture_output=True, text=True, timeout=60)
-    assert result.returncode == 1 and "not a rosbag2 folder" in result.stderr
+    assert result.returncode == 2 and "not a rosbag2 folder" in result.stderr
     result = subprocess.run([sys.executable, "-m", "odg_ros.cli", "replay", str(bag),
                              "--rate", "0"], capture_output=True, text=True, timeout=60)
-    assert result.returncode == 1 and "rate must be a positive number" in result.stderr
+    assert result.returncode == 2 and "--rate: must be > 0" in result.stderr

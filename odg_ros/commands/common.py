@@ -1,0 +1,165 @@
+"""What every ``odg`` command shares: argument types that check a value when it is parsed
+(one clear line, exit code 2, instead of a failure deep inside), the help formatter that
+shows defaults, and UserError for a mistake found later.
+
+A new option takes one of these types, e.g.
+``parser.add_argument("--iters", type=positive_int, default=5, help="timed iterations")``.
+Importing this module imports neither torch nor rclpy (``odg CMD --help`` stays fast).
+"""
+from __future__ import annotations
+
+import argparse
+import pickle
+from pathlib import Path
+
+class UserError(Exception):
+    """A mistake in the command line or its files, found after parsing."""
+
+
+# Reported as one line `odg CMD: error: ...` with exit code 2 (cli.py): a UserError and what
+# the library raises for bad input (a missing or foreign file, a bad value).
+USER_ERRORS = (UserError, FileNotFoundError, FileExistsError, NotADirectoryError,
+               IsADirectoryError, PermissionError, ValueError)
+
+
+class Parser(argparse.ArgumentParser):
+    """An argument parser whose errors are one line: ``odg CMD: error: ...`` (exit 2)."""
+
+    def error(self, message):
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
+class DefaultsFormatter(argparse.RawDescriptionHelpFormatter):
+    """Adds ``(default: X)`` to an option's help unless the help already says its default;
+    options without one (None, a flag) explain themselves in their help."""
+
+    def _get_help_string(self, action):
+        text = action.help or ""
+        if any(action.default is v for v in (None, False, argparse.SUPPRESS)) \
+                or "default" in text or not action.option_strings:
+            return text
+        return f"{text} (default: %(default)s)"
+
+
+def _number(text: str, kind, least, strict: bool):
+    try:
+        value = kind(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected {'an integer' if kind is int else 'a number'}, got {text!r}") from None
+    if value != value or (value <= least if strict else value < least):     # NaN fails too
+        raise argparse.ArgumentTypeError(f"must be {'>' if strict else '>='} {least}, "
+                                         f"got {text}")
+    return value
+
+
+def positive_int(text: str) -> int:
+    return _number(text, int, 0, strict=True)
+
+
+def nonnegative_int(text: str) -> int:
+    return _number(text, int, 0, strict=False)
+
+
+def positive_float(text: str) -> float:
+    return _number(text, float, 0.0, strict=True)
+
+
+def nonnegative_float(text: str) -> float:
+    return _number(text, float, 0.0, strict=False)
+
+
+# The path types return the text as given (a str, like an option without a type), checked.
+def existing_file(text: str) -> str:
+    path = Path(text)
+    if not path.exists():
+        raise argparse.ArgumentTypeError(f"file not found: {text}")
+    if not path.is_file():
+        raise argparse.ArgumentTypeError(f"not a file: {text}")
+    if path.stat().st_size == 0:
+        raise argparse.ArgumentTypeError(f"file is empty: {text}")
+    return text
+
+
+def existing_dir(text: str) -> str:
+    if not Path(text).is_dir():
+        raise argparse.ArgumentTypeError(f"directory not found: {text}")
+    return text
+
+
+def infos_file(text: str) -> str:
+    """An infos pickle written by ``odg prepare`` that holds at least one keyframe."""
+    path = existing_file(text)
+    from ..data.prepare import load_infos
+    try:
+        infos = load_infos(path)
+    except (pickle.UnpicklingError, EOFError, ValueError, AttributeError, ImportError) as e:
+        raise argparse.ArgumentTypeError(f"{text} is not an infos file of odg prepare "
+                                         f"({type(e).__name__})") from None
+    if not infos["infos"]:
+        raise argparse.ArgumentTypeError(f"{text} holds no keyframes (odg prepare of an "
+                                         "empty split?)")
+    return text
+
+
+def preset(text: str) -> str:
+    """A preset name (model/<name>.yaml) or the path of a preset YAML file."""
+    from ..config import PRESET_NAMES
+    if text in PRESET_NAMES or (Path(text).suffix in (".yaml", ".yml") and Path(text).is_file()):
+        return text
+    raise argparse.ArgumentTypeError(f"unknown preset {text!r}: one of "
+                                     f"{', '.join(PRESET_NAMES)}, or a preset YAML file")
+
+
+def device(text: str) -> str:
+    """auto, cpu, cuda or cuda:N; a CUDA device must exist here."""
+    if text in ("auto", "cpu"):
+        return text
+    index = text.removeprefix("cuda").removeprefix(":")
+    if not text.startswith("cuda") or (index and not index.isdigit()) or text == "cuda:":
+        raise argparse.ArgumentTypeError(f"expected auto, cpu, cuda or cuda:N, got {text!r}")
+    import torch
+    if not torch.cuda.is_available():
+        build = "built without CUDA" if torch.version.cuda is None else "no CUDA device found"
+        raise argparse.ArgumentTypeError(f"{text}: CUDA is not available here (torch "
+                                         f"{torch.__version__}, {build}); see the README's "
+                                         "GPU install")
+    if index and int(index) >= torch.cuda.device_count():
+        raise argparse.ArgumentTypeError(f"{text}: only {torch.cuda.device_count()} CUDA "
+                                         "devices here")
+    return text
+
+
+def resolve_device(name: str) -> str:
+    """A parsed --device value as a torch device name (auto: cuda when there is one)."""
+    if name != "auto":
+        return name
+    import torch
+    return "cuda" if torch.cuda.is_available() else "cpu"
+
+
+def config_overrides(items: list[str] | None) -> dict:
+    """``--set key=value`` items -> {key: YAML-typed value}; unknown keys are a UserError."""
+    import dataclasses
+    import difflib
+
+    import yaml
+
+    from ..config import ModelConfig
+    known = [f.name for f in dataclasses.fields(ModelConfig)]
+    out = {}
+    for item in items or []:
+        key, sep, value = item.partition("=")
+        key = key.strip()
+        if not sep or not key:
+            raise UserError(f"--set expects KEY=VALUE, got {item!r}")
+        if key not in known:
+            close = difflib.get_close_matches(key, known, n=3)
+            hint = f"; did you mean {', '.join(close)}?" if close else \
+                " (the keys of model/odg_cpu.yaml)"
+            raise UserError(f"--set {key}: not a model setting{hint}")
+        try:
+            out[key] = yaml.safe_load(value)
+        except yaml.YAMLError:
+            raise UserError(f"--set {item}: the value is not valid YAML") from None
+    return out
