@@ -1,4 +1,4 @@
-"""Label sets of Occ3D-nuScenes, Occ3D-Waymo and the nuScenes detection task (DESIGN.md sec. 3)."""
+"""Label sets of Occ3D-nuScenes, Occ3D-Waymo and the nuScenes detection task (docs/architecture.md sec. 1)."""
 
 OCC_CLASSES = (
     "others", "barrier", "bicycle", "bus", "car", "construction_vehicle", "motorcycle",

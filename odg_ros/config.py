@@ -46,7 +46,7 @@ class ModelConfig:
     voxel_size: float = 0.4
     num_classes: int = 17
     num_box_classes: int = 10
-    # post-processing (DESIGN.md sec. 4)
+    # post-processing (docs/architecture.md sec. 4)
     score_threshold: float = 0.5
     max_distance_to_centroid: float = 3.0
     box_score_threshold: float = 0.3

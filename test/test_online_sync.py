@@ -7,7 +7,7 @@ from odg_ros.online.sync import CameraSetSync
 
 CAMS = ("CAM_FRONT", "CAM_FRONT_RIGHT", "CAM_FRONT_LEFT", "CAM_BACK", "CAM_BACK_LEFT",
         "CAM_BACK_RIGHT")
-# nuScenes-like: a set every 1/12 s, cameras 0..42 ms after the set start (DESIGN.md sec. 3)
+# nuScenes-like: a set every 1/12 s, cameras 0..42 ms after the set start (docs/architecture.md sec. 2)
 OFFSETS = (0.0, 0.008, 0.017, 0.025, 0.033, 0.042)
 PERIOD = 1 / 12
 

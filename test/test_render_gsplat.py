@@ -6,7 +6,7 @@ Projecting with that code and compositing with the rules of gsplat's forward ker
 (RasterizeToPixels3DGSFwd.cu: front to back by depth, skip power < 0 or alpha < 1/255, stop
 before the Gaussian that takes T to <= 1e-4) must give what `render_cameras` gives, at every
 pixel of every camera. One deliberate difference: gsplat caps alpha at 0.999, the Inria
-rasteriser and DESIGN.md at 0.99 (ours). The scenes below keep opacities under 0.95, where
+rasteriser at 0.99 (ours). The scenes below keep opacities under 0.95, where
 neither cap can act, except the saturated test, which composites with our cap.
 """
 import numpy as np

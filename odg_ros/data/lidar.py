@@ -6,7 +6,7 @@ nuScenes files:
 * ``lidarseg/<version>/<lidar sample_data token>_lidarseg.bin``: one uint8 nuScenes-lidarseg
   label per point of the matching ``.pcd.bin``, same order.
 
-Render targets (paper Eq. 6 supervision, DESIGN.md sec. 5): every labelled LiDAR point is
+Render targets (paper Eq. 6 supervision, docs/architecture.md sec. 5): every labelled LiDAR point is
 projected into each current-frame camera with that camera's ``ego2img``; a point is kept when it
 is at least ``min_depth`` in front of the camera and lands inside the part of the network input
 that shows the image (bottom padding excluded). Per pixel (floor(u), floor(v)) only the nearest

@@ -1,7 +1,7 @@
 """Occupancy ground truth on disk -> the common triple (semantics, mask_lidar, mask_camera).
 
 Both benchmarks use the same grid: [-40, -40, -1, 40, 40, 5.4] m, 200 x 200 x 16 voxels of
-0.4 m, indexed [x, y, z] in the keyframe's ego frame (DESIGN.md sec. 3).
+0.4 m, indexed [x, y, z] in the keyframe's ego frame (docs/architecture.md sec. 1).
 
 Occ3D-nuScenes (``gts/<scene_name>/<sample_token>/labels.npz``)::
 

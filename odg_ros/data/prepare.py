@@ -26,7 +26,7 @@ from odg_ros.data.nuscenes_tables import CATEGORY_TO_BOX_CLASS, NuScenesTables, 
 from odg_ros.geometry import invert_transform, quaternion_to_matrix
 
 MAX_SWEEP_SETS = 12        # safety cap; nuScenes has 5 camera sets between keyframes
-SET_TOLERANCE_US = 60_000  # cameras of one set lie within ~42 ms of CAM_FRONT (DESIGN.md sec. 3)
+SET_TOLERANCE_US = 60_000  # cameras of one set lie within ~42 ms of CAM_FRONT (docs/architecture.md sec. 2)
 
 
 def split_scene_names(dataroot, version, split, tables: NuScenesTables) -> list[str]:

@@ -1,4 +1,4 @@
-"""Training losses of ODG (paper Sec. 3.5, DESIGN.md sec. 5): one file per loss."""
+"""Training losses of ODG (paper Sec. 3.5, docs/architecture.md sec. 5): one file per loss."""
 from .box import BOX_CODE_WEIGHTS, box_loss, decode_boxes, encode_boxes
 from .chamfer import (NearestNeighbourIndex, OccupancyTarget, nearest_neighbours,
                       occupancy_loss, occupancy_target)

@@ -21,7 +21,7 @@ Choices the paper leaves open, and ours:
 * Layer weights: lambda_l = 0.05 for the first and the last layer, 0.01 for the others.
 
 The renderer is ``odg_ros.render.render_cameras`` -- ``render_gaussians`` for the N cameras of a
-sample in one pass (gsplat conventions, DESIGN.md sec. 5); a callable with its signature
+sample in one pass (gsplat conventions, docs/architecture.md sec. 5); a callable with its signature
 ``(means, scales, rotations, opacities, features, cam_from_ego [N,4,4], intrinsics [N,3,3],
 pixels N x [P_n,2], image_hw, near=) -> N x RenderResult(depth, features, alpha)`` can be
 passed instead.

@@ -1,4 +1,4 @@
-"""Ray casting through occupancy grids for RayIoU (SparseOcc convention, DESIGN.md sec. 6).
+"""Ray casting through occupancy grids for RayIoU (SparseOcc convention, docs/architecture.md sec. 6).
 
 Rays are cast in *voxel units*: a point p in metres is ``(p - grid_min) / voxel_size`` in the
 grid, so voxel (i, j, k) is the unit cube [i, i+1) x [j, j+1) x [k, k+1). Voxels are cubes, so a

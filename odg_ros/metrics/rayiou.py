@@ -1,4 +1,4 @@
-"""RayIoU (SparseOcc convention, DESIGN.md sec. 6) and the LiDAR origins it casts rays from.
+"""RayIoU (SparseOcc convention, docs/architecture.md sec. 6) and the LiDAR origins it casts rays from.
 
 Per sample, rays of the SparseOcc LiDAR pattern (``raycast.lidar_ray_directions``, 39 pitches x
 360 azimuths) are cast from each origin through the predicted and the GT grid (no camera mask).

@@ -1,4 +1,4 @@
-"""Inference outputs (DESIGN.md sec. 4): the Occ3D grid and the box list.
+"""Inference outputs (docs/architecture.md sec. 4): the Occ3D grid and the box list.
 
 Grid: the last layer's points with max sigmoid score > threshold that lie within 3 m of
 their query's centroid are voxelised; scores are averaged per voxel; label = argmax;

@@ -1,7 +1,7 @@
 """Prediction arrays -> the field values of the output messages (no ROS types here).
 
 Large arrays become ``bytes`` (``ndarray.tobytes()``), never Python lists: assigning bytes
-to a uint8[] / int8[] message field is a memcpy, a list is ~100x slower (DESIGN.md sec. 7).
+to a uint8[] / int8[] message field is a memcpy, a list is ~100x slower (docs/architecture.md sec. 7).
 The node copies these values into odg_ros_msgs / sensor_msgs / nav_msgs messages.
 """
 from __future__ import annotations

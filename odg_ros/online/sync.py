@@ -1,7 +1,7 @@
 """Approximate-time synchronisation of the cameras into sets (one set = one network input).
 
 The six nuScenes images of one set span ~42 ms and two sets mixed span >= ~74 ms
-(DESIGN.md sec. 3), so a set is a group of one message per camera whose stamps span at
+(docs/architecture.md sec. 2), so a set is a group of one message per camera whose stamps span at
 most ``slop`` seconds (0.05 by default).
 
 Messages are fed one by one as ``(camera, stamp, payload)``; arrival order is free

@@ -6,7 +6,8 @@ per pixel), and the requested pixels are read from those images. Where the two d
 
 * gsplat evaluates pixel centres: a requested (u, v) gets the value at the centre of the pixel
   it falls in (floor(u) + 0.5, floor(v) + 0.5), ours the value at (u, v) itself.
-* gsplat caps alpha at 0.999, ours (Inria, DESIGN.md sec. 5) at 0.99; below 0.99 they agree.
+* gsplat caps alpha at 0.999, ours at 0.99 (as the original 3D Gaussian splatting does;
+  docs/architecture.md sec. 5); below 0.99 they agree.
 
 Everything else is the same convention (projection and its Jacobian clamp, the 0.3 px^2 blur,
 the 1/255 skip, the 1e-4 transmittance stop, depth weighted like the features, not

@@ -28,8 +28,8 @@ Memory is O(contributing pairs) plus one batch of candidates.
 The code is device-agnostic PyTorch but has only been run on CPU; on CUDA, gsplat_backend.py
 renders the same with gsplat's rasteriser. test/test_render_gsplat.py checks this renderer
 against gsplat's own pure-PyTorch projection composited with its CUDA kernel's rules, at every
-pixel. The one difference is deliberate: gsplat caps alpha at 0.999, Inria and DESIGN.md at
-0.99 (ALPHA_MAX).
+pixel. The one difference is deliberate: gsplat caps alpha at 0.999, we cap it at 0.99
+(ALPHA_MAX) as the original 3D Gaussian splatting does.
 """
 from __future__ import annotations
 

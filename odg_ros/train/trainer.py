@@ -1,4 +1,4 @@
-"""Training loop of ODG (DESIGN.md sec. 5).
+"""Training loop of ODG (docs/architecture.md sec. 5).
 
 AdamW (lr 2e-4, weight decay 0.01, backbone lr x 0.1), warm-up + cosine schedule, gradient
 clipping at 35, mixed precision on CUDA, atomic checkpoints with optimizer and scheduler

@@ -1,6 +1,6 @@
 """Occ3D-style ground truth of a keyframe: semantic voxels and visibility masks.
 
-Grid (DESIGN.md sec. 3): [-40, -40, -1, 40, 40, 5.4] m in the keyframe's ego frame,
+Grid (docs/architecture.md sec. 1): [-40, -40, -1, 40, 40, 5.4] m in the keyframe's ego frame,
 200 x 200 x 16 voxels of 0.4 m indexed [x, y, z], 17 = free.
 
 * semantics: surfaces, as Occ3D builds them from accumulated LiDAR returns. The flat ground

@@ -2,7 +2,7 @@
 
 Camera and LiDAR extrinsics/intrinsics are the nuScenes ``calibrated_sensor`` records of
 log n015-2018-07-24-11-22-45+0800 (scene-0061, v1.0-mini); intrinsics are for 1600 x 900
-images and are scaled to the rendered size. Timing (DESIGN.md sec. 3): LiDAR sweeps at 20 Hz
+images and are scaled to the rendered size. Timing (docs/architecture.md sec. 2): LiDAR sweeps at 20 Hz
 stamped at the end of the rotation, cameras at 12 Hz, each camera exposed when the rotating
 LiDAR passes its view, i.e. 7..49.5 ms after the sweep start; keyframes at 2 Hz.
 """
