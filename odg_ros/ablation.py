@@ -1,6 +1,6 @@
 """The paper's Table 4 on our data: variants side by side, against the full model's seed spread.
 
-``python -m odg_ros.ablation --out docs/ablation full=runs/a/eval.json full=runs/b/eval.json
+``python -m odg_ros.ablation --out docs/results/ablation full=runs/a/eval.json full=runs/b/eval.json
 no_render=runs/c/eval.json ...`` reads ``odg eval --json`` results (a name may repeat: one
 file per training seed), writes ``<out>.json``, ``<out>.md`` (one row per variant: the mean
 over its seeds, the change against the first variant's mean) and ``<out>.png`` (the changes,

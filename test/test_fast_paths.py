@@ -1,4 +1,4 @@
-"""Fast paths against the plain path they replace (issue 6): each must give the same numbers.
+"""Fast paths against the plain path they replace: each must give the same numbers.
 
 - camera-rows sampling (2-D grid_sample over the cameras stacked along the rows, a zero row
   between them) vs the plain per-camera 3-D grid_sample: equal within 1e-10 in float64 (the

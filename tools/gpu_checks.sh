@@ -1,12 +1,12 @@
 #!/usr/bin/env bash
 # The checks that need a CUDA GPU, for a machine with PyTorch built for CUDA (a lent GPU box
 # without PyPI included): run from the repository root. Results of the first run, on an H100:
-# docs/gpu_h100/README.md.
+# docs/reports/2026-11-25-h100.md.
 #
 #   make gpu-wheels                        # on a machine with PyPI: gsplat's wheel into .whl/
 #   bash tools/gpu_checks.sh PART [OUT]    # on the GPU machine (carry .whl there)
-# With this workplace's device tool (carry [".whl"]; a machine idle for 30 s goes back bare),
-# three calls, each inside the ten-minute limit (times measured on the H100):
+# Where one job may run at most ten minutes, run it as three jobs on the same machine (carry
+# .whl along; times measured on the H100):
 #   1. build (87 s), tests (29 s), train (5 min)   only these two need the gsplat build
 #   2. bench (64 s), sweep (7 min)
 #   3. presets (4 min: torch.compile takes ~90 s per model)
@@ -134,8 +134,8 @@ part_sweep() {
 
 part_presets() {
     world
-    local presets=tools/gpu_sweep_presets.json isolate=--no-isolate
-    [ "$DEVICE" = cpu ] && presets=tools/gpu_sweep_presets_cpu.json isolate=
+    local presets=config/sweep_presets_gpu.json isolate=--no-isolate
+    [ "$DEVICE" = cpu ] && presets=config/sweep_presets_gpu_standin.json isolate=
     step "sweep of ODG-T and ODG-L" $PY -m odg_ros.cli bench --sweep --configs "$presets" \
         --data "$WORLD/infos_all.pkl" --checkpoint model/odg_cpu.pt --device "$DEVICE" \
         --out "$OUT/sweep_presets" --limit 2 --iters 3 $isolate

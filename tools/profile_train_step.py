@@ -4,7 +4,7 @@ tensor's value on the host (on CUDA each such read waits for the GPU queue to dr
     python tools/profile_train_step.py --preset odg_cpu --data out/gpu_world/infos_all.pkl \
         [--device cpu|cuda] [--steps 2]
 
-The numbers in docs/gpu_h100/README.md ("Training speed") come from this on the CPU. Reads of
+The numbers in docs/reports/2026-11-25-h100.md ("Training speed") come from this on the CPU. Reads of
 CPU tensors are counted on a CPU only: on CUDA they cost no synchronisation (the optimizer's
 step counters, say).
 """

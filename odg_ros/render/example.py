@@ -1,7 +1,7 @@
 """See the renderer work: a synthetic street of Gaussians rendered into the nuScenes rig, and
 the timing of a training-size render.
 
-    python -m odg_ros.render.example --out docs/render_example.png
+    python -m odg_ros.render.example --out docs/results/render_example.png
     python -m odg_ros.render.example --bench
 
 The street (road, sidewalks, facades, trees, cars, pedestrians; one-hot class features) exists
