@@ -1,0 +1,395 @@
+#!/usr/bin/env bash
+# How model/odg_cpu.pt was trained: every command, in order, on a 2-core CPU (about 60 hours of
+# training steps, ~40 GB of synthetic worlds under data/, checkpoints under runs/). Each
+# numbered block is one row of model/CHANGELOG.md. Blocks marked "not shipped" record a run
+# that was tried and not kept; blocks "stopped at step N" were stopped by hand at that step's
+# checkpoint, which a plain run of this file does not do (it trains their whole schedule).
+# CPU training is not bit-reproducible across machines and thread counts; the worlds are
+# (odg synth writes the same bytes for the same seed, test/test_synth.py pins them).
+#
+#   bash tools/reproduce_odg_cpu.sh            # from the repository root, in the .venv
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+odg synth --out data/synth24 --scenes 24 --seconds 8 --seed 1
+odg prepare --dataroot data/synth24 --out data/synth24/infos_train.pkl --split train
+odg prepare --dataroot data/synth24 --out data/synth24/infos_val.pkl --split val
+COMMON="--data data/synth24/infos_train.pkl --epochs 1000 --lr 4e-4 --backbone-lr-mult 1.0 \
+    --workers 0 --no-history-grad --render-pixels 256 --checkpoint-every 200"
+K32='--set points_per_layer=[1,2,4,8,16,32] --set num_dynamic=50'
+# (1) 3,800 steps at K = 32 (the earlier preset)
+odg train --preset odg_cpu $K32 $COMMON --out runs/cpu24 --steps 3800 --warmup 200
+# (2) a 20,000-step schedule from (1), stopped once runs/cpu24b/latest.pt holds step 1,800
+odg train --preset odg_cpu $K32 $COMMON --out runs/cpu24b --init runs/cpu24/final.pt \
+    --steps 20000 --warmup 100
+# (3) K = 128: --init grows the last point head from 32 to 128 points
+odg train --preset odg_cpu --set num_dynamic=50 $COMMON --out runs/cpu24w \
+    --init runs/cpu24b/latest.pt --steps 3800 --warmup 100
+# (4) the shipped preset (100 dynamic queries): --init keeps the 50 trained ones, adds 50
+odg train --preset odg_cpu $COMMON --out runs/cpu24d100f --init runs/cpu24w/final.pt \
+    --steps 3200 --warmup 100
+# (5) more data: two more worlds, every one of their scenes for training (seed 1's val held out)
+odg synth --out data/synth24s2 --scenes 24 --seconds 8 --seed 2
+odg synth --out data/synth24s3 --scenes 24 --seconds 8 --seed 3
+odg prepare --dataroot data/synth24s2 --out data/synth24s2/infos_all.pkl --split all
+odg prepare --dataroot data/synth24s3 --out data/synth24s3/infos_all.pkl --split all
+odg train --preset odg_cpu --data data/synth24/infos_train.pkl data/synth24s2/infos_all.pkl \
+    data/synth24s3/infos_all.pkl --epochs 1000 --lr 3e-4 --backbone-lr-mult 1.0 --workers 0 \
+    --no-history-grad --render-pixels 256 --checkpoint-every 200 --out runs/cpu66 \
+    --init runs/cpu24d100f/final.pt --steps 3000 --warmup 100
+# (6) still more data: seeds 4 and 5, every scene for training
+odg synth --out data/synth24s4 --scenes 24 --seconds 8 --seed 4
+odg synth --out data/synth24s5 --scenes 24 --seconds 8 --seed 5
+odg prepare --dataroot data/synth24s4 --out data/synth24s4/infos_all.pkl --split all
+odg prepare --dataroot data/synth24s5 --out data/synth24s5/infos_all.pkl --split all
+odg train --preset odg_cpu --data data/synth24/infos_train.pkl data/synth24s2/infos_all.pkl \
+    data/synth24s3/infos_all.pkl data/synth24s4/infos_all.pkl data/synth24s5/infos_all.pkl \
+    --epochs 1000 --lr 3e-4 --backbone-lr-mult 1.0 --workers 1 --no-history-grad \
+    --render-pixels 256 --checkpoint-every 200 --out runs/cpu114 --init runs/cpu66/final.pt \
+    --steps 2500 --warmup 100
+# (7) seeds 6 and 7 as well, every scene for training
+odg synth --out data/synth24s6 --scenes 24 --seconds 8 --seed 6
+odg synth --out data/synth24s7 --scenes 24 --seconds 8 --seed 7
+odg prepare --dataroot data/synth24s6 --out data/synth24s6/infos_all.pkl --split all
+odg prepare --dataroot data/synth24s7 --out data/synth24s7/infos_all.pkl --split all
+odg train --preset odg_cpu --data data/synth24/infos_train.pkl \
+    data/synth24s{2,3,4,5,6,7}/infos_all.pkl \
+    --epochs 1000 --lr 3e-4 --backbone-lr-mult 1.0 --workers 1 --no-history-grad \
+    --render-pixels 256 --checkpoint-every 200 --out runs/cpu162 --init runs/cpu114/final.pt \
+    --steps 2600 --warmup 100
+# (8) seeds 8 and 9 as well (a stopped run continues with the same command plus --resume)
+odg synth --out data/synth24s8 --scenes 24 --seconds 8 --seed 8
+odg synth --out data/synth24s9 --scenes 24 --seconds 8 --seed 9
+odg prepare --dataroot data/synth24s8 --out data/synth24s8/infos_all.pkl --split all
+odg prepare --dataroot data/synth24s9 --out data/synth24s9/infos_all.pkl --split all
+odg train --preset odg_cpu --data data/synth24/infos_train.pkl \
+    data/synth24s{2,3,4,5,6,7,8,9}/infos_all.pkl \
+    --epochs 1000 --lr 3e-4 --backbone-lr-mult 1.0 --workers 1 --no-history-grad \
+    --render-pixels 256 --checkpoint-every 200 --out runs/cpu210 --init runs/cpu162/final.pt \
+    --steps 3400 --warmup 100
+odg export --checkpoint runs/cpu210/final.pt --out runs/odg_cpu_stage8.pt --compress int8 \
+    --calibrate data/synth24/infos_train.pkl --limit 48
+# (9) a new machine: seed 1, seed 2 and two new worlds, seeds 10 and 11, from the (8) file
+#;
+# the 2,100-step schedule was stopped at its step-1,800 checkpoint (runs/cpu90/latest.pt)
+odg synth --out data/synth24s10 --scenes 24 --seconds 8 --seed 10
+odg synth --out data/synth24s11 --scenes 24 --seconds 8 --seed 11
+odg prepare --dataroot data/synth24s10 --out data/synth24s10/infos_all.pkl --split all
+odg prepare --dataroot data/synth24s11 --out data/synth24s11/infos_all.pkl --split all
+odg train --preset odg_cpu --data data/synth24/infos_train.pkl \
+    data/synth24s{2,10,11}/infos_all.pkl \
+    --epochs 1000 --lr 3e-4 --backbone-lr-mult 1.0 --workers 1 --no-history-grad \
+    --render-pixels 256 --checkpoint-every 200 --out runs/cpu90 --init runs/odg_cpu_stage8.pt \
+    --steps 2100 --warmup 100
+odg export --checkpoint runs/cpu90/latest.pt --out runs/odg_cpu_stage9.pt --compress int8 \
+    --calibrate data/synth24/infos_train.pkl --limit 48
+# (10) the same 90 scenes, two processes of one thread each (DDP on gloo, batch 2), from the
+# (9) file
+OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.cli train --preset odg_cpu \
+    --data data/synth24/infos_train.pkl data/synth24s{2,10,11}/infos_all.pkl \
+    --epochs 1000 --lr 3e-4 --backbone-lr-mult 1.0 --workers 1 --no-history-grad \
+    --render-pixels 256 --checkpoint-every 100 --out runs/cpu90b_ddp --init runs/odg_cpu_stage9.pt \
+    --steps 1500 --warmup 50
+odg export --checkpoint runs/cpu90b_ddp/final.pt --out runs/odg_cpu_stage10.pt --compress int8 \
+    --calibrate data/synth24/infos_train.pkl --limit 48
+# (11) two more worlds, seeds 12 and 13; 138 scenes, from the (10) file
+odg synth --out data/synth24s12 --scenes 24 --seconds 8 --seed 12
+odg synth --out data/synth24s13 --scenes 24 --seconds 8 --seed 13
+odg prepare --dataroot data/synth24s12 --out data/synth24s12/infos_all.pkl --split all
+odg prepare --dataroot data/synth24s13 --out data/synth24s13/infos_all.pkl --split all
+OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.cli train --preset odg_cpu \
+    --data data/synth24/infos_train.pkl data/synth24s{2,10,11,12,13}/infos_all.pkl \
+    --epochs 1000 --lr 3e-4 --backbone-lr-mult 1.0 --workers 1 --no-history-grad \
+    --render-pixels 256 --checkpoint-every 100 --out runs/cpu138 --init runs/odg_cpu_stage10.pt \
+    --steps 1500 --warmup 50
+odg export --checkpoint runs/cpu138/final.pt --out runs/odg_cpu_stage11.pt --compress int8 \
+    --calibrate data/synth24/infos_train.pkl --limit 48
+# (12) two more worlds, seeds 14 and 15; 186 scenes, from the (11) file; stopped at step 917, continued with the same command
+# plus --resume
+odg synth --out data/synth24s14 --scenes 24 --seconds 8 --seed 14
+odg synth --out data/synth24s15 --scenes 24 --seconds 8 --seed 15
+odg prepare --dataroot data/synth24s14 --out data/synth24s14/infos_all.pkl --split all
+odg prepare --dataroot data/synth24s15 --out data/synth24s15/infos_all.pkl --split all
+OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.cli train --preset odg_cpu \
+    --data data/synth24/infos_train.pkl data/synth24s{2,10,11,12,13,14,15}/infos_all.pkl \
+    --epochs 1000 --lr 3e-4 --backbone-lr-mult 1.0 --workers 1 --no-history-grad \
+    --render-pixels 256 --checkpoint-every 100 --out runs/cpu186 --init runs/odg_cpu_stage11.pt \
+    --steps 1500 --warmup 50
+odg export --checkpoint runs/cpu186/final.pt --out runs/odg_cpu_stage12.pt --compress int8 \
+    --calibrate data/synth24/infos_train.pkl --limit 48
+# (13) a second pass over the same 186 scenes, in another order, from the (12) file
+#
+OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.cli train --preset odg_cpu \
+    --data data/synth24/infos_train.pkl data/synth24s{2,10,11,12,13,14,15}/infos_all.pkl \
+    --epochs 1000 --lr 3e-4 --backbone-lr-mult 1.0 --workers 1 --no-history-grad \
+    --render-pixels 256 --checkpoint-every 100 --out runs/cpu186b --init runs/odg_cpu_stage12.pt \
+    --steps 1200 --warmup 50 --seed 1
+odg export --checkpoint runs/cpu186b/final.pt --out runs/odg_cpu_stage13.pt --compress int8 \
+    --calibrate data/synth24/infos_train.pkl --limit 48
+# (14), not shipped: a third pass, the (13) command with --out runs/cpu186c
+# --init runs/odg_cpu_stage13.pt --steps 1500 --seed 2, exported to runs/odg_cpu_stage14.pt
+# (15) two more worlds, seeds 16 and 17; 234 scenes, from the (13) file; stopped after step 666, continued with the same command
+# plus --resume (from the step-600 checkpoint)
+odg synth --out data/synth24s16 --scenes 24 --seconds 8 --seed 16
+odg synth --out data/synth24s17 --scenes 24 --seconds 8 --seed 17
+odg prepare --dataroot data/synth24s16 --out data/synth24s16/infos_all.pkl --split all
+odg prepare --dataroot data/synth24s17 --out data/synth24s17/infos_all.pkl --split all
+OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.cli train --preset odg_cpu \
+    --data data/synth24/infos_train.pkl data/synth24s{2,10,11,12,13,14,15,16,17}/infos_all.pkl \
+    --epochs 1000 --lr 3e-4 --backbone-lr-mult 1.0 --workers 1 --no-history-grad \
+    --render-pixels 256 --checkpoint-every 100 --out runs/cpu234 --init runs/odg_cpu_stage13.pt \
+    --steps 1500 --warmup 50
+odg export --checkpoint runs/cpu234/final.pt --out runs/odg_cpu_stage15.pt --compress int8 \
+    --calibrate data/synth24/infos_train.pkl --limit 48
+# (16) a second pass over the 234 scenes, in another order, from the (15) file; stopped after step ~1,240, continued with the same
+# command plus --resume (from the step-1,200 checkpoint)
+OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.cli train --preset odg_cpu \
+    --data data/synth24/infos_train.pkl data/synth24s{2,10,11,12,13,14,15,16,17}/infos_all.pkl \
+    --epochs 1000 --lr 3e-4 --backbone-lr-mult 1.0 --workers 1 --no-history-grad \
+    --render-pixels 256 --checkpoint-every 100 --out runs/cpu234b --init runs/odg_cpu_stage15.pt \
+    --steps 1500 --warmup 50 --seed 1
+odg export --checkpoint runs/cpu234b/final.pt --out model/odg_cpu.pt --compress int8 \
+    --calibrate data/synth24/infos_train.pkl --limit 48
+odg eval --checkpoint model/odg_cpu.pt --data data/synth24/infos_val.pkl
+# the second held-out world, made after training
+odg synth --out data/synth8s18 --scenes 8 --seconds 8 --seed 18
+odg prepare --dataroot data/synth8s18 --out data/synth8s18/infos_all.pkl --split all
+odg eval --checkpoint model/odg_cpu.pt --data data/synth8s18/infos_all.pkl
+# (17), not shipped: seed 1 and three new worlds (19, 20, 21), from the (16) file
+odg synth --out data/synth24s19 --scenes 24 --seconds 8 --seed 19
+odg synth --out data/synth24s20 --scenes 24 --seconds 8 --seed 20
+odg synth --out data/synth24s21 --scenes 24 --seconds 8 --seed 21
+odg prepare --dataroot data/synth24s19 --out data/synth24s19/infos_all.pkl --split all
+odg prepare --dataroot data/synth24s20 --out data/synth24s20/infos_all.pkl --split all
+odg prepare --dataroot data/synth24s21 --out data/synth24s21/infos_all.pkl --split all
+OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.cli train --preset odg_cpu \
+    --data data/synth24/infos_train.pkl data/synth24s{19,20,21}/infos_all.pkl \
+    --epochs 1000 --lr 3e-4 --backbone-lr-mult 1.0 --workers 1 --no-history-grad \
+    --render-pixels 256 --checkpoint-every 100 --out runs/cpu90n --init runs/odg_cpu_stage16.pt \
+    --steps 1000 --warmup 50
+odg export --checkpoint runs/cpu90n/final.pt --out runs/odg_cpu_stage17.pt --compress int8 \
+    --calibrate data/synth24/infos_train.pkl --limit 48
+# (18), not shipped alone ((19) starts from it): five of the earlier worlds regenerated
+# (seeds 2, 10-13, the commands of (5), (9) and (11) above) and added to (17)'s set,
+# from the (16) file
+OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.cli train --preset odg_cpu \
+    --data data/synth24/infos_train.pkl data/synth24s{2,10,11,12,13,19,20,21}/infos_all.pkl \
+    --epochs 1000 --lr 3e-4 --backbone-lr-mult 1.0 --workers 1 --no-history-grad \
+    --render-pixels 256 --checkpoint-every 100 --out runs/cpu210 --init runs/odg_cpu_stage16.pt \
+    --steps 1100 --warmup 50
+odg export --checkpoint runs/cpu210/final.pt --out runs/odg_cpu_stage18.pt --compress int8 \
+    --calibrate data/synth24/infos_train.pkl --limit 48
+# (19), shipped until (20) (which starts from it): seeds 14 and 15 regenerated ((12)'s
+# commands) and added to (18)'s set, from the (18) file
+OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.cli train --preset odg_cpu \
+    --data data/synth24/infos_train.pkl data/synth24s{2,10,11,12,13,14,15,19,20,21}/infos_all.pkl \
+    --epochs 1000 --lr 3e-4 --backbone-lr-mult 1.0 --workers 1 --no-history-grad \
+    --render-pixels 256 --checkpoint-every 100 --out runs/cpu258 --init runs/odg_cpu_stage18.pt \
+    --steps 1500 --warmup 50
+odg export --checkpoint runs/cpu258/final.pt --out runs/odg_cpu_stage19.pt --compress int8 \
+    --calibrate data/synth24/infos_train.pkl --limit 48
+# (20), shipped until (21) (which starts from it): seeds 16 and 17 regenerated ((15)'s
+# commands) and added to (19)'s set, all 306 scenes, from the (19) file
+OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.cli train --preset odg_cpu \
+    --data data/synth24/infos_train.pkl data/synth24s{2,10,11,12,13,14,15,16,17,19,20,21}/infos_all.pkl \
+    --epochs 1000 --lr 3e-4 --backbone-lr-mult 1.0 --workers 1 --no-history-grad \
+    --render-pixels 256 --checkpoint-every 100 --out runs/cpu306 --init runs/odg_cpu_stage19.pt \
+    --steps 1300 --warmup 50
+odg export --checkpoint runs/cpu306/final.pt --out runs/odg_cpu_stage20.pt --compress int8 \
+    --calibrate data/synth24/infos_train.pkl --limit 48
+# (21), shipped until (22) (which starts from it): a second pass over the 306 scenes in another
+# order, from the (20) file; stopped after
+# step 141, continued with the same command plus --resume (from the step-100 checkpoint)
+OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.cli train --preset odg_cpu \
+    --data data/synth24/infos_train.pkl data/synth24s{2,10,11,12,13,14,15,16,17,19,20,21}/infos_all.pkl \
+    --epochs 1000 --lr 3e-4 --backbone-lr-mult 1.0 --workers 1 --no-history-grad \
+    --render-pixels 256 --checkpoint-every 100 --out runs/cpu306b --init runs/odg_cpu_stage20.pt \
+    --steps 1500 --warmup 50 --seed 1
+odg export --checkpoint runs/cpu306b/final.pt --out runs/odg_cpu_stage21.pt --compress int8 \
+    --calibrate data/synth24/infos_train.pkl --limit 48
+# (22), shipped until (23) (which starts from it): two new worlds, seeds 22 and 23, and the 306
+# scenes, from the (21) file; stopped after
+# step 766, continued with the same command plus --resume (from the step-700 checkpoint)
+odg synth --out data/synth24s22 --scenes 24 --seconds 8 --seed 22
+odg synth --out data/synth24s23 --scenes 24 --seconds 8 --seed 23
+odg prepare --dataroot data/synth24s22 --out data/synth24s22/infos_all.pkl --split all
+odg prepare --dataroot data/synth24s23 --out data/synth24s23/infos_all.pkl --split all
+OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.cli train --preset odg_cpu \
+    --data data/synth24/infos_train.pkl data/synth24s{2,10,11,12,13,14,15,16,17,19,20,21,22,23}/infos_all.pkl \
+    --epochs 1000 --lr 3e-4 --backbone-lr-mult 1.0 --workers 1 --no-history-grad \
+    --render-pixels 256 --checkpoint-every 100 --out runs/cpu354 --init runs/odg_cpu_stage21.pt \
+    --steps 1500 --warmup 50
+odg export --checkpoint runs/cpu354/final.pt --out runs/odg_cpu_stage22.pt --compress int8 \
+    --calibrate data/synth24/infos_train.pkl --limit 48
+# (23), shipped until (24) (which starts from it): a second pass over the 354 scenes in another
+# order, from the (22) file
+OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.cli train --preset odg_cpu \
+    --data data/synth24/infos_train.pkl data/synth24s{2,10,11,12,13,14,15,16,17,19,20,21,22,23}/infos_all.pkl \
+    --epochs 1000 --lr 3e-4 --backbone-lr-mult 1.0 --workers 1 --no-history-grad \
+    --render-pixels 256 --checkpoint-every 100 --out runs/cpu354b --init runs/odg_cpu_stage22.pt \
+    --steps 1200 --warmup 50 --seed 1
+odg export --checkpoint runs/cpu354b/final.pt --out runs/odg_cpu_stage23.pt --compress int8 \
+    --calibrate data/synth24/infos_train.pkl --limit 48
+# (24), shipped until (25) (which starts from it): two new worlds, seeds 24 and 25, and the 354
+# scenes, from the (23) file
+odg synth --out data/synth24s24 --scenes 24 --seconds 8 --seed 24
+odg synth --out data/synth24s25 --scenes 24 --seconds 8 --seed 25
+odg prepare --dataroot data/synth24s24 --out data/synth24s24/infos_all.pkl --split all
+odg prepare --dataroot data/synth24s25 --out data/synth24s25/infos_all.pkl --split all
+OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.cli train --preset odg_cpu \
+    --data data/synth24/infos_train.pkl data/synth24s{2,10,11,12,13,14,15,16,17,19,20,21,22,23,24,25}/infos_all.pkl \
+    --epochs 1000 --lr 3e-4 --backbone-lr-mult 1.0 --workers 1 --no-history-grad \
+    --render-pixels 256 --checkpoint-every 100 --out runs/cpu402 --init runs/odg_cpu_stage23.pt \
+    --steps 1200 --warmup 50
+odg export --checkpoint runs/cpu402/final.pt --out runs/odg_cpu_stage24.pt --compress int8 \
+    --calibrate data/synth24/infos_train.pkl --limit 48
+# (25), shipped until (27): a second pass over the 402 scenes in another order, from the
+# (24) file
+#; stopped after step 901, continued with the same
+# command plus --resume (from the step-900 checkpoint)
+OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.cli train --preset odg_cpu \
+    --data data/synth24/infos_train.pkl data/synth24s{2,10,11,12,13,14,15,16,17,19,20,21,22,23,24,25}/infos_all.pkl \
+    --epochs 1000 --lr 3e-4 --backbone-lr-mult 1.0 --workers 1 --no-history-grad \
+    --render-pixels 256 --checkpoint-every 100 --out runs/cpu402b --init runs/odg_cpu_stage24.pt \
+    --steps 1200 --warmup 50 --seed 1
+odg export --checkpoint runs/cpu402b/final.pt --out runs/odg_cpu_stage25.pt --compress int8 \
+    --calibrate data/synth24/infos_train.pkl --limit 48
+# (26), not shipped alone (the second pass, (27), starts from it): two new worlds, seeds 26 and
+# 27, and the 402 scenes, from the (25) file (the export above)
+odg synth --out data/synth24s26 --scenes 24 --seconds 8 --seed 26
+odg synth --out data/synth24s27 --scenes 24 --seconds 8 --seed 27
+odg prepare --dataroot data/synth24s26 --out data/synth24s26/infos_all.pkl --split all
+odg prepare --dataroot data/synth24s27 --out data/synth24s27/infos_all.pkl --split all
+OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.cli train --preset odg_cpu \
+    --data data/synth24/infos_train.pkl data/synth24s{2,10,11,12,13,14,15,16,17,19,20,21,22,23,24,25,26,27}/infos_all.pkl \
+    --epochs 1000 --lr 3e-4 --backbone-lr-mult 1.0 --workers 1 --no-history-grad \
+    --render-pixels 256 --checkpoint-every 100 --out runs/cpu450 --init runs/odg_cpu_stage25.pt \
+    --steps 1200 --warmup 50
+odg export --checkpoint runs/cpu450/final.pt --out runs/odg_cpu_stage26.pt --compress int8 \
+    --calibrate data/synth24/infos_train.pkl --limit 48
+# (27), shipped until (28): a second pass over the 450 scenes in another order, from the (26) file;
+# stopped after step 147, continued with the same command plus --resume (from the step-100
+# checkpoint)
+OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.cli train --preset odg_cpu \
+    --data data/synth24/infos_train.pkl data/synth24s{2,10,11,12,13,14,15,16,17,19,20,21,22,23,24,25,26,27}/infos_all.pkl \
+    --epochs 1000 --lr 3e-4 --backbone-lr-mult 1.0 --workers 1 --no-history-grad \
+    --render-pixels 256 --checkpoint-every 100 --out runs/cpu450b --init runs/odg_cpu_stage26.pt \
+    --steps 1200 --warmup 50 --seed 1
+odg export --checkpoint runs/cpu450b/final.pt --out runs/odg_cpu_stage27.pt --compress int8 \
+    --calibrate data/synth24/infos_train.pkl --limit 48
+# (28), shipped until (29): two new worlds, seeds 28 and 29, and the 450 scenes, from the (27) file
+# (the export above)
+odg synth --out data/synth24s28 --scenes 24 --seconds 8 --seed 28
+odg synth --out data/synth24s29 --scenes 24 --seconds 8 --seed 29
+odg prepare --dataroot data/synth24s28 --out data/synth24s28/infos_all.pkl --split all
+odg prepare --dataroot data/synth24s29 --out data/synth24s29/infos_all.pkl --split all
+OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.cli train --preset odg_cpu \
+    --data data/synth24/infos_train.pkl data/synth24s{2,10,11,12,13,14,15,16,17,19,20,21,22,23,24,25,26,27,28,29}/infos_all.pkl \
+    --epochs 1000 --lr 3e-4 --backbone-lr-mult 1.0 --workers 1 --no-history-grad \
+    --render-pixels 256 --checkpoint-every 100 --out runs/cpu498 --init runs/odg_cpu_stage27.pt \
+    --steps 1200 --warmup 50
+odg export --checkpoint runs/cpu498/final.pt --out runs/odg_cpu_stage28.pt --compress int8 \
+    --calibrate data/synth24/infos_train.pkl --limit 48
+# (29), shipped until (31): a second pass over the 498 scenes in another order, from the (28) file
+# (the export above);
+# stopped after step 154, continued with the same command plus --resume (from the step-100
+# checkpoint)
+OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.cli train --preset odg_cpu \
+    --data data/synth24/infos_train.pkl data/synth24s{2,10,11,12,13,14,15,16,17,19,20,21,22,23,24,25,26,27,28,29}/infos_all.pkl \
+    --epochs 1000 --lr 3e-4 --backbone-lr-mult 1.0 --workers 1 --no-history-grad \
+    --render-pixels 256 --checkpoint-every 100 --out runs/cpu498b --init runs/odg_cpu_stage28.pt \
+    --steps 1200 --warmup 50 --seed 1
+odg export --checkpoint runs/cpu498b/final.pt --out runs/odg_cpu_stage29.pt --compress int8 \
+    --calibrate data/synth24/infos_train.pkl --limit 48
+# (30), not shipped alone (the second pass, (31), starts from it): two new worlds, seeds 30 and
+# 31, and the 498 scenes, from the (29) file (the export above)
+odg synth --out data/synth24s30 --scenes 24 --seconds 8 --seed 30
+odg synth --out data/synth24s31 --scenes 24 --seconds 8 --seed 31
+odg prepare --dataroot data/synth24s30 --out data/synth24s30/infos_all.pkl --split all
+odg prepare --dataroot data/synth24s31 --out data/synth24s31/infos_all.pkl --split all
+OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.cli train --preset odg_cpu \
+    --data data/synth24/infos_train.pkl data/synth24s{2,10,11,12,13,14,15,16,17,19,20,21,22,23,24,25,26,27,28,29,30,31}/infos_all.pkl \
+    --epochs 1000 --lr 3e-4 --backbone-lr-mult 1.0 --workers 1 --no-history-grad \
+    --render-pixels 256 --checkpoint-every 100 --out runs/cpu546 --init runs/odg_cpu_stage29.pt \
+    --steps 1200 --warmup 50
+odg export --checkpoint runs/cpu546/final.pt --out runs/odg_cpu_stage30.pt --compress int8 \
+    --calibrate data/synth24/infos_train.pkl --limit 48
+# (31), shipped until (33): a second pass over the 546 scenes in another order, from the (30) file;
+# stopped after step ~190, continued with the same command plus --resume (from the step-100
+# checkpoint)
+OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.cli train --preset odg_cpu \
+    --data data/synth24/infos_train.pkl data/synth24s{2,10,11,12,13,14,15,16,17,19,20,21,22,23,24,25,26,27,28,29,30,31}/infos_all.pkl \
+    --epochs 1000 --lr 3e-4 --backbone-lr-mult 1.0 --workers 1 --no-history-grad \
+    --render-pixels 256 --checkpoint-every 100 --out runs/cpu546b --init runs/odg_cpu_stage30.pt \
+    --steps 1200 --warmup 50 --seed 1
+odg export --checkpoint runs/cpu546b/final.pt --out runs/odg_cpu_stage31.pt --compress int8 \
+    --calibrate data/synth24/infos_train.pkl --limit 48
+# (32), not shipped alone (the second pass, (33), starts from it): two new worlds, seeds 32 and
+# 33, and the 546 scenes, from the (31) file (the export above)
+odg synth --out data/synth24s32 --scenes 24 --seconds 8 --seed 32
+odg synth --out data/synth24s33 --scenes 24 --seconds 8 --seed 33
+odg prepare --dataroot data/synth24s32 --out data/synth24s32/infos_all.pkl --split all
+odg prepare --dataroot data/synth24s33 --out data/synth24s33/infos_all.pkl --split all
+OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.cli train --preset odg_cpu \
+    --data data/synth24/infos_train.pkl data/synth24s{2,10,11,12,13,14,15,16,17,19,20,21,22,23,24,25,26,27,28,29,30,31,32,33}/infos_all.pkl \
+    --epochs 1000 --lr 3e-4 --backbone-lr-mult 1.0 --workers 1 --no-history-grad \
+    --render-pixels 256 --checkpoint-every 100 --out runs/cpu594 --init runs/odg_cpu_stage31.pt \
+    --steps 1200 --warmup 50
+odg export --checkpoint runs/cpu594/final.pt --out runs/odg_cpu_stage32.pt --compress int8 \
+    --calibrate data/synth24/infos_train.pkl --limit 48
+# (33), shipped until (35): a second pass over the 594 scenes in another order, from the (32) file
+OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.cli train --preset odg_cpu \
+    --data data/synth24/infos_train.pkl data/synth24s{2,10,11,12,13,14,15,16,17,19,20,21,22,23,24,25,26,27,28,29,30,31,32,33}/infos_all.pkl \
+    --epochs 1000 --lr 3e-4 --backbone-lr-mult 1.0 --workers 1 --no-history-grad \
+    --render-pixels 256 --checkpoint-every 100 --out runs/cpu594b --init runs/odg_cpu_stage32.pt \
+    --steps 1200 --warmup 50 --seed 1
+odg export --checkpoint runs/cpu594b/final.pt --out runs/odg_cpu_stage33.pt --compress int8 \
+    --calibrate data/synth24/infos_train.pkl --limit 48
+# (34), not shipped alone (the second pass, (35), starts from it): two new worlds, seeds 34 and
+# 35, and the 594 scenes, from the (33) file (the export above); stopped after step 929,
+# continued with the same command plus --resume (from the step-900 checkpoint)
+odg synth --out data/synth24s34 --scenes 24 --seconds 8 --seed 34
+odg synth --out data/synth24s35 --scenes 24 --seconds 8 --seed 35
+odg prepare --dataroot data/synth24s34 --out data/synth24s34/infos_all.pkl --split all
+odg prepare --dataroot data/synth24s35 --out data/synth24s35/infos_all.pkl --split all
+OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.cli train --preset odg_cpu \
+    --data data/synth24/infos_train.pkl data/synth24s{2,10,11,12,13,14,15,16,17,19,20,21,22,23,24,25,26,27,28,29,30,31,32,33,34,35}/infos_all.pkl \
+    --epochs 1000 --lr 3e-4 --backbone-lr-mult 1.0 --workers 1 --no-history-grad \
+    --render-pixels 256 --checkpoint-every 100 --out runs/cpu642 --init runs/odg_cpu_stage33.pt \
+    --steps 1200 --warmup 50
+odg export --checkpoint runs/cpu642/final.pt --out runs/odg_cpu_stage34.pt --compress int8 \
+    --calibrate data/synth24/infos_train.pkl --limit 48
+# (35), shipped until (37): a second pass over the 642 scenes in another order, from the (34) file
+OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.cli train --preset odg_cpu \
+    --data data/synth24/infos_train.pkl data/synth24s{2,10,11,12,13,14,15,16,17,19,20,21,22,23,24,25,26,27,28,29,30,31,32,33,34,35}/infos_all.pkl \
+    --epochs 1000 --lr 3e-4 --backbone-lr-mult 1.0 --workers 1 --no-history-grad \
+    --render-pixels 256 --checkpoint-every 100 --out runs/cpu642b --init runs/odg_cpu_stage34.pt \
+    --steps 1200 --warmup 50 --seed 1
+odg export --checkpoint runs/cpu642b/final.pt --out runs/odg_cpu_stage35.pt --compress int8 \
+    --calibrate data/synth24/infos_train.pkl --limit 48
+# (36), not shipped alone (the second pass, (37), starts from it): two new worlds, seeds 36 and
+# 37, and the 642 scenes, from the (35) file (the export above)
+odg synth --out data/synth24s36 --scenes 24 --seconds 8 --seed 36
+odg synth --out data/synth24s37 --scenes 24 --seconds 8 --seed 37
+odg prepare --dataroot data/synth24s36 --out data/synth24s36/infos_all.pkl --split all
+odg prepare --dataroot data/synth24s37 --out data/synth24s37/infos_all.pkl --split all
+OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.cli train --preset odg_cpu \
+    --data data/synth24/infos_train.pkl data/synth24s{2,10,11,12,13,14,15,16,17,19,20,21,22,23,24,25,26,27,28,29,30,31,32,33,34,35,36,37}/infos_all.pkl \
+    --epochs 1000 --lr 3e-4 --backbone-lr-mult 1.0 --workers 1 --no-history-grad \
+    --render-pixels 256 --checkpoint-every 100 --out runs/cpu690 --init runs/odg_cpu_stage35.pt \
+    --steps 1200 --warmup 50
+odg export --checkpoint runs/cpu690/final.pt --out runs/odg_cpu_stage36.pt --compress int8 \
+    --calibrate data/synth24/infos_train.pkl --limit 48
+# (37), shipped: a second pass over the 690 scenes in another order, from the (36) file
+# (stopped after step 451, continued with the same command plus --resume from the step-400
+# checkpoint: the same run, bit for bit)
+OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.cli train --preset odg_cpu \
+    --data data/synth24/infos_train.pkl data/synth24s{2,10,11,12,13,14,15,16,17,19,20,21,22,23,24,25,26,27,28,29,30,31,32,33,34,35,36,37}/infos_all.pkl \
+    --epochs 1000 --lr 3e-4 --backbone-lr-mult 1.0 --workers 1 --no-history-grad \
+    --render-pixels 256 --checkpoint-every 100 --out runs/cpu690b --init runs/odg_cpu_stage36.pt \
+    --steps 1200 --warmup 50 --seed 1
+odg export --checkpoint runs/cpu690b/final.pt --out model/odg_cpu.pt --compress int8 \
+    --calibrate data/synth24/infos_train.pkl --limit 48
+# the shipped file, (37):
+odg eval --checkpoint model/odg_cpu.pt --data data/synth24/infos_val.pkl
+odg eval --checkpoint model/odg_cpu.pt --data data/synth8s18/infos_all.pkl
