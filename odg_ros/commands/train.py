@@ -20,7 +20,7 @@ def add_arguments(parser):
                         help="training infos (odg prepare); several files train together")
     parser.add_argument("--out", required=True, help="output dir: checkpoints, train_log.csv")
     parser.add_argument("--epochs", type=positive_int, default=24,
-                        help="passes over the data (24 for a full odg_t run: hours on GPUs)")
+                        help="passes over the data (the paper trains 100; hours on GPUs)")
     parser.add_argument("--steps", type=positive_int, default=None,
                         help="stop after this many optimiser steps (default: run all epochs)")
     parser.add_argument("--batch-size", type=positive_int, default=1, help="samples per process")
