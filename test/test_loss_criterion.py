@@ -5,11 +5,7 @@ import torch
 from odg_ros.config import ModelConfig
 from odg_ros.losses import LAMBDA_3D, ODGCriterion, encode_boxes
 
-try:
-    from odg_ros.network.outputs import LayerOutput, ODGOutput
-except ImportError:                                     # the lead's dataclasses not there yet
-    from types import SimpleNamespace as LayerOutput
-    from types import SimpleNamespace as ODGOutput
+from odg_ros.network.outputs import LayerOutput, ODGOutput
 
 B, N, H, W = 2, 2, 32, 64
 CFG = ModelConfig(name="tiny", num_static=6, num_dynamic=2, points_per_layer=(1, 2, 2, 2, 2, 3),

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The checks that need a CUDA GPU, for a machine with PyTorch built for CUDA (a lent GPU box
+# The checks that need a CUDA GPU, for a machine with PyTorch built for CUDA (a GPU box
 # without PyPI included): run from the repository root. Results of the first run, on an H100:
 # docs/reports/2026-11-25-h100.md.
 #

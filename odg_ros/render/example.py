@@ -6,8 +6,8 @@ the timing of a training-size render.
 
 The street (road, sidewalks, facades, trees, cars, pedestrians; one-hot class features) exists
 only to make conventions visible in a picture: ground at the bottom of the images, near things
-occluding far ones, classes in their places. The benchmark uses what the brief of the
-rendering loss asks for: Gaussians scattered at random in the 80 x 80 x 6 m occupancy box,
+occluding far ones, classes in their places. The benchmark uses the rendering loss's
+training workload: Gaussians scattered at random in the 80 x 80 x 6 m occupancy box,
 6 cameras at 128 x 352, 2,000 supervised pixels per camera, forward + backward.
 """
 from __future__ import annotations
