@@ -1,26 +1,29 @@
-"""Ray casting through occupancy grids for RayIoU (SparseOcc convention, docs/architecture.md sec. 6).
+"""Ray casting through occupancy grids for RayIoU, step for step as SparseOcc's ray caster
+(``lib/dvr/dvr.cu``, ``render_forward`` in its test phase), vectorised over all rays with NumPy.
 
-Rays are cast in *voxel units*: a point p in metres is ``(p - grid_min) / voxel_size`` in the
-grid, so voxel (i, j, k) is the unit cube [i, i+1) x [j, j+1) x [k, k+1). Voxels are cubes, so a
-distance in voxel units times ``voxel_size`` is a distance in metres.
+Rays are cast in *voxel units*: a point p in metres is ``(p - grid_min) / voxel_size``, so voxel
+(i, j, k) is the cube [i, i+1) x [j, j+1) x [k, k+1). What SparseOcc does, and so this module:
 
-Traversal is Amanatides-Woo (one voxel at a time along the ray), vectorised over all rays at
-once with NumPy. A ray stops at the first voxel whose label is not free; its depth is the
-distance from the ray origin to where the ray *leaves* that voxel (SparseOcc records the
-traversal distance at the voxel's exit). A ray that leaves the grid without a hit reports
-"no hit" and the distance at which it left the grid.
-
-Conventions where SparseOcc's CUDA/C++ marcher is ambiguous (all of measure zero for the
-LiDAR pattern, but they decide hand-made test cases):
-* a voxel the ray only touches at an edge or corner (zero-length chord) is not visited: when
-  the ray crosses two or three voxel planes at the same distance (within 1e-9 voxel) all those
-  axes step together (SparseOcc steps one axis at a time and can visit such a voxel);
-* an origin on a voxel face (within 1e-9 voxel, along the axes the ray moves on) starts in
-  the voxel the ray moves into; a ray lying in a face (direction component 0 on that axis)
-  belongs to the voxel on the + side (floor);
-* an origin outside the grid starts where the ray enters the grid (SparseOcc starts from the
-  origin's voxel truncated towards zero with C ``int()``; that differs only for an origin with
-  a negative grid coordinate, i.e. below the grid, since origins keep |x|, |y| < 39 m).
+* a ray is given by its origin and an end point one metre away, both rounded to float32
+  (``rays_in_voxel_units`` converts metres to voxel units in float64, then rounds); the
+  direction is ``(end - origin) / |end - origin|`` in float64 from those float32 values;
+* the ray starts in the voxel of C ``int()`` truncation of the origin (towards zero, also for an
+  origin outside the grid) and visits it first. An origin on a voxel face therefore starts in
+  the voxel on the + side even when the ray leaves through that face: that voxel is visited with
+  exit distance 0 (``(v + 0 - o) / d`` is -0.0). A ray lying in a face's plane walks the
+  + side row;
+* per axis: step +1 if the direction component is >= 0, else -1; tMax = distance to the next
+  plane (DBL_MAX for a zero component), tDelta = step / d. Each iteration records the current
+  voxel with exit distance min(tMax), then steps ONE axis: x if tMaxX < tMaxY and tMaxX < tMaxZ,
+  else y if tMaxY < tMaxZ, else z (ties go to z, then y, strict ``<``), and adds tDelta to that
+  axis's tMax (accumulated, not recomputed). Two planes crossed at the same distance therefore
+  visit the voxel between them, with a zero-length chord;
+* voxels outside the grid are stepped through without being recorded until the ray is inside;
+  once it has been inside, leaving ends the ray. At most ``MAX_STEP + 1`` iterations, counted
+  from the origin;
+* the ray reports the first voxel whose label is not free, with that voxel's exit distance; if
+  there is none, the last voxel it visited inside the grid (a free one) and its exit distance,
+  i.e. where it left the grid; a ray that never entered reports voxel (0, 0, 0) and distance -1.
 """
 from __future__ import annotations
 
@@ -28,17 +31,17 @@ import math
 
 import numpy as np
 
-# Two plane crossings closer than this (in voxel units) count as one: the voxel between them
-# has a zero-length chord and is not visited.
-TIE_EPS = 1e-9
+MAX_STEP = 1000       # SparseOcc ends a ray once its iteration count exceeds this
+DBL_MAX = np.finfo(np.float64).max
 
 
 def lidar_ray_directions() -> np.ndarray:
-    """The SparseOcc LiDAR pattern: 39 pitch angles x 360 azimuths -> unit vectors [14040, 3].
+    """The SparseOcc LiDAR pattern: 39 pitch angles x 360 azimuths -> float32 [14040, 3].
 
     Pitch k = 0..9 is -(pi/2 - atan(k + 1)) (steep to shallow downward rays); then the last
     spacing is repeated until the pitch exceeds 0.21 rad (the top of the nuScenes LiDAR's field
-    of view). Azimuths are 0, 1, ..., 359 degrees. Order: pitch-major, azimuth-minor.
+    of view). Azimuths are 0, 1, ..., 359 degrees. Order: pitch-major, azimuth-minor. Computed
+    in float64 and rounded to float32, as SparseOcc keeps them.
     """
     pitches = [-(math.pi / 2 - math.atan(k + 1)) for k in range(10)]
     while pitches[-1] < 0.21:
@@ -48,129 +51,157 @@ def lidar_ray_directions() -> np.ndarray:
     directions = np.stack(np.broadcast_arrays(np.cos(pitch) * np.cos(azimuth),
                                               np.cos(pitch) * np.sin(azimuth),
                                               np.sin(pitch) + 0 * azimuth), axis=-1)
-    return directions.reshape(-1, 3)
+    return directions.reshape(-1, 3).astype(np.float32)
 
 
-def _grid_entry_exit(origins, directions, shape):
-    """Slab test against the box [0, X] x [0, Y] x [0, Z] -> (t_enter >= 0, t_exit) [R]."""
-    size = np.asarray(shape, dtype=np.float64)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        inv = 1.0 / directions
-        t_low = (0.0 - origins) * inv
-        t_high = (size - origins) * inv
-    moving = directions != 0
-    inside_slab = (origins >= 0) & (origins < size)
-    # An axis the ray does not move along either never constrains it or always excludes it.
-    t_near = np.where(moving, np.minimum(t_low, t_high), np.where(inside_slab, -np.inf, np.inf))
-    t_far = np.where(moving, np.maximum(t_low, t_high), np.where(inside_slab, np.inf, -np.inf))
-    t_enter = np.maximum(t_near.max(axis=1), 0.0)
-    t_exit = t_far.min(axis=1)
-    return t_enter, t_exit
+def rays_in_voxel_units(origins, directions, grid_min, voxel_size):
+    """Origins [R, 3] (metres) and unit directions [R, 3] -> float32 origins and end points
+    [R, 3] in voxel units, rounded where SparseOcc rounds: the end point is origin + direction
+    in float64; both are shifted by the float32 grid corner and divided by the float32 voxel
+    size in float64, then rounded to float32."""
+    origins = np.asarray(origins, dtype=np.float64).reshape(-1, 3)
+    directions = np.asarray(directions).reshape(-1, 3).astype(np.float64)
+    corner = np.asarray(grid_min, dtype=np.float32).astype(np.float64)
+    scale = np.float64(np.float32(voxel_size))
+    start = ((origins - corner) / scale).astype(np.float32)
+    end = ((origins + directions - corner) / scale).astype(np.float32)
+    return start, end
 
 
-def cast_rays(occupied_bits: np.ndarray, origins: np.ndarray, directions: np.ndarray,
+def cast_rays(occupied_bits: np.ndarray, origins: np.ndarray, endpoints: np.ndarray,
               num_bits: int = 1):
-    """First voxel hit along each ray, for up to 8 occupancy layers traversed together.
+    """The voxel each ray reports, for up to 8 occupancy layers traversed together.
 
     Args:
         occupied_bits: uint8 [X, Y, Z]; bit g set where layer g (e.g. g=0 prediction, g=1 GT)
             is occupied. Sharing one traversal keeps the cost of scoring two grids close to one.
-        origins: float [R, 3] ray origins in voxel units (may lie outside the grid).
-        directions: float [R, 3] unit directions (voxel units = metres / voxel_size, so unit
-            length in metres is unit length here).
+        origins, endpoints: [R, 3] ray origins and points on the rays, voxel units; rounded to
+            float32 first (SparseOcc's input type). The ray goes from origin through end point.
         num_bits: number of layers G (1..8).
 
     Returns:
-        hit_index: int64 [G, R] flat index (x * Y * Z + y * Z + z) of the first occupied voxel
-            of layer g, -1 where the ray leaves the grid (or never enters it) without a hit.
-        hit_depth: float64 [G, R] distance in voxel units from the origin to where the ray
-            leaves the hit voxel; for no hit, where it leaves the grid (0 if it never enters).
+        voxel: int64 [G, R] flat index (x * Y * Z + y * Z + z) of the voxel the ray reports for
+            layer g: the first occupied one; else the last one visited inside the grid; 0 when
+            the ray never entered the grid.
+        depth: float64 [G, R] that voxel's exit distance in voxel units; -1 when the ray never
+            entered the grid.
     """
     bits = np.ascontiguousarray(occupied_bits, dtype=np.uint8)
     if bits.ndim != 3:
         raise ValueError(f"occupied_bits must be [X, Y, Z], got shape {bits.shape}")
     if not 1 <= num_bits <= 8:
         raise ValueError(f"num_bits must be in 1..8, got {num_bits}")
-    origins = np.asarray(origins, dtype=np.float64).reshape(-1, 3)
-    directions = np.asarray(directions, dtype=np.float64).reshape(-1, 3)
-    if origins.shape != directions.shape:
-        raise ValueError(f"origins {origins.shape} and directions {directions.shape} differ")
-    if not (np.isfinite(origins).all() and np.isfinite(directions).all()):
-        raise ValueError("ray origins and directions must be finite")
-    norms = np.linalg.norm(directions, axis=1)
-    if directions.size and np.abs(norms - 1.0).max() > 1e-6:
-        raise ValueError("ray directions must be unit vectors")
-    directions = np.where(directions == 0, 0.0, directions)  # -0.0 -> +0.0 (sign of 1/d)
+    start = np.asarray(origins, dtype=np.float32).reshape(-1, 3).astype(np.float64)
+    end = np.asarray(endpoints, dtype=np.float32).reshape(-1, 3).astype(np.float64)
+    if start.shape != end.shape:
+        raise ValueError(f"origins {start.shape} and endpoints {end.shape} differ")
+    if not (np.isfinite(start).all() and np.isfinite(end).all()):
+        raise ValueError("ray origins and endpoints must be finite")
+    if np.abs(start).max(initial=0.0) > 2.0 ** 30:
+        raise ValueError("ray origins must lie within 2**30 voxels of the grid")
+    if (start == end).all(axis=1).any():
+        raise ValueError("a ray's end point equals its origin (no direction)")
 
-    X, Y, Z = bits.shape
-    R = origins.shape[0]
-    hit_index = np.full((num_bits, R), -1, dtype=np.int64)
-    t_enter, t_exit = _grid_entry_exit(origins, directions, bits.shape)
-    hit_depth = np.repeat(np.where(t_enter < t_exit, t_exit, 0.0)[None], num_bits, axis=0)
+    R = start.shape[0]
+    voxel_out = np.zeros((num_bits, R), dtype=np.int64)
+    depth_out = np.full((num_bits, R), -1.0, dtype=np.float64)
+    if R == 0:
+        return voxel_out, depth_out
 
-    rays = np.flatnonzero(t_enter < t_exit - TIE_EPS)   # a shorter chord only touches the grid
-    if rays.size == 0:
-        return hit_index, hit_depth
-    o = origins[rays]
-    d = directions[rays]
-    start = o + t_enter[rays, None] * d
-    # A start within TIE_EPS of a voxel plane it moves across lies on it: metres -> voxel
-    # units rounds (an origin on a voxel corner in metres comes out ~1e-14 off it), and the
-    # ray would otherwise "hit" the voxel it is leaving at depth ~1e-14.
-    plane = np.round(start)
-    start = np.where((d != 0) & (np.abs(start - plane) <= TIE_EPS), plane, start)
-    # Start voxel: the one the ray moves into (matters when the start lies on a voxel face).
-    voxel = np.where(d >= 0, np.floor(start), np.ceil(start) - 1.0)
-    voxel = np.clip(voxel, 0, np.asarray([X - 1, Y - 1, Z - 1], dtype=np.float64))
-    step = np.where(d >= 0, 1.0, -1.0)
-    with np.errstate(divide="ignore"):
-        inv = 1.0 / d  # +inf on axes the ray does not move along (d was made +0.0)
-    # Distance to the next plane on axis a = (voxel_a + next_offset_a) * inv_a, computed afresh
-    # each step from the integer voxel index (no accumulated rounding).
-    next_offset = np.where(d >= 0, 1.0, 0.0) - o
+    ray = end - start
+    # the norm in C's order: ((rx * rx) + (ry * ry)) + (rz * rz)
+    length = np.sqrt(ray[:, 0] * ray[:, 0] + ray[:, 1] * ray[:, 1] + ray[:, 2] * ray[:, 2])
+    d = ray / length[:, None]
+    step = np.where(d >= 0, 1, -1).astype(np.int64)
+    v = np.trunc(start).astype(np.int64)                    # C int(): towards zero
+    moving = d != 0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t_max = np.where(moving, ((v + (step > 0)) - start) / d, DBL_MAX)
+        t_delta = np.where(moving, step / d, DBL_MAX)
 
     # Per-ray state as separate contiguous columns (faster than [R, 3] slices).
-    vx, vy, vz = voxel[:, 0].copy(), voxel[:, 1].copy(), voxel[:, 2].copy()
-    sx, sy, sz = step[:, 0].copy(), step[:, 1].copy(), step[:, 2].copy()
-    ix, iy, iz = inv[:, 0].copy(), inv[:, 1].copy(), inv[:, 2].copy()
-    nx, ny, nz = next_offset[:, 0].copy(), next_offset[:, 1].copy(), next_offset[:, 2].copy()
-    t_end = t_exit[rays] - TIE_EPS
-    found = np.zeros(rays.size, dtype=np.uint8)
+    rays = np.arange(R)
+    vx, vy, vz = (v[:, a].copy() for a in range(3))
+    sx, sy, sz = (step[:, a].copy() for a in range(3))
+    tx, ty, tz = (t_max[:, a].copy() for a in range(3))
+    dx, dy, dz = (t_delta[:, a].copy() for a in range(3))
+    # Outside the grid on an axis it never moves back along, a ray can never enter it.
+    lx, ly, lz = ((step[:, a] < 0) | ~moving[:, a] for a in range(3))
+    hx, hy, hz = ((step[:, a] > 0) | ~moving[:, a] for a in range(3))
+    was_inside = np.zeros(R, dtype=bool)
+    prev_index = np.zeros(R, dtype=np.int64)   # the voxel and exit distance of the previous
+    prev_exit = np.full(R, -1.0)               # iteration: where a ray that left the grid was
+    found = np.zeros(R, dtype=np.uint8)
+    alive = np.ones(R, dtype=bool)   # finished rays stay in the columns until many have
     all_found = np.uint8((1 << num_bits) - 1)
     flat = bits.ravel()
-    yz, zz = float(Y * Z), float(Z)
+    X, Y, Z = bits.shape
+    maybe_outside = True             # some live ray has not been inside the grid yet
 
-    while rays.size:
-        tx = (vx + nx) * ix
-        ty = (vy + ny) * iy
-        tz = (vz + nz) * iz
-        t_leave = np.minimum(np.minimum(tx, ty), tz)  # where the ray leaves the current voxel
-        index = (vx * yz + vy * zz + vz).astype(np.int64)
-        code = flat[index]
-        new = code & ~found
-        if new.any():
-            for g in range(num_bits):
-                first = (new >> g) & 1 == 1
-                if first.any():
-                    hit_index[g, rays[first]] = index[first]
-                    hit_depth[g, rays[first]] = t_leave[first]
-            found |= code
-        done = (found == all_found) | (t_leave >= t_end)
-        if done.sum() * 8 >= done.size:
-            keep = ~done  # many rays finished: drop them from every column
-            rays, tx, ty, tz, t_leave = rays[keep], tx[keep], ty[keep], tz[keep], t_leave[keep]
-            vx, vy, vz, sx, sy, sz = vx[keep], vy[keep], vz[keep], sx[keep], sy[keep], sz[keep]
-            ix, iy, iz, nx, ny, nz = ix[keep], iy[keep], iz[keep], nx[keep], ny[keep], nz[keep]
-            t_end, found = t_end[keep], found[keep]
-        elif done.any():
-            # Few finished: park them in place (no step, nothing left to find) instead of
-            # gathering every column; the next big drop removes them.
-            sx[done] = sy[done] = sz[done] = 0.0
-            found[done] = all_found
-            t_end[done] = -np.inf
-        # Step every axis whose plane is crossed at t_leave (ties step together).
-        limit = t_leave + TIE_EPS
-        vx += sx * (tx <= limit)
-        vy += sy * (ty <= limit)
-        vz += sz * (tz <= limit)
-    return hit_index, hit_depth
+    def finish(done, inside, index, exit_t):
+        """Rays ``done`` end: layers without a hit report the last voxel visited inside the
+        grid (this iteration's if the ray is inside, else the previous one's) or none."""
+        idx, entered, now = rays[done], was_inside[done], inside[done]
+        voxel = np.where(now, index[done], prev_index[done])
+        depth = np.where(now, exit_t[done], prev_exit[done])
+        voxel[~entered], depth[~entered] = 0, -1.0
+        for g in range(num_bits):
+            open_ = (found[done] >> g) & 1 == 0
+            voxel_out[g, idx[open_]] = voxel[open_]
+            depth_out[g, idx[open_]] = depth[open_]
+
+    with np.errstate(over="ignore"):  # DBL_MAX + DBL_MAX on an axis that is never stepped
+        for iteration in range(MAX_STEP + 1):
+            # unsigned views: a negative index is a huge one, so one comparison per axis
+            inside = ((vx.view(np.uint64) < X) & (vy.view(np.uint64) < Y)
+                      & (vz.view(np.uint64) < Z))
+            done = was_inside & ~inside          # left the grid: the ray ends
+            if maybe_outside:
+                done |= ~was_inside & ~inside & (
+                    ((vx < 0) & lx) | ((vx >= X) & hx) | ((vy < 0) & ly) | ((vy >= Y) & hy)
+                    | ((vz < 0) & lz) | ((vz >= Z) & hz))
+            # one axis per iteration: x if tx < ty and tx < tz; else y if ty < tz; else z.
+            # The distance the chosen axis is crossed at is the smallest of the three.
+            x_first = tx < ty
+            take_x = x_first & (tx < tz)
+            take_y = ~x_first & (ty < tz)
+            take_z = ~(take_x | take_y)
+            exit_t = np.minimum(np.minimum(tx, ty), tz)
+            index = (vx * Y + vy) * Z + vz
+            new = np.where(inside & alive, flat.take(index, mode="clip"), 0).astype(np.uint8)
+            new &= ~found
+            if new.any():
+                for g in range(num_bits):
+                    first = (new >> g) & 1 == 1
+                    if first.any():
+                        voxel_out[g, rays[first]] = index[first]
+                        depth_out[g, rays[first]] = exit_t[first]
+                found |= new
+            was_inside |= inside
+            done |= found == all_found
+            if iteration == MAX_STEP:
+                done[:] = True
+            done &= alive
+            if done.any():
+                finish(done, inside, index, exit_t)
+                alive &= ~done
+                if not alive.any():
+                    break
+                if (~alive).sum() * 8 >= alive.size:  # many finished: drop them everywhere
+                    keep = alive
+                    rays, vx, vy, vz, sx, sy, sz = (
+                        a[keep] for a in (rays, vx, vy, vz, sx, sy, sz))
+                    tx, ty, tz, dx, dy, dz = (a[keep] for a in (tx, ty, tz, dx, dy, dz))
+                    lx, ly, lz, hx, hy, hz = (a[keep] for a in (lx, ly, lz, hx, hy, hz))
+                    was_inside, found, alive = (a[keep] for a in (was_inside, found, alive))
+                    take_x, take_y, take_z = (a[keep] for a in (take_x, take_y, take_z))
+                    index, exit_t = index[keep], exit_t[keep]
+                    maybe_outside = not was_inside.all()
+            prev_index, prev_exit = index, exit_t
+            np.add(vx, sx, out=vx, where=take_x)
+            np.add(vy, sy, out=vy, where=take_y)
+            np.add(vz, sz, out=vz, where=take_z)
+            np.add(tx, dx, out=tx, where=take_x)
+            np.add(ty, dy, out=ty, where=take_y)
+            np.add(tz, dz, out=tz, where=take_z)
+    return voxel_out, depth_out

@@ -1,10 +1,14 @@
-"""RayIoU (SparseOcc convention, docs/architecture.md sec. 6) and the LiDAR origins it casts rays from.
+"""RayIoU as SparseOcc computes it (``loaders/ray_metrics.py`` driving ``lib/dvr/dvr.cu``, which
+OPUS ships unchanged), and the LiDAR origins it casts rays from.
 
 Per sample, rays of the SparseOcc LiDAR pattern (``raycast.lidar_ray_directions``, 39 pitches x
-360 azimuths) are cast from each origin through the predicted and the GT grid (no camera mask).
-Each ray reports the label of the first non-free voxel and the distance to where the ray leaves
-that voxel. Rays whose GT ray hits nothing are dropped. Over the whole split, per class c and
-threshold t in {1, 2, 4} m:
+360 azimuths, float32) are cast from each origin through the predicted and the GT grid (no
+camera mask), traversed exactly as SparseOcc's caster does (``raycast``'s docstring). Each ray
+reports the label of the voxel it stops in (the first non-free one; a free one if it leaves the
+grid without a hit) and that voxel's exit distance, in float32 metres (float32 voxel units times
+the float32 voxel size, as SparseOcc's float32 tensors hold them). Rays whose GT label is free
+are dropped. Over the whole split, per class c and threshold t in {1, 2, 4} m, with the depth
+error |d_pred - d_gt| taken in float32:
 
     gt_c   = rays whose GT label is c          pred_c = kept rays whose predicted label is c
     TP_c,t = rays with both labels c and |d_pred - d_gt| < t
@@ -15,7 +19,10 @@ hits nothing carries the free label and so counts for no class.
 
 Origins (SparseOcc's EgoPoseDataset): the LiDAR position of every keyframe of the scene (past
 and future), in the current keyframe's ego frame; those with |x| < 39 m and |y| < 39 m are kept
-and, if more than 8 remain, 8 are taken at indices round(linspace(0, n - 1, 8)).
+and, if more than 8 remain, 8 are taken at indices round(linspace(0, n - 1, 8)). As in
+SparseOcc, another keyframe's LiDAR position is first expressed in the current LiDAR frame and
+rounded to float32 there; the current keyframe's own origin is the LiDAR mounting translation
+exactly (on nuScenes y = 0, which lies on the plane between voxel rows 99 and 100).
 """
 from __future__ import annotations
 
@@ -24,9 +31,8 @@ from collections import defaultdict
 import numpy as np
 
 from ..classes import NUM_OCC_CLASSES
-from ..geometry import invert_transform
 from .miou import check_labels
-from .raycast import cast_rays, lidar_ray_directions
+from .raycast import cast_rays, lidar_ray_directions, rays_in_voxel_units
 
 THRESHOLDS = (1.0, 2.0, 4.0)          # metres
 GRID_MIN = (-40.0, -40.0, -1.0)        # metres, the Occ3D grid corner in the ego frame
@@ -43,15 +49,15 @@ class RayIoU:
 
     def __init__(self, num_classes: int = NUM_OCC_CLASSES, thresholds=THRESHOLDS,
                  voxel_size: float = VOXEL_SIZE, grid_min=GRID_MIN, directions=None):
-        """directions: unit ray directions [D, 3] cast from every origin (default: the SparseOcc
-        LiDAR pattern)."""
+        """directions: unit ray directions [D, 3] cast from every origin, rounded to float32
+        (default: the SparseOcc LiDAR pattern)."""
         self.num_classes = num_classes
         self.free_label = num_classes
         self.thresholds = tuple(float(t) for t in thresholds)
         self.voxel_size = float(voxel_size)
         self.grid_min = np.asarray(grid_min, dtype=np.float64)
         self.directions = (lidar_ray_directions() if directions is None
-                           else np.asarray(directions, dtype=np.float64).reshape(-1, 3))
+                           else np.asarray(directions, dtype=np.float32).reshape(-1, 3))
         self.gt_count = np.zeros(num_classes, dtype=np.int64)
         self.pred_count = np.zeros(num_classes, dtype=np.int64)
         self.tp_count = np.zeros((len(self.thresholds), num_classes), dtype=np.int64)
@@ -62,25 +68,25 @@ class RayIoU:
         """Labels and depths (metres) of the first hits of all rays from ``origins`` [T, 3]
         (metres, ego frame) in ``grid`` (and ``other``, traversed together).
 
-        Returns a list with one (label int64 [T*D], depth float64 [T*D]) per grid; rays are
-        origin-major. A ray without a hit has label free and the depth where it leaves the grid.
+        Returns a list with one (label int64 [T*D], depth float32 [T*D]) per grid; rays are
+        origin-major. A ray without a hit has label free and the depth where it leaves the grid;
+        one that never enters the grid (an origin outside it) has voxel (0, 0, 0)'s label and
+        depth -voxel_size, as in SparseOcc.
         """
         grids = [grid] if other is None else [grid, other]
         origins = np.asarray(origins, dtype=np.float64).reshape(-1, 3)
         num_dirs = self.directions.shape[0]
-        ray_origins = np.repeat((origins - self.grid_min) / self.voxel_size, num_dirs, axis=0)
-        ray_dirs = np.tile(self.directions, (origins.shape[0], 1))
+        start, end = rays_in_voxel_units(np.repeat(origins, num_dirs, axis=0),
+                                         np.tile(self.directions, (origins.shape[0], 1)),
+                                         self.grid_min, self.voxel_size)
         bits = np.zeros(grids[0].shape, dtype=np.uint8)
         for g, labels in enumerate(grids):
             bits |= (labels != self.free_label).astype(np.uint8) << g
-        hit_index, hit_depth = cast_rays(bits, ray_origins, ray_dirs, num_bits=len(grids))
-        out = []
-        for g, labels in enumerate(grids):
-            hit = hit_index[g] >= 0
-            label = np.full(hit.shape, self.free_label, dtype=np.int64)
-            label[hit] = labels.ravel()[hit_index[g, hit]]
-            out.append((label, hit_depth[g] * self.voxel_size))
-        return out
+        voxel, depth = cast_rays(bits, start, end, num_bits=len(grids))
+        # SparseOcc writes the distance into a float32 tensor, then scales it in float32
+        depth = depth.astype(np.float32) * np.float32(self.voxel_size)
+        return [(labels.ravel()[voxel[g]].astype(np.int64), depth[g])
+                for g, labels in enumerate(grids)]
 
     def add(self, pred: np.ndarray, gt: np.ndarray, origins: np.ndarray) -> None:
         """pred, gt: int [X, Y, Z] labels 0..C (C = free); origins: float [T, 3] LiDAR origins in
@@ -98,11 +104,11 @@ class RayIoU:
         self.samples += 1
 
     def add_rays(self, pred_label, pred_depth, gt_label, gt_depth) -> None:
-        """Count already cast rays (all [N]; labels 0..C, depths in metres). Rays whose GT
-        label is free are dropped here."""
+        """Count already cast rays (all [N]; labels 0..C, depths in metres, taken as float32
+        as SparseOcc holds them). Rays whose GT label is free are dropped here."""
         pred_label, gt_label = np.asarray(pred_label), np.asarray(gt_label)
-        pred_depth = np.asarray(pred_depth, dtype=np.float64)
-        gt_depth = np.asarray(gt_depth, dtype=np.float64)
+        pred_depth = np.asarray(pred_depth, dtype=np.float32)
+        gt_depth = np.asarray(gt_depth, dtype=np.float32)
         keep = gt_label != self.free_label
         pred_label, gt_label = pred_label[keep], gt_label[keep]
         pred_depth, gt_depth = pred_depth[keep], gt_depth[keep]
@@ -112,7 +118,7 @@ class RayIoU:
         self.gt_count += np.bincount(gt_label, minlength=c + 1)[:c]
         self.pred_count += np.bincount(pred_label, minlength=c + 1)[:c]
         same = pred_label == gt_label  # gt is never free here, so neither is pred
-        error = np.abs(pred_depth - gt_depth)
+        error = np.abs(pred_depth - gt_depth)  # float32, as in SparseOcc
         for j, threshold in enumerate(self.thresholds):
             tp = same & (error < threshold)
             self.tp_count[j] += np.bincount(gt_label[tp], minlength=c + 1)[:c]
@@ -161,14 +167,22 @@ class LidarOrigins:
         self.scene_frames = {}
         for token, frames in scenes.items():
             frames.sort(key=lambda i: infos[i]["timestamp"])
-            lidar_in_global = np.stack([
-                _pose(infos[i], "ego_pose") @ _pose(infos[i], "lidar2ego")[:, 3] for i in frames])
-            self.scene_frames[token] = lidar_in_global  # homogeneous [F, 4]
+            self.scene_frames[token] = frames
 
     def __call__(self, index: int) -> np.ndarray:
         info = self.infos[index]
-        ego_from_global = invert_transform(_pose(info, "ego_pose"))
-        origins = (self.scene_frames[info["scene_token"]] @ ego_from_global.T)[:, :3]
+        ego_from_lidar = _pose(info, "lidar2ego")
+        lidar_from_global = np.linalg.inv(_pose(info, "ego_pose") @ ego_from_lidar)
+        origins = []
+        for i in self.scene_frames[info["scene_token"]]:
+            if i == index:
+                in_lidar = np.zeros(3, dtype=np.float32)
+            else:
+                global_from_lidar = _pose(self.infos[i], "ego_pose") @ _pose(self.infos[i],
+                                                                             "lidar2ego")
+                in_lidar = (lidar_from_global @ global_from_lidar)[:3, 3].astype(np.float32)
+            origins.append(ego_from_lidar[:3] @ np.append(in_lidar.astype(np.float64), 1.0))
+        origins = np.stack(origins)
         inside = (np.abs(origins[:, 0]) < self.xy_limit) & (np.abs(origins[:, 1]) < self.xy_limit)
         origins = origins[inside]
         if len(origins) > self.max_origins:
