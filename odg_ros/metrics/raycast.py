@@ -33,6 +33,7 @@ import numpy as np
 
 MAX_STEP = 1000       # SparseOcc ends a ray once its iteration count exceeds this
 DBL_MAX = np.finfo(np.float64).max
+OUTSIDE = np.uint16(1 << 8)   # the border mark of _march_from_inside's padded grid (above 8 layers)
 
 
 def lidar_ray_directions() -> np.ndarray:
@@ -119,7 +120,115 @@ def cast_rays(occupied_bits: np.ndarray, origins: np.ndarray, endpoints: np.ndar
         t_max = np.where(moving, ((v + (step > 0)) - start) / d, DBL_MAX)
         t_delta = np.where(moving, step / d, DBL_MAX)
 
-    # Per-ray state as separate contiguous columns (faster than [R, 3] slices).
+    # Most rays start inside the grid (every LiDAR origin does); they take the faster loop.
+    start_inside = ((v >= 0) & (v < np.asarray(bits.shape))).all(axis=1)
+    for subset, march in ((start_inside, _march_from_inside), (~start_inside, _march_general)):
+        sel = np.flatnonzero(subset)
+        if sel.size:
+            voxel_out[:, sel], depth_out[:, sel] = march(
+                bits, num_bits, v[sel], step[sel], t_max[sel], t_delta[sel], moving[sel])
+    return voxel_out, depth_out
+
+
+def _march_from_inside(bits, num_bits, v, step, t_max, t_delta, moving):
+    """Rays whose start voxel lies inside the grid: the same loop as ``_march_general``, on
+    a copy of the grid with a one-voxel border marked OUTSIDE, so a ray carries one flat index
+    and learns it left the grid from the voxel it reads."""
+    R = v.shape[0]
+    voxel_out = np.zeros((num_bits, R), dtype=np.int64)
+    depth_out = np.full((num_bits, R), -1.0, dtype=np.float64)
+    X, Y, Z = bits.shape
+    padded = np.full((X + 2, Y + 2, Z + 2), OUTSIDE, dtype=np.uint16)
+    padded[1:-1, 1:-1, 1:-1] = bits
+    # one more cell after the grid: a finished ray is parked there (reads 0, does not move)
+    flat = np.append(padded.ravel(), np.uint16(0))
+    park = flat.size - 1
+    strides = np.array([(Y + 2) * (Z + 2), Z + 2, 1], dtype=np.int64)
+    rays = np.arange(R)
+    index = (v + 1) @ strides
+    jx, jy, jz = (step[:, a] * strides[a] for a in range(3))
+    tx, ty, tz = (t_max[:, a].copy() for a in range(3))
+    dx, dy, dz = (t_delta[:, a].copy() for a in range(3))
+    pending = np.full(R, (1 << num_bits) - 1, dtype=np.uint16)   # layers not hit yet
+    parked = np.uint16(1 << 15)      # pending value of a parked ray: never 0, matches nothing
+    prev_index, prev_exit = index, np.full(R, -1.0)
+    voxel_out[:] = park              # padded flat indices until the end
+
+    def finish(done, index, exit_t):
+        """Rays ``done`` (indices) end: layers not hit report voxel ``index``, depth
+        ``exit_t``; the rays are parked."""
+        open_layers = pending[done]
+        for g in range(num_bits):
+            m = (open_layers >> g) & 1 == 1
+            voxel_out[g, rays[done[m]]] = index[m]
+            depth_out[g, rays[done[m]]] = exit_t[m]
+        park_rays(done)
+
+    def park_rays(done):
+        pending[done] = parked
+        jx[done] = jy[done] = jz[done] = 0
+        next_index[done] = park
+
+    parked_count = 0
+    with np.errstate(over="ignore"):  # DBL_MAX + DBL_MAX on an axis that is never stepped
+        for iteration in range(MAX_STEP + 1):
+            code = flat.take(index)
+            # one axis per iteration: x if tx < ty and tx < tz; else y if ty < tz; else z,
+            # i.e. z when tz <= min(tx, ty), else y when ty <= tx, else x
+            nearest_xy = np.minimum(tx, ty)
+            take_z = tz <= nearest_xy
+            exit_t = np.minimum(nearest_xy, tz)
+            take_y = ty <= tx
+            take_y &= ~take_z
+            take_x = ~(take_y | take_z)
+            jump = np.where(take_x, jx, np.where(take_y, jy, jz))
+            next_index = index + jump
+            new = code & pending
+            if new.any():
+                hits = np.flatnonzero(new)
+                for g in range(num_bits):
+                    first = hits[(new[hits] >> g) & 1 == 1]
+                    voxel_out[g, rays[first]] = index[first]
+                    depth_out[g, rays[first]] = exit_t[first]
+                pending[hits] ^= new[hits]
+                complete = hits[pending[hits] == 0]
+                if complete.size:
+                    park_rays(complete)
+                    parked_count += complete.size
+            # a ray that reads the border had been inside: it ended in the previous voxel
+            left = np.flatnonzero(code == OUTSIDE)
+            if left.size:
+                finish(left, prev_index[left], prev_exit[left])
+                parked_count += left.size
+            if iteration == MAX_STEP:
+                live = np.flatnonzero(pending != parked)
+                finish(live, index[live], exit_t[live])
+                break
+            if parked_count == R:
+                break
+            if parked_count * 8 >= rays.size:  # many finished: drop them from every column
+                keep = pending != parked
+                rays, index, next_index = rays[keep], index[keep], next_index[keep]
+                jx, jy, jz = jx[keep], jy[keep], jz[keep]
+                tx, ty, tz, dx, dy, dz = (a[keep] for a in (tx, ty, tz, dx, dy, dz))
+                pending, exit_t = pending[keep], exit_t[keep]
+                take_x, take_y, take_z = take_x[keep], take_y[keep], take_z[keep]
+                R, parked_count = rays.size, 0
+            prev_index, prev_exit, index = index, exit_t, next_index
+            np.add(tx, dx, out=tx, where=take_x)
+            np.add(ty, dy, out=ty, where=take_y)
+            np.add(tz, dz, out=tz, where=take_z)
+    # padded flat index -> grid flat index
+    p = np.unravel_index(voxel_out, padded.shape)
+    return ((p[0] - 1) * Y + (p[1] - 1)) * Z + (p[2] - 1), depth_out
+
+
+def _march_general(bits, num_bits, v, step, t_max, t_delta, moving):
+    """Any start voxel, inside the grid or not: the loop of the module docstring, with the
+    grid bounds tested per axis."""
+    R = v.shape[0]
+    voxel_out = np.zeros((num_bits, R), dtype=np.int64)
+    depth_out = np.full((num_bits, R), -1.0, dtype=np.float64)
     rays = np.arange(R)
     vx, vy, vz = (v[:, a].copy() for a in range(3))
     sx, sy, sz = (step[:, a].copy() for a in range(3))
