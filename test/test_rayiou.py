@@ -1,87 +1,29 @@
-"""Ray casting and RayIoU (odg_ros/metrics/raycast.py, rayiou.py).
+"""Ray casting and RayIoU (odg_ros/metrics/raycast.py, rayiou.py) against SparseOcc's.
 
-The fast vectorised traversal is checked against two slow float64 references written here:
-an exact one (all voxel-plane crossings of the ray, sorted; the voxel of each segment from its
-midpoint) and a marcher that samples the ray in tiny steps. Hand-computed cases cover single
-voxels, walls at each depth threshold, axis-parallel rays, origins on faces and corners."""
+The oracle is test/sparseocc_reference.py, a scalar line-by-line transcription of SparseOcc's
+``lib/dvr/dvr.cu`` (test phase), ``loaders/ray_metrics.py`` and ``loaders/ego_pose_dataset.py``:
+the vectorised caster must report the same voxel and the same distance, bit for bit, for every
+ray. Hand-computed cases pin down what SparseOcc does at faces, edges, ties and the grid border.
+"""
 import math
-from fractions import Fraction
 
 import numpy as np
 import pytest
 
-from odg_ros.metrics.raycast import cast_rays, lidar_ray_directions
+from odg_ros.metrics.raycast import (MAX_STEP, cast_rays, lidar_ray_directions,
+                                     rays_in_voxel_units)
 from odg_ros.metrics.rayiou import LidarOrigins, RayIoU, lidar_origins
+
+from sparseocc_reference import (lidar_rays, process_one_sample, render_forward_one_ray,
+                                 sparseocc_origins, sparseocc_rayiou)
 
 FREE = 17
 SHAPE = (200, 200, 16)
 GRID_MIN = np.array([-40.0, -40.0, -1.0])
 
 
-# ---------------------------------------------------------------- slow float64 references
-
-def exact_reference(occupied, o, d):
-    """First occupied voxel of the ray o + t d (voxel units): (voxel or None, depth)."""
-    size = np.array(occupied.shape, dtype=np.float64)
-    t0, t1 = 0.0, math.inf
-    for a in range(3):
-        if d[a] == 0:
-            if not 0 <= o[a] < size[a]:
-                return None, 0.0
-        else:
-            ta, tb = (0 - o[a]) / d[a], (size[a] - o[a]) / d[a]
-            t0, t1 = max(t0, min(ta, tb)), min(t1, max(ta, tb))
-    if not t0 < t1:
-        return None, 0.0
-    ts = [t0, t1]
-    for a in range(3):
-        if d[a] != 0:
-            t = (np.arange(int(size[a]) + 1) - o[a]) / d[a]
-            ts.extend(t[(t > t0) & (t < t1)])
-    ts = np.unique(ts)
-    for start, end in zip(ts[:-1], ts[1:]):
-        if end - start <= 1e-9:  # zero-length chord: the ray only touches this voxel
-            continue
-        v = exact_floor(o, 0.5 * (start + end), d)
-        if occupied[v]:
-            return v, end
-    return None, t1
-
-
-def exact_floor(o, t, d):
-    """floor(o + t d) per axis; exact rational arithmetic where float rounding could decide
-    (e.g. a direction component of 1e-16 moving an origin off a voxel face)."""
-    p = o + t * d
-    v = np.floor(p).astype(int)
-    for a in np.flatnonzero(np.abs(p - np.round(p)) < 1e-6):
-        v[a] = math.floor(Fraction(o[a]) + Fraction(t) * Fraction(d[a]))
-    return tuple(v)
-
-
-def tiny_step_reference(occupied, o, d, h):
-    """Sample the ray every h: (first occupied voxel sampled or None, its exit distance or the
-    last sampled distance inside the grid)."""
-    size = np.array(occupied.shape)
-    t_far = np.linalg.norm(size) + np.linalg.norm(o - size / 2) + 1
-    t = np.arange(h / 2, t_far, h)
-    v = np.floor(o + t[:, None] * d).astype(int)
-    inside = np.all((v >= 0) & (v < size), axis=1)
-    occ = np.zeros(len(t), dtype=bool)
-    occ[inside] = occupied[v[inside, 0], v[inside, 1], v[inside, 2]]
-    if not occ.any():
-        return None, (t[inside][-1] if inside.any() else 0.0)
-    voxel = v[np.argmax(occ)]
-    exits = [((voxel[a] + (d[a] > 0)) - o[a]) / d[a] for a in range(3) if d[a] != 0]
-    return tuple(voxel), min(exits)
-
-
-def voxel_entry(voxel, o, d):
-    entries = [((voxel[a] + (d[a] < 0)) - o[a]) / d[a] for a in range(3) if d[a] != 0]
-    return max(0.0, max(entries))
-
-
 def unravel(index, shape):
-    return None if index < 0 else tuple(int(i) for i in np.unravel_index(index, shape))
+    return tuple(int(i) for i in np.unravel_index(index, shape))
 
 
 def random_unit(rng, n):
@@ -89,117 +31,137 @@ def random_unit(rng, n):
     return v / np.linalg.norm(v, axis=1, keepdims=True)
 
 
-def special_directions():
+def lattice_directions():
+    """Axis-parallel, face- and body-diagonal rays, and rays tilted 1e-7 off an axis."""
     dirs = [np.eye(3)[a] * s for a in range(3) for s in (1, -1)]
-    for sx in (1, -1):
-        for sy in (1, -1):
-            dirs += [np.array([sx, sy, 0.0]) / math.sqrt(2),
-                     np.array([sx, 0.0, sy]) / math.sqrt(2),
-                     np.array([sx, sy, 1.0]) / math.sqrt(3),
-                     np.array([sx, sy, -1.0]) / math.sqrt(3),
-                     np.array([0.6 * sx, 0.8 * sy, 0.0])]
+    for sx in (-1, 0, 1):
+        for sy in (-1, 0, 1):
+            for sz in (-1, 0, 1):
+                if abs(sx) + abs(sy) + abs(sz) >= 2:
+                    dirs.append(np.array([sx, sy, sz]) / math.sqrt(abs(sx) + abs(sy) + abs(sz)))
+    for a in range(3):
+        for tilt in (1e-7, -1e-7):
+            d = np.eye(3)[a].copy()
+            d[(a + 1) % 3] = tilt
+            dirs.append(d / np.linalg.norm(d))
     return np.array(dirs)
 
 
-def mixed_origins(rng, shape, n):
-    """Origins inside, on voxel corners, on faces and outside the grid."""
+def special_origins(rng, shape, n):
+    """Origins inside, on voxel faces, edges and corners (the grid's own included), and
+    outside the grid on every side (negative coordinates truncate towards zero)."""
     size = np.array(shape, dtype=np.float64)
     inside = rng.random((n, 3)) * size
     corners = rng.integers(0, size + 1, (n, 3)).astype(np.float64)
-    corners[:2] = [[0, 0, 0], size]  # the grid's own corners
+    corners[:2] = [[0, 0, 0], size]
     faces = rng.random((n, 3)) * size
     faces[np.arange(n), rng.integers(0, 3, n)] = rng.integers(0, 4, n)
-    outside = rng.random((n, 3)) * size
-    outside[:, 2] = np.where(rng.random(n) < 0.5, -2.5, size[2] + 3.0)
-    return np.concatenate([inside, corners, faces, outside])
+    edges = rng.integers(0, size + 1, (n, 3)).astype(np.float64)
+    edges[np.arange(n), rng.integers(0, 3, n)] += rng.random(n)
+    outside = rng.random((n, 3)) * (size + 6) - 3
+    return np.concatenate([inside, corners, faces, edges, outside])
 
+
+def assert_same_as_sparseocc(occupied, starts, ends):
+    """cast_rays against the scalar transcription, ray by ray: voxel and distance exactly."""
+    voxel, depth = cast_rays(occupied.astype(np.uint8), starts, ends)
+    grid = occupied.tolist()
+    for r in range(len(starts)):
+        ref_depth, ref_voxel = render_forward_one_ray(grid, starts[r], ends[r])
+        assert unravel(voxel[0, r], occupied.shape) == ref_voxel, (starts[r], ends[r])
+        # the same double, sign of zero included
+        assert depth[0, r].tobytes() == np.float64(ref_depth).tobytes(), (starts[r], ends[r])
+    return voxel, depth
+
+
+def rays_from(origins, directions):
+    """Every direction from every origin (voxel units) as float32 (start, end) pairs."""
+    o = np.repeat(np.asarray(origins, dtype=np.float64), len(directions), axis=0)
+    d = np.tile(np.asarray(directions, dtype=np.float64), (len(origins), 1))
+    return o.astype(np.float32), (o + d).astype(np.float32)
 
 
 # ---------------------------------------------------------------- the LiDAR pattern
 
 def test_lidar_ray_pattern():
     dirs = lidar_ray_directions()
-    assert dirs.shape == (39 * 360, 3)
-    np.testing.assert_allclose(np.linalg.norm(dirs, axis=1), 1.0, atol=1e-12)
-    pitch = np.arcsin(dirs[::360, 2])
+    assert dirs.dtype == np.float32 and dirs.shape == (39 * 360, 3)
+    np.testing.assert_array_equal(dirs, lidar_rays())
+    np.testing.assert_allclose(np.linalg.norm(dirs, axis=1), 1.0, atol=1e-6)
+    pitch = np.arcsin(dirs[::360, 2].astype(np.float64))
     assert pitch[0] == pytest.approx(-math.pi / 4)
-    assert pitch[9] == pytest.approx(-(math.pi / 2 - math.atan(10)))
-    np.testing.assert_allclose(np.diff(pitch[9:]), math.atan(10) - math.atan(9), atol=1e-12)
     assert pitch[-2] < 0.21 < pitch[-1]
-    azimuth = np.degrees(np.arctan2(dirs[:360, 1], dirs[:360, 0])) % 360
-    np.testing.assert_allclose(azimuth, np.arange(360), atol=1e-9)
 
 
 # ---------------------------------------------------------------- hand-computed traversals
 
 def cast_one(occupied, origin, direction):
-    index, depth = cast_rays(occupied.astype(np.uint8), np.array([origin], dtype=float),
-                             np.array([direction], dtype=float))
-    return unravel(index[0, 0], occupied.shape), depth[0, 0]
+    start, end = rays_from([origin], [direction])
+    voxel, depth = cast_rays(occupied.astype(np.uint8), start, end)
+    return unravel(voxel[0, 0], occupied.shape), depth[0, 0]
 
 
-def test_single_voxel():
+def test_single_voxel_and_no_hit():
     occ = np.zeros((20, 20, 8), dtype=bool)
     occ[12, 5, 3] = True
-    # along +x from the centre of voxel (5, 5, 3): enters at x = 12, leaves at x = 13
-    assert cast_one(occ, (5.5, 5.5, 3.5), (1, 0, 0)) == ((12, 5, 3), pytest.approx(7.5))
-    # the opposite way nothing is hit: the ray leaves the grid at x = 0
-    assert cast_one(occ, (5.5, 5.5, 3.5), (-1, 0, 0)) == (None, pytest.approx(5.5))
-    # a ray passing one voxel beside it misses it
-    assert cast_one(occ, (5.5, 6.5, 3.5), (1, 0, 0)) == (None, pytest.approx(14.5))
-    # origin inside the occupied voxel: hit at once, depth to its exit
-    assert cast_one(occ, (12.25, 5.5, 3.5), (1, 0, 0)) == ((12, 5, 3), pytest.approx(0.75))
+    assert cast_one(occ, (5.5, 5.5, 3.5), (1, 0, 0)) == ((12, 5, 3), 7.5)
+    # no hit: the last voxel inside (free) and where the ray leaves the grid
+    assert cast_one(occ, (5.5, 5.5, 3.5), (-1, 0, 0)) == ((0, 5, 3), 5.5)
+    assert cast_one(occ, (12.25, 5.5, 3.5), (1, 0, 0)) == ((12, 5, 3), 0.75)
 
 
-def test_axis_parallel_rays_in_every_direction():
+def test_origin_on_a_face_starts_in_the_voxel_on_the_plus_side():
     occ = np.zeros((20, 20, 8), dtype=bool)
-    occ[15, 10, 4] = occ[2, 10, 4] = occ[10, 18, 4] = occ[10, 1, 4] = occ[10, 10, 7] = True
-    occ[10, 10, 0] = True
-    o = (10.5, 10.5, 4.5)
-    assert cast_one(occ, o, (1, 0, 0)) == ((15, 10, 4), pytest.approx(5.5))
-    assert cast_one(occ, o, (-1, 0, 0)) == ((2, 10, 4), pytest.approx(8.5))
-    assert cast_one(occ, o, (0, 1, 0)) == ((10, 18, 4), pytest.approx(8.5))
-    assert cast_one(occ, o, (0, -1, 0)) == ((10, 1, 4), pytest.approx(9.5))
-    assert cast_one(occ, o, (0, 0, 1)) == ((10, 10, 7), pytest.approx(3.5))
-    assert cast_one(occ, o, (0, 0, -1)) == ((10, 10, 0), pytest.approx(4.5))
-
-
-def test_origin_on_a_voxel_face():
-    occ = np.zeros((20, 20, 8), dtype=bool)
-    occ[9, 5, 3] = True
-    # on the face x = 10 between voxels 9 and 10: moving -x the ray starts in voxel 9
-    assert cast_one(occ, (10.0, 5.5, 3.5), (-1, 0, 0)) == ((9, 5, 3), pytest.approx(1.0))
-    # moving +x it starts in voxel 10 and never enters voxel 9
-    assert cast_one(occ, (10.0, 5.5, 3.5), (1, 0, 0)) == (None, pytest.approx(10.0))
-    # a ray lying in the face z = 3 belongs to the voxels above it (floor)
+    occ[10, 5, 3] = occ[9, 5, 3] = True
+    # int(10.0) = 10: moving -x, voxel 10 is visited first, with exit distance -0.0
+    voxel, depth = cast_one(occ, (10.0, 5.5, 3.5), (-1, 0, 0))
+    assert voxel == (10, 5, 3) and depth == 0.0 and math.copysign(1, depth) == -1
+    occ[10, 5, 3] = False
+    assert cast_one(occ, (10.0, 5.5, 3.5), (-1, 0, 0)) == ((9, 5, 3), 1.0)
+    # a ray lying in the face z = 3 walks the row above it
     occ2 = np.zeros((20, 20, 8), dtype=bool)
-    occ2[14, 5, 2] = True   # below the face: not hit
-    occ2[16, 5, 3] = True   # above the face: hit
-    assert cast_one(occ2, (10.5, 5.5, 3.0), (1, 0, 0)) == ((16, 5, 3), pytest.approx(6.5))
+    occ2[14, 5, 2] = True
+    occ2[16, 5, 3] = True
+    assert cast_one(occ2, (10.5, 5.5, 3.0), (1, 0, 0)) == ((16, 5, 3), 6.5)
 
 
-def test_origin_on_a_voxel_corner_and_diagonal_rays():
+def test_ties_step_one_axis_preferring_z_then_y():
+    # from the corner (10, 10, 4) along (-1, -1, -1)/sqrt 3: all three planes at once; z steps
+    # first, then y, then x, visiting the voxels between them with zero-length chords
     occ = np.zeros((20, 20, 8), dtype=bool)
-    occ[11, 10, 4] = True   # touched only along an edge by the diagonal: not hit
-    occ[10, 11, 4] = True   # likewise
-    occ[13, 13, 4] = True
-    d = (1 / math.sqrt(2), 1 / math.sqrt(2), 0.0)
-    assert cast_one(occ, (10.0, 10.0, 4.5), d) == ((13, 13, 4), pytest.approx(4 * math.sqrt(2)))
-    # from the corner (10, 10, 4) along (-1, -1, -1): voxels (9, 9, 3), (8, 8, 2), ...
-    occ3 = np.zeros((20, 20, 8), dtype=bool)
-    occ3[9, 9, 4] = occ3[9, 10, 3] = True   # share only an edge / corner with the path
-    occ3[7, 7, 1] = True
-    d3 = (-1 / math.sqrt(3),) * 3
-    assert cast_one(occ3, (10.0, 10.0, 4.0), d3) == ((7, 7, 1), pytest.approx(3 * math.sqrt(3)))
+    occ[10, 9, 3] = True          # reached after z and y stepped, before x
+    d = (-1 / math.sqrt(3),) * 3
+    voxel, depth = cast_one(occ, (10.0, 10.0, 4.0), d)
+    assert voxel == (10, 9, 3) and abs(depth) < 1e-6
+    # x = y tie in the plane z = const: y steps first
+    occ2 = np.zeros((20, 20, 8), dtype=bool)
+    occ2[10, 11, 4] = True
+    voxel, _ = cast_one(occ2, (10.0, 10.0, 4.5), (1 / math.sqrt(2), 1 / math.sqrt(2), 0.0))
+    assert voxel == (10, 11, 4)
 
 
-def test_origin_outside_the_grid():
+def test_origin_outside_the_grid_and_rays_that_never_enter():
     occ = np.zeros((20, 20, 8), dtype=bool)
     occ[5, 5, 7] = True
-    # from above the grid straight down: enters at z = 8, hit voxel left at z = 7
-    assert cast_one(occ, (5.5, 5.5, 10.0), (0, 0, -1)) == ((5, 5, 7), pytest.approx(3.0))
-    # pointing away from the grid: never enters
-    assert cast_one(occ, (5.5, 5.5, 10.0), (0, 0, 1)) == (None, 0.0)
+    occ[0, 0, 0] = True
+    assert cast_one(occ, (5.5, 5.5, 10.0), (0, 0, -1)) == ((5, 5, 7), 3.0)
+    # never enters: voxel (0, 0, 0) and distance -1
+    assert cast_one(occ, (5.5, 5.5, 10.0), (0, 0, 1)) == ((0, 0, 0), -1.0)
+    assert cast_one(occ, (-3.5, 5.5, 3.5), (0, 1, 0)) == ((0, 0, 0), -1.0)
+    # int(-0.5) = 0: an origin half a voxel below the grid starts "inside" voxel z = 0
+    occ[5, 5, 0] = True
+    assert cast_one(occ, (5.5, 5.5, -0.5), (0, 0, 1)) == ((5, 5, 0), 1.5)
+
+
+def test_step_limit():
+    occ = np.zeros((1100, 1, 1), dtype=bool)
+    occ[1050, 0, 0] = True
+    # MAX_STEP + 1 voxels are visited, the hit beyond them is never reached
+    assert cast_one(occ, (0.5, 0.5, 0.5), (1, 0, 0)) == ((MAX_STEP, 0, 0), MAX_STEP + 0.5)
+    # from outside, the steps before entering count too
+    # (int(-60.5) = -60: voxels -60 .. 940, the last one left at 941 + 60.5)
+    assert cast_one(occ, (-60.5, 0.5, 0.5), (1, 0, 0)) == ((MAX_STEP - 60, 0, 0), 1001.5)
+    assert_same_as_sparseocc(occ, *rays_from([[0.5, 0.5, 0.5], [-60.5, 0.5, 0.5]], [[1, 0, 0]]))
 
 
 def test_layers_are_traversed_together_but_hit_separately():
@@ -207,70 +169,90 @@ def test_layers_are_traversed_together_but_hit_separately():
     bits[8, 5, 3] |= 1
     bits[12, 5, 3] |= 2
     bits[15, 5, 3] |= 3
-    index, depth = cast_rays(bits, [[5.5, 5.5, 3.5]], [[1.0, 0, 0]], num_bits=2)
-    assert unravel(index[0, 0], bits.shape) == (8, 5, 3) and depth[0, 0] == pytest.approx(3.5)
-    assert unravel(index[1, 0], bits.shape) == (12, 5, 3) and depth[1, 0] == pytest.approx(7.5)
+    start, end = rays_from([[5.5, 5.5, 3.5]], [[1.0, 0, 0]])
+    voxel, depth = cast_rays(bits, start, end, num_bits=2)
+    assert unravel(voxel[0, 0], bits.shape) == (8, 5, 3) and depth[0, 0] == 3.5
+    assert unravel(voxel[1, 0], bits.shape) == (12, 5, 3) and depth[1, 0] == 7.5
 
 
 def test_bad_rays_are_a_clear_error():
     occ = np.zeros((4, 4, 4), dtype=np.uint8)
-    with pytest.raises(ValueError, match="unit"):
-        cast_rays(occ, [[1.0, 1, 1]], [[2.0, 0, 0]])
+    with pytest.raises(ValueError, match="no direction"):
+        cast_rays(occ, [[1.0, 1, 1]], [[1.0, 1, 1]])
     with pytest.raises(ValueError, match="finite"):
         cast_rays(occ, [[np.nan, 1, 1]], [[1.0, 0, 0]])
     with pytest.raises(ValueError, match="differ"):
         cast_rays(occ, [[1.0, 1, 1]], [[1.0, 0, 0], [0, 1.0, 0]])
 
 
-# ---------------------------------------------------------------- against the references
+# ---------------------------------------------------------------- ray by ray against SparseOcc
 
-def run_against_references(occupied, origins, directions, marcher_rays, h, rng):
-    O = np.repeat(origins, len(directions), axis=0)
-    D = np.tile(directions, (len(origins), 1))
-    index, depth = cast_rays(occupied.astype(np.uint8), O, D)
-    hits = 0
-    for r in range(len(O)):
-        voxel, ref_depth = exact_reference(occupied, O[r], D[r])
-        assert unravel(index[0, r], occupied.shape) == voxel, (O[r], D[r])
-        assert depth[0, r] == pytest.approx(ref_depth, abs=1e-9), (O[r], D[r])
-        hits += voxel is not None
-    assert 0.1 * len(O) < hits < len(O)  # the case mix exercises hits and misses
-    # the tiny-step marcher can only miss voxels whose chord along the ray is below ~h
-    skipped = 0
-    for r in rng.choice(len(O), size=min(marcher_rays, len(O)), replace=False):
-        voxel, ref_depth = tiny_step_reference(occupied, O[r], D[r], h)
-        fast = unravel(index[0, r], occupied.shape)
-        if fast == voxel:
-            tol = 1e-9 if voxel is not None else h
-            assert depth[0, r] == pytest.approx(ref_depth, abs=tol), (O[r], D[r])
-        else:
-            assert fast is not None, (O[r], D[r])
-            assert depth[0, r] - voxel_entry(fast, O[r], D[r]) < 2 * h, (O[r], D[r])
-            skipped += 1
-    assert skipped <= 0.01 * marcher_rays
+@pytest.mark.parametrize("shape, density", [((12, 10, 8), 0.04), ((9, 13, 5), 0.15),
+                                            ((6, 7, 4), 0.0), ((5, 5, 3), 1.0)])
+def test_random_grids_match_sparseocc_ray_by_ray(shape, density):
+    rng = np.random.default_rng(sum(shape) + int(100 * density))
+    occupied = rng.random(shape) < density
+    directions = np.concatenate([random_unit(rng, 12), lattice_directions()])
+    start, end = rays_from(special_origins(rng, shape, 3), directions)
+    voxel, depth = assert_same_as_sparseocc(occupied, start, end)
+    if 0 < density < 1:   # the mix exercises hits, misses and rays that never enter
+        assert (depth == -1).any() and (depth > 0).any()
 
 
-def test_random_small_grids_match_references():
-    rng = np.random.default_rng(7)
-    for shape, density in (((12, 10, 8), 0.04), ((9, 13, 5), 0.12)):
-        occupied = rng.random(shape) < density
-        origins = mixed_origins(rng, shape, 6)
-        directions = np.concatenate([random_unit(rng, 40), special_directions(),
-                                     lidar_ray_directions()[::293]])
-        run_against_references(occupied, origins, directions, 1500, 2e-3, rng)
-
-
-def test_full_grid_lidar_pattern_matches_exact_reference():
+def test_synthetic_world_from_the_ego_origin_matches_sparseocc():
+    # The LiDAR at ego y = 0 lies on the plane between voxel rows 99 and 100; rays at azimuth
+    # 0 and 180 degrees lie in that plane, those with a -y component start in row 100.
     rng = np.random.default_rng(3)
     occupied = np.zeros(SHAPE, dtype=bool)
-    occupied[:, :, :3] = True                          # ground
-    occupied |= rng.random(SHAPE) < 0.002              # clutter
-    occupied[150:170, 40:60, 3:10] = True              # a building
-    origins = (np.array([[0.94, 0.0, 1.84], [-12.3, 4.1, 1.9], [20.0, -8.0, 2.0]])
-               - GRID_MIN) / 0.4
-    origins[2] = np.round(origins[2])                  # one origin on a voxel corner
-    directions = lidar_ray_directions()[::17]
-    run_against_references(occupied, origins, directions, 60, 1e-2, rng)
+    occupied[:, :, :3] = True
+    occupied |= rng.random(SHAPE) < 0.002
+    occupied[150:170, 40:60, 3:10] = True
+    occupied[:, 99:101, 3] = True       # both rows next to the origins' plane
+    occupied[150, 100, 7] = True        # the third origin's own voxel
+    origins = np.array([[0.985793, 0.0, 1.84019], [-12.3, 4.1, 1.9], [20.0, 0.0, 2.0]])
+    directions = lidar_ray_directions()
+    pick = np.concatenate([np.arange(0, len(directions), 11), np.arange(270, 14040, 360),
+                           np.arange(0, 14040, 180)])   # azimuths 270, 0 and 180 at every pitch
+    o = np.repeat(origins, len(pick), axis=0)
+    start, end = rays_in_voxel_units(o, np.tile(directions[pick], (len(origins), 1)),
+                                     GRID_MIN, 0.4)
+    assert start[0, 1] == np.float32(100.0)           # float32 rounds y onto the plane
+    voxel, depth = assert_same_as_sparseocc(occupied, start, end)
+    # the third origin lies on an x face and a y face: every ray that moves -x or -y (from
+    # the float32 end points) hits the origin's voxel at -0.0, the others where they leave it
+    third = depth[0, 2 * len(pick):]
+    leaving = (end[2 * len(pick):, :2] < start[2 * len(pick):, :2]).any(axis=1)
+    assert (third[leaving] == 0).all() and (np.signbit(third[leaving])).all()
+    assert (third[~leaving] > 0).all()
+
+
+# ---------------------------------------------------------------- RayIoU against SparseOcc
+
+def test_rayiou_equals_the_transcription_on_a_perturbed_prediction():
+    rng = np.random.default_rng(11)
+    gt = driving_scene(rng)
+    pred = np.full_like(gt, FREE)
+    pred[1:] = gt[:-1]                                  # shifted one voxel along +x
+    relabel = rng.random(SHAPE) < 0.03
+    pred[relabel] = rng.integers(0, FREE + 1, relabel.sum())
+    origins = np.array([[0.985793, 0.0, 1.84019], [-20.3, 1.5, 1.8]])
+    directions = lidar_ray_directions()[::29]
+    metric = RayIoU(directions=directions)
+    metric.add(pred, gt, origins)
+    # per ray: labels and float32 depths as SparseOcc's process_one_sample writes them
+    (p_label, p_depth), (g_label, g_depth) = metric.cast(pred, origins, gt)
+    ref_pred = process_one_sample(pred, directions, origins, FREE)
+    ref_gt = process_one_sample(gt, directions, origins, FREE)
+    np.testing.assert_array_equal(p_label, ref_pred[:, 0])
+    np.testing.assert_array_equal(p_depth, ref_pred[:, 1])
+    np.testing.assert_array_equal(g_label, ref_gt[:, 0])
+    np.testing.assert_array_equal(g_depth, ref_gt[:, 1])
+    iou, ref = sparseocc_rayiou([pred], [gt], [origins], rays=directions)
+    res = metric.result()
+    np.testing.assert_array_equal(res["per_class_at"], iou)
+    for key in ("RayIoU", "RayIoU@1", "RayIoU@2", "RayIoU@4"):
+        assert res[key] == ref[key]
+    assert 0.02 < res["RayIoU"] < 0.95                  # a real, partial drop
 
 
 # ---------------------------------------------------------------- RayIoU counting
@@ -350,46 +332,6 @@ def driving_scene(rng):
     g[:, 175:, 3:14] = 15
     g[:, :15, 3:12] = 16
     return g
-
-
-def reference_rayiou(pred, gt, origins, directions, num_classes=17):
-    """Counting written out ray by ray with the exact reference traversal."""
-    gt_n, pred_n = np.zeros(num_classes), np.zeros(num_classes)
-    tp = np.zeros((3, num_classes))
-    for o in (origins - GRID_MIN) / 0.4:
-        for d in directions:
-            gv, gd = exact_reference(gt != FREE, o, d)
-            if gv is None:
-                continue
-            pv, pd = exact_reference(pred != FREE, o, d)
-            g_label = gt[gv]
-            p_label = pred[pv] if pv is not None else FREE
-            gt_n[g_label] += 1
-            if p_label != FREE:
-                pred_n[p_label] += 1
-            for j, t in enumerate((1, 2, 4)):
-                if p_label == g_label and abs(pd - gd) * 0.4 < t:
-                    tp[j, g_label] += 1
-    union = gt_n + pred_n - tp
-    iou = np.where(union > 0, tp / np.maximum(union, 1), np.nan)
-    return iou, np.mean([np.nanmean(row) for row in iou])
-
-
-def test_shifted_prediction_matches_reference_counting():
-    rng = np.random.default_rng(11)
-    gt = driving_scene(rng)
-    pred = np.full_like(gt, FREE)
-    pred[1:] = gt[:-1]                                  # shifted one voxel along +x
-    pred[rng.random(SHAPE) < 0.01] = 4                  # and some spurious cars
-    origins = np.array([[0.94, 0.0, 1.84], [-20.3, 1.5, 1.8]])
-    directions = lidar_ray_directions()[::23]
-    metric = RayIoU(directions=directions)
-    metric.add(pred, gt, origins)
-    iou, rayiou = reference_rayiou(pred, gt, origins, directions)
-    res = metric.result()
-    np.testing.assert_allclose(res["per_class_at"], iou, equal_nan=True, atol=1e-12)
-    assert res["RayIoU"] == pytest.approx(rayiou, abs=1e-12)
-    assert 0.2 < res["RayIoU"] < 0.95                   # a real, partial drop
 
 
 def test_perfect_and_all_free_predictions():
@@ -485,10 +427,16 @@ def test_lidar_origins_from_infos():
     for frames in (a, b):
         for ref in frames:
             got = origins(infos.index(ref))
-            np.testing.assert_allclose(got, expected_origins(frames, ref), atol=1e-9)
-    # scene B: nothing filtered, so origin k is keyframe k's LiDAR; its own is lidar2ego's
+            # float32 rounding in the LiDAR frame, as SparseOcc's EgoPoseDataset: equal to
+            # the transcription, within 1e-5 m of the float64 positions
+            k = frames.index(ref)
+            np.testing.assert_array_equal(got, sparseocc_origins(
+                [(f["ego_pose"], f["lidar2ego"]) for f in frames], k))
+            np.testing.assert_allclose(got, expected_origins(frames, ref), atol=1e-5)
+    # scene B: nothing filtered, so origin k is keyframe k's LiDAR; its own is lidar2ego's,
+    # exactly (y = 0 must stay on the voxel plane)
     for k, ref in enumerate(b):
-        np.testing.assert_allclose(origins(infos.index(ref))[k], [0.94, 0.0, 1.84], atol=1e-12)
+        assert origins(infos.index(ref))[k].tolist() == [0.94, 0.0, 1.84]
     assert len(origins(infos.index(a[10]))) == 8         # 16 within 39 m -> 8 picked
     assert len(origins(infos.index(b[2]))) == 5
     np.testing.assert_allclose(lidar_origins(infos, 0), origins(0))

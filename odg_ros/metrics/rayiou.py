@@ -14,7 +14,7 @@ error |d_pred - d_gt| taken in float32:
     TP_c,t = rays with both labels c and |d_pred - d_gt| < t
     IoU_c,t = TP_c,t / (gt_c + pred_c - TP_c,t)      (NaN when gt_c = pred_c = 0)
 
-RayIoU@t = nanmean over c of IoU_c,t; RayIoU = mean of RayIoU@1, @2, @4. A predicted ray that
+RayIoU@t = nanmean over c of IoU_c,t; RayIoU = nanmean over all (c, t). A predicted ray that
 hits nothing carries the free label and so counts for no class.
 
 Origins (SparseOcc's EgoPoseDataset): the LiDAR position of every keyframe of the scene (past
@@ -140,7 +140,9 @@ class RayIoU:
             row = iou[j]
             at.append(float(np.nanmean(row)) if np.isfinite(row).any() else float("nan"))
             out[f"RayIoU@{threshold:g}"] = at[-1]
-        out["RayIoU"] = float(np.mean(at))
+        # SparseOcc's nanmean over every (threshold, class) value: the mean of the three
+        # RayIoU@t (every row has the same NaNs), summed in SparseOcc's order
+        out["RayIoU"] = float(np.nanmean(iou)) if np.isfinite(iou).any() else float("nan")
         out["per_class"] = iou.mean(axis=0)  # NaN pattern is the same for every threshold
         out["per_class_at"] = iou
         out["samples"] = self.samples
@@ -163,6 +165,7 @@ class LidarOrigins:
         self.xy_limit = xy_limit
         scenes = defaultdict(list)
         for i, info in enumerate(infos):
+            _pose(info, "ego_pose"), _pose(info, "lidar2ego")   # a bad pose fails here
             scenes[info["scene_token"]].append(i)
         self.scene_frames = {}
         for token, frames in scenes.items():
