@@ -49,6 +49,7 @@ class ModelConfig:
     # post-processing (docs/architecture.md sec. 4)
     score_threshold: float = 0.5
     max_distance_to_centroid: float = 3.0
+    occupancy_padding: bool = True       # OPUS's test-time closing of the grid (network/padding)
     box_score_threshold: float = 0.3
 
     def __post_init__(self) -> None:

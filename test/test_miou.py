@@ -62,6 +62,27 @@ def test_class_absent_from_gt_is_nan_and_excluded():
     assert m.miou() == pytest.approx(0.5)        # mean of car and truck only
     # geometry: occupied GT {a, b}, predicted {a, c}: 1 / 3
     assert m.geometry_iou() == pytest.approx(1 / 3)
+    assert m.result()["convention"] == "sparseocc"
+
+
+def test_occ3d_convention_counts_a_predicted_class_absent_from_gt_as_zero():
+    # Occ3D's Metric_mIoU: diag / (row + column - diag), NaN only where both are empty
+    gt, pred = empty(), empty()
+    gt[0, 0, 0] = 4
+    gt[1, 1, 1] = 10
+    pred[0, 0, 0] = 4
+    pred[1, 1, 1] = 17
+    pred[3, 3, 3] = 3          # bus: predicted, absent from GT -> 0 here
+    m = MIoU(convention="occ3d")
+    m.add(pred, gt)
+    iou = m.per_class_iou()
+    assert iou[4] == 1.0 and iou[10] == 0.0 and iou[3] == 0.0
+    assert np.isnan(iou[[0, 1, 2, 5, 6, 7, 8, 9, 11, 12, 13, 14, 15, 16]]).all()
+    assert m.miou() == pytest.approx(1 / 3)      # car, truck and the bus
+    assert m.geometry_iou() == pytest.approx(1 / 3)
+    assert m.result()["convention"] == "occ3d"
+    with pytest.raises(ValueError, match="unknown mIoU convention 'occ'"):
+        MIoU(convention="occ")
 
 
 def test_all_free_prediction():

@@ -119,6 +119,14 @@ def test_command_equals_the_metric_classes(tmp_path, capsys):
     assert res["per_class"]["truck"]["IoU"] is None          # never in the GT (OPUS: NaN)
     assert res["per_class"]["truck"]["RayIoU"] == 0.0        # predicted only (SparseOcc: 0)
     assert 10 < res["mIoU"] < 95 and 10 < res["RayIoU"] < 95
+    assert res["mIoU_convention"] == "sparseocc"
+    # Occ3D's convention: the predicted truck counts with IoU 0, nothing else changes
+    occ3d = run_json(capsys, "--pred", tmp_path / "pred", "--data", infos_path,
+                     "--miou-convention", "occ3d")
+    assert occ3d["mIoU_convention"] == "occ3d" and occ3d["per_class"]["truck"]["IoU"] == 0.0
+    present = [c["IoU"] for c in res["per_class"].values() if c["IoU"] is not None]
+    assert occ3d["mIoU"] == pytest.approx(sum(present) / (len(present) + 1))
+    assert occ3d["RayIoU"] == res["RayIoU"]
 
 
 def test_missing_prediction_is_an_error_naming_it(tmp_path, capsys):
@@ -189,6 +197,7 @@ def test_table_output(tmp_path, capsys):
     out = capsys.readouterr().out
     assert "driveable_surface" in out and "RayIoU@4" in out and "MEAN" in out
     assert "geometry IoU" in out and "samples: 5" in out
+    assert "mIoU convention: sparseocc" in out
     assert "keyframes without GT (not scored): 1" in out
 
 

@@ -1,4 +1,7 @@
-"""``odg eval --checkpoint CKPT --data INFOS [--save-pred DIR] [--json]``."""
+"""``odg eval --checkpoint CKPT --data INFOS [--save-pred DIR] [--miou-convention C] [--json]``.
+
+The grid is padded as OPUS pads it at test time (``network/padding.py``) unless
+``--set occupancy_padding=false``."""
 from __future__ import annotations
 
 import json
@@ -9,6 +12,7 @@ from ..network.checkpoint import load_model
 from ..train.evaluate import evaluate
 from .common import (config_overrides, device, existing_dir, existing_file, infos_file,
                      positive_int, resolve_device)
+from .score import add_miou_convention
 
 
 def add_arguments(parser):
@@ -26,6 +30,7 @@ def add_arguments(parser):
     parser.add_argument("--limit", type=positive_int, default=None,
                         help="the first N samples only (default: all)")
     parser.add_argument("--no-rayiou", action="store_true", help="skip RayIoU (faster)")
+    add_miou_convention(parser)
     parser.add_argument("--json", action="store_true", help="print JSON only")
     parser.add_argument("--set", action="append", metavar="KEY=VALUE",
                         help="config override at inference, e.g. motion_compensation=false "
@@ -38,11 +43,12 @@ def run(args) -> int:
     model, cfg = load_model(args.checkpoint, device=device, **config_overrides(args.set))
     result = evaluate(model, cfg, args.data, occ_root=args.occ_root, save_pred=args.save_pred,
                       device=device, rayiou=not args.no_rayiou, limit=args.limit,
-                      progress=not args.json)
+                      progress=not args.json, miou_convention=args.miou_convention)
     if args.json:
         print(json.dumps(result, indent=2))
     else:
         print(format_table(result))
+        print(f"grid padding (OPUS test time): {'on' if cfg.occupancy_padding else 'off'}")
         print(f"mIoU over the dynamic classes: {result['mIoU_dynamic']}")
         if "boxes" in result:
             print(format_detection(result["boxes"]))

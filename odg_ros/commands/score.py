@@ -1,6 +1,7 @@
 """``odg score``: mIoU, geometry IoU and RayIoU of saved predictions against the Occ3D GT.
 
-    odg score --pred DIR --data INFOS.pkl [--occ-root DIR] [--json] [--png FILE]
+    odg score --pred DIR --data INFOS.pkl [--occ-root DIR] [--miou-convention sparseocc|occ3d]
+              [--json] [--png FILE]
 
 DIR holds ``<sample_token>.npz`` (key ``semantics``, uint8 200x200x16, labels 0..C with C =
 free) for every keyframe of the infos that has GT (``occ_path`` not empty); a missing one is an
@@ -17,6 +18,7 @@ from pathlib import Path
 from tqdm import tqdm
 
 from ..data.occ_io import load_occ
+from ..metrics.miou import MIOU_CONVENTIONS
 from ..metrics.rayiou import LidarOrigins
 from ..metrics.score import (OccScore, format_table, load_infos, load_prediction,
                              plot_per_class, resolve_occ_root)
@@ -30,6 +32,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--occ-root", type=Path, default=None,
                         help="GT root the infos' occ_path are relative to (default: the infos' "
                              "occ_root, else <dataroot>/gts)")
+    add_miou_convention(parser)
     parser.add_argument("--png", type=Path, default=None,
                         help="also write a per-class bar chart (IoU, RayIoU) to this PNG "
                              "(default: no chart)")
@@ -37,8 +40,16 @@ def add_arguments(parser) -> None:
                         help="print the scores as JSON (percent, NaN as null) instead of a table")
 
 
+def add_miou_convention(parser) -> None:
+    parser.add_argument("--miou-convention", choices=MIOU_CONVENTIONS, default="sparseocc",
+                        help="sparseocc (default; SparseOcc / OPUS): a class absent from the "
+                             "GT is left out of the mean; occ3d (Occ3D's Metric_mIoU): it "
+                             "counts as IoU 0 where predicted")
+
+
 def run(args) -> int:
-    result = score_split(args.pred, args.data, args.occ_root)     # errors: one line (cli.py)
+    result = score_split(args.pred, args.data, args.occ_root,     # errors: one line (cli.py)
+                         args.miou_convention)
     if args.png is not None:
         plot_per_class(result, args.png)
         print(f"per-class chart: {args.png}", file=sys.stderr)
@@ -51,7 +62,7 @@ def run(args) -> int:
     return 0
 
 
-def score_split(pred_dir, infos_path, occ_root=None) -> dict:
+def score_split(pred_dir, infos_path, occ_root=None, miou_convention="sparseocc") -> dict:
     """Score every keyframe with GT; returns ``OccScore.result()`` (+ "skipped_no_gt")."""
     meta = load_infos(infos_path)
     infos, dataset = meta["infos"], meta["dataset"]
@@ -70,7 +81,7 @@ def score_split(pred_dir, infos_path, occ_root=None) -> dict:
         raise FileNotFoundError(f"{len(missing)} of {len(with_gt)} predictions missing in "
                                 f"{pred_dir}: {shown} (expected <sample_token>.npz)")
     origins = LidarOrigins(infos)
-    score = OccScore(dataset)
+    score = OccScore(dataset, miou_convention=miou_convention)
     for i in tqdm(with_gt, desc="odg score", unit="sample", file=sys.stderr):
         gt, _, mask_camera = load_occ(root / infos[i]["occ_path"], dataset)
         pred = load_prediction(pred_dir / f"{infos[i]['token']}.npz", gt.shape,

@@ -6,9 +6,15 @@ of the split. From the split total:
 
     IoU_c = conf[c, c] / (sum_j conf[c, j] + sum_i conf[i, c] - conf[c, c])
 
-NaN where class c never occurs in the masked GT of the split (OPUS / SparseOcc set the IoU of a
-GT-absent class to NaN even when it was predicted; Occ3D's original script would give 0 there).
-mIoU = nanmean of IoU_0..IoU_{C-1} (free excluded). Geometry IoU is the same formula for
+Two conventions differ only for a class that never occurs in the masked GT of the split:
+
+* ``sparseocc`` (the default; SparseOcc's and OPUS's evaluation): its IoU is NaN even when it
+  was predicted, so it is left out of the mean;
+* ``occ3d`` (Occ3D's ``Metric_mIoU``): its IoU is 0 when it was predicted (0 / predicted
+  voxels), NaN only when it was neither in the GT nor predicted.
+
+On a large split every class occurs and the two agree; on a few keyframes they can differ by
+points. mIoU = nanmean of IoU_0..IoU_{C-1} (free excluded). Geometry IoU is the same formula for
 "occupied" (any class < C) against free, NaN when the masked GT has no occupied voxel.
 
 Occ3D-nuScenes: C = 17, free = 17. Occ3D-Waymo: C = 15, free = 15.
@@ -32,15 +38,23 @@ def check_labels(name: str, labels: np.ndarray, free_label: int) -> np.ndarray:
     return labels
 
 
-def iou_from_confusion(confusion: np.ndarray) -> np.ndarray:
-    """Per-label IoU [L] from an L x L confusion (rows GT); NaN where the GT row is empty."""
+MIOU_CONVENTIONS = ("sparseocc", "occ3d")
+
+
+def iou_from_confusion(confusion: np.ndarray, convention: str = "sparseocc") -> np.ndarray:
+    """Per-label IoU [L] from an L x L confusion (rows GT); NaN where the GT row is empty
+    (``sparseocc``) or where the label is in neither GT nor prediction (``occ3d``)."""
     confusion = np.asarray(confusion, dtype=np.float64)
     tp = np.diag(confusion)
     gt = confusion.sum(axis=1)
     union = gt + confusion.sum(axis=0) - tp
     with np.errstate(divide="ignore", invalid="ignore"):
         iou = tp / union
-    iou[gt == 0] = np.nan
+    if convention == "sparseocc":
+        iou[gt == 0] = np.nan
+    elif convention != "occ3d":
+        raise ValueError(f"unknown mIoU convention {convention!r} "
+                         f"(expected one of {', '.join(MIOU_CONVENTIONS)})")
     return iou
 
 
@@ -50,9 +64,13 @@ class MIoU:
     Only the (C+1)^2 int64 confusion is kept, so a split never needs all grids in memory.
     """
 
-    def __init__(self, num_classes: int = NUM_OCC_CLASSES):
+    def __init__(self, num_classes: int = NUM_OCC_CLASSES, convention: str = "sparseocc"):
         if num_classes < 1:
             raise ValueError(f"num_classes must be >= 1, got {num_classes}")
+        if convention not in MIOU_CONVENTIONS:
+            raise ValueError(f"unknown mIoU convention {convention!r} "
+                             f"(expected one of {', '.join(MIOU_CONVENTIONS)})")
+        self.convention = convention
         self.num_classes = num_classes
         self.free_label = num_classes
         self.confusion = np.zeros((num_classes + 1, num_classes + 1), dtype=np.int64)
@@ -76,8 +94,8 @@ class MIoU:
         self.samples += 1
 
     def per_class_iou(self) -> np.ndarray:
-        """float64 [C]: IoU of classes 0..C-1 (NaN where absent from the GT)."""
-        return iou_from_confusion(self.confusion)[: self.num_classes]
+        """float64 [C]: IoU of classes 0..C-1 (NaN per the convention, module docstring)."""
+        return iou_from_confusion(self.confusion, self.convention)[: self.num_classes]
 
     def miou(self) -> float:
         iou = self.per_class_iou()
@@ -92,6 +110,7 @@ class MIoU:
 
     def result(self) -> dict:
         """{"mIoU", "IoU_geometry"} as fractions (0..1, NaN allowed), "per_class" [C] array,
-        "samples"."""
+        "samples", "convention"."""
         return {"mIoU": self.miou(), "IoU_geometry": self.geometry_iou(),
-                "per_class": self.per_class_iou(), "samples": self.samples}
+                "per_class": self.per_class_iou(), "samples": self.samples,
+                "convention": self.convention}

@@ -17,10 +17,17 @@ from pathlib import Path
 import numpy as np
 
 from ..classes import OCC_CLASSES, WAYMO_OCC_CLASSES
-from .miou import MIoU, check_labels
+from .miou import MIOU_CONVENTIONS, MIoU, check_labels
 from .rayiou import RayIoU
 
 DATASETS = {"nuscenes": OCC_CLASSES, "waymo": WAYMO_OCC_CLASSES}  # names incl. free (last)
+MIOU_NOTES = {
+    "sparseocc": "sparseocc (SparseOcc / OPUS: a class absent from the GT is left out; "
+                 "--miou-convention occ3d counts it as 0 where predicted)",
+    "occ3d": "occ3d (Occ3D Metric_mIoU: a class absent from the GT counts as 0 where predicted; "
+             "--miou-convention sparseocc leaves it out)",
+}
+assert set(MIOU_NOTES) == set(MIOU_CONVENTIONS)
 
 
 def class_names(dataset: str) -> tuple[str, ...]:
@@ -76,12 +83,15 @@ def load_prediction(path, shape, free_label: int) -> np.ndarray:
 class OccScore:
     """mIoU (camera mask) + geometry IoU + RayIoU (no mask) of one split, streamed."""
 
-    def __init__(self, dataset: str = "nuscenes", rayiou: bool = True):
+    def __init__(self, dataset: str = "nuscenes", rayiou: bool = True,
+                 miou_convention: str = "sparseocc"):
+        """miou_convention: "sparseocc" (a class absent from the GT is left out of the mean)
+        or "occ3d" (such a class, when predicted, counts with IoU 0); see metrics/miou.py."""
         self.dataset = dataset
         self.names = class_names(dataset)
         self.num_classes = len(self.names)
         self.free_label = self.num_classes
-        self.miou = MIoU(self.num_classes)
+        self.miou = MIoU(self.num_classes, miou_convention)
         self.rayiou = RayIoU(self.num_classes) if rayiou else None
 
     def add(self, pred, gt, mask_camera, origins=None) -> None:
@@ -96,11 +106,12 @@ class OccScore:
     def result(self) -> dict:
         """Report in percent (0..100), NaN as None (JSON null)::
 
-            {"mIoU", "RayIoU", "RayIoU@1", "RayIoU@2", "RayIoU@4", "IoU_geometry", "samples",
+            {"mIoU", "mIoU_convention", "RayIoU", "RayIoU@1", "RayIoU@2", "RayIoU@4",
+             "IoU_geometry", "samples",
              "per_class": {name: {"IoU", "RayIoU", "RayIoU@1", "RayIoU@2", "RayIoU@4"}}}
         """
         m = self.miou.result()
-        out = {"mIoU": _pct(m["mIoU"])}
+        out = {"mIoU": _pct(m["mIoU"]), "mIoU_convention": m["convention"]}
         per_class = {name: {"IoU": _pct(v)} for name, v in zip(self.names, m["per_class"])}
         if self.rayiou is not None:
             r = self.rayiou.result()
@@ -133,6 +144,8 @@ def format_table(result: dict) -> str:
             lines.append("-" * len(lines[0]))
         lines.append(f"{row[0]:<{width}}  " + "  ".join(f"{cell(v):>8}" for v in row[1:]))
     lines.append(f"geometry IoU (occupied vs free, camera mask): {cell(result['IoU_geometry'])}")
+    if "mIoU_convention" in result:
+        lines.append(f"mIoU convention: {MIOU_NOTES[result['mIoU_convention']]}")
     lines.append(f"samples: {result['samples']}")
     return "\n".join(lines)
 

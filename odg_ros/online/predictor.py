@@ -20,6 +20,7 @@ from ..config import ModelConfig
 from ..geometry import ego_warp
 from ..network.feature_ring import FeatureRing
 from ..network.outputs import ODGOutput
+from ..network.padding import pad_occupancy
 from ..network.postprocess import box_list, occupancy_grid
 from ..network.precision import precision_context
 from ..preprocess import normalize
@@ -129,6 +130,9 @@ class OnlinePredictor:
         timings["decoder"] = t3 - t2
 
         grid, confidence = occupancy_grid(output, self.cfg)
+        if self.cfg.occupancy_padding:
+            grid, confidence = pad_occupancy(grid, confidence, self.cfg.num_classes,
+                                             self.cfg.score_threshold)
         boxes = box_list(output, self.cfg)[0]
         grid, confidence = grid[0].cpu().numpy(), confidence[0].cpu().numpy()
         timings["postprocess"] = time.perf_counter() - t3

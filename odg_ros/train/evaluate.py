@@ -15,6 +15,7 @@ from ..geometry import inside_bev_range
 from ..metrics.detection import DetectionScore
 from ..metrics.rayiou import LidarOrigins
 from ..metrics.score import OccScore
+from ..network.padding import pad_occupancy
 from ..network.postprocess import box_list, occupancy_grid
 from .trainer import to_device
 
@@ -40,6 +41,14 @@ def add_box_sample(score: DetectionScore, output, batch, cfg) -> None:
               batch["gt_labels"][0].cpu().numpy())
 
 
+def predicted_grid(output, cfg) -> np.ndarray:
+    """The first sample's label grid uint8 [X, Y, Z], padded when cfg.occupancy_padding."""
+    labels, confidence = occupancy_grid(output, cfg)
+    if cfg.occupancy_padding:
+        labels, _ = pad_occupancy(labels, confidence, cfg.num_classes, cfg.score_threshold)
+    return labels[0].cpu().numpy()
+
+
 @torch.no_grad()
 def predict_split(model, dataset: OccDataset, limit: int | None = None, device="cpu",
                   workers: int = 0, progress: bool = True, desc: str = "eval",
@@ -59,19 +68,21 @@ def predict_split(model, dataset: OccDataset, limit: int | None = None, device="
 @torch.no_grad()
 def evaluate(model, cfg, infos, occ_root=None, save_pred: str | None = None, device="cpu",
              rayiou: bool = True, limit: int | None = None, progress: bool = True,
-             workers: int = 0, frames: int | None = None, **decode_options) -> dict:
+             workers: int = 0, frames: int | None = None, miou_convention: str = "sparseocc",
+             **decode_options) -> dict:
     """frames: history length fed to the model (<= cfg.num_frames; the model repeats the
-    oldest frame for the rest). decode_options go to ``ODG.decode`` (e.g. prune=...)."""
+    oldest frame for the rest). miou_convention: see metrics/miou.py. decode_options go to
+    ``ODG.decode`` (e.g. prune=...). The result also says whether the grid was padded."""
     data_cfg = cfg if frames is None else cfg.replace(num_frames=frames)
     dataset = OccDataset(infos, data_cfg, occ_root=occ_root, train=False)
-    score = OccScore(dataset.dataset, rayiou=rayiou)
+    score = OccScore(dataset.dataset, rayiou=rayiou, miou_convention=miou_convention)
     boxes = DetectionScore() if cfg.dynamic_queries else None
     origins = LidarOrigins(dataset.infos) if rayiou else None
     if save_pred:
         Path(save_pred).mkdir(parents=True, exist_ok=True)
     for index, batch, output in predict_split(model, dataset, limit, device, workers, progress,
                                               **decode_options):
-        grid = occupancy_grid(output, cfg)[0][0].cpu().numpy()
+        grid = predicted_grid(output, cfg)
         if save_pred:
             np.savez_compressed(Path(save_pred) / f"{batch['token'][0]}.npz", semantics=grid)
         if boxes is not None:
@@ -83,6 +94,7 @@ def evaluate(model, cfg, infos, occ_root=None, save_pred: str | None = None, dev
                   origins(index) if origins is not None else None)
     result = score.result()
     result["mIoU_dynamic"] = dynamic_class_miou(result)
+    result["occupancy_padding"] = bool(cfg.occupancy_padding)
     if boxes is not None:
         result["boxes"] = boxes.result()
     return result
