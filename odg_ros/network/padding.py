@@ -14,29 +14,42 @@ top one, this does not.
 from __future__ import annotations
 
 import torch
-import torch.nn.functional as F
+
+
+def _box_filter(grid: torch.Tensor, op) -> torch.Tensor:
+    """3x3x3 max (op = torch.maximum) or min filter of [N, X, Y, Z], voxels outside the grid
+    ignored; done as three 3-voxel passes, one per axis (the cube filter is separable)."""
+    for dim in (1, 2, 3):
+        n = grid.shape[dim]
+        out = grid.clone()
+        if n > 1:
+            ahead = out.narrow(dim, 1, n - 1)
+            op(ahead, grid.narrow(dim, 0, n - 1), out=ahead)
+            behind = out.narrow(dim, 0, n - 1)
+            op(behind, grid.narrow(dim, 1, n - 1), out=behind)
+        grid = out
+    return grid
 
 
 @torch.no_grad()
 def pad_occupancy(labels: torch.Tensor, confidence: torch.Tensor, num_classes: int,
                   score_threshold: float):
     """labels uint8 [B, X, Y, Z] (num_classes = free), confidence uint8 [B, X, Y, Z] (score x
-    255) -> the padded (labels, confidence), same shapes and dtypes."""
+    255) -> the padded (labels, confidence), same shapes and dtypes. The filters run on the
+    uint8 scores: max and min commute with the monotone map to [0, 1]."""
+    B, X, Y, Z = labels.shape
     occupied = labels != num_classes
-    score = confidence.float() / 255.0 * occupied
-    per_class = torch.zeros((labels.shape[0], num_classes, *labels.shape[1:]),
-                            dtype=torch.float32, device=labels.device)
+    confidence = torch.where(occupied, confidence, torch.zeros_like(confidence))
+    per_class = torch.zeros((B, num_classes, X, Y, Z), dtype=torch.uint8, device=labels.device)
     per_class.scatter_(1, labels.long().clamp(max=num_classes - 1).unsqueeze(1),
-                       score.unsqueeze(1))
-    dilated = F.max_pool3d(per_class, 3, stride=1, padding=1)       # the border pads with -inf
-    closed = -F.max_pool3d(-dilated, 3, stride=1, padding=1)
-    top, label = closed.max(dim=1)
-    keep = occupied & (score > score_threshold)
-    filled = ~keep & (top > score_threshold)
-    new_labels = torch.where(keep, labels, torch.where(filled, label.to(labels.dtype),
-                                                       torch.full_like(labels, num_classes)))
-    new_confidence = torch.where(
-        keep, confidence,
-        torch.where(filled, (top * 255).round().clamp(0, 255).to(confidence.dtype),
-                    torch.zeros_like(confidence)))
+                       confidence.unsqueeze(1))
+    per_class = per_class.view(B * num_classes, X, Y, Z)
+    closed = _box_filter(_box_filter(per_class, torch.maximum), torch.minimum)
+    top, label = closed.view(B, num_classes, X, Y, Z).max(dim=1)
+    keep = occupied & (confidence.float() / 255.0 > score_threshold)
+    filled = ~keep & (top.float() / 255.0 > score_threshold)
+    free = torch.full_like(labels, num_classes)
+    new_labels = torch.where(keep, labels, torch.where(filled, label.to(labels.dtype), free))
+    new_confidence = torch.where(keep | filled, torch.where(keep, confidence, top),
+                                 torch.zeros_like(confidence))
     return new_labels, new_confidence
