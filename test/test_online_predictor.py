@@ -54,6 +54,7 @@ def test_online_equals_offline_over_a_sequence():
     model, cfg = make_model()
     sets = make_sets(cfg, 4)
     predictor = OnlinePredictor(model, cfg, "cpu", max_gap=1.0, keep_output=True)
+    from odg_ros.network.padding import pad_occupancy
     from odg_ros.network.postprocess import box_list, occupancy_grid
     for i, s in enumerate(sets):
         online = predictor.step(*s)
@@ -64,6 +65,9 @@ def test_online_equals_offline_over_a_sequence():
             torch.testing.assert_close(a.logits, b.logits, atol=1e-4, rtol=1e-4)
             torch.testing.assert_close(a.boxes, b.boxes, atol=1e-4, rtol=1e-4)
         grid, confidence = occupancy_grid(reference, cfg)
+        if cfg.occupancy_padding:
+            grid, confidence = pad_occupancy(grid, confidence, cfg.num_classes,
+                                             cfg.score_threshold)
         occupied = (online.grid != 17).sum()
         assert occupied > 50                                     # a real comparison
         agree = (online.grid == grid[0].numpy()).mean()

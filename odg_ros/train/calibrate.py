@@ -18,8 +18,7 @@ import torch
 from ..data.dataset import OccDataset
 from ..metrics.detection import DetectionScore
 from ..metrics.score import OccScore
-from ..network.postprocess import occupancy_grid
-from .evaluate import add_box_sample, predict_split
+from .evaluate import add_box_sample, predict_split, predicted_grid
 
 DEFAULT_THRESHOLDS = tuple(round(float(t), 2) for t in np.arange(0.05, 0.951, 0.05))
 
@@ -47,8 +46,7 @@ def calibrate_thresholds(model, cfg, infos, thresholds=DEFAULT_THRESHOLDS,
         gt = batch["occ_semantics"][0].cpu().numpy()
         mask = batch["occ_mask_camera"][0].cpu().numpy().astype(bool)
         for threshold, score in scores.items():
-            grid = occupancy_grid(output, cfg.replace(score_threshold=threshold))[0][0]
-            score.add(grid.cpu().numpy(), gt, mask)
+            score.add(predicted_grid(output, cfg.replace(score_threshold=threshold)), gt, mask)
         used += 1
     if used == 0:
         raise ValueError("no calibration keyframe has occupancy ground truth")
