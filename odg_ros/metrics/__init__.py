@@ -1,4 +1,4 @@
-"""Occupancy metrics (docs/architecture.md sec. 6): voxel mIoU + geometry IoU (``miou``), RayIoU and its
+"""Occupancy metrics: voxel mIoU + geometry IoU (``miou``), RayIoU and its
 LiDAR origins (``rayiou``, ray casting in ``raycast``), split scoring and reports (``score``)."""
 from .miou import MIoU
 from .rayiou import LidarOrigins, RayIoU, lidar_origins

@@ -1,4 +1,4 @@
-"""Voxel mIoU of Occ3D occupancy (OPUS / SparseOcc evaluation convention, docs/architecture.md sec. 6).
+"""Voxel mIoU of Occ3D occupancy, in the SparseOcc / OPUS or the Occ3D convention.
 
 One (C+1) x (C+1) confusion matrix (rows = GT label, columns = predicted label; C semantic
 classes 0..C-1 and ``free`` = C) is summed over every voxel with mask_camera = 1 of every sample
