@@ -32,7 +32,7 @@ def test_history_resets_on_time_backwards_and_on_gap():
     assert history.push(frame(5.5)) == "time_backwards"        # same set twice
     assert history.push(frame(7.0)) == "gap"                   # 1.5 s without input
     assert len(history) == 1
-    assert history.resets == {"time_backwards": 2, "gap": 1}
+    assert history.resets == {"time_backwards": 2, "gap": 1, "teleport": 0}
 
 
 def test_mailbox_keeps_only_the_latest():

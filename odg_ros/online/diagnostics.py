@@ -19,14 +19,17 @@ OK, WARN, ERROR, STALE = 0, 1, 2, 3
 STAGES = ("decode_images", "backbone", "decoder", "postprocess", "publish")
 
 # Counters that are normal under load and do not raise the level on their own.
-LOAD_COUNTERS = ("stale_sets_dropped",)
+LOAD_COUNTERS = ("stale_sets_dropped", "tf_ignored", "tf_received", "tf_frames_forgotten")
+# Counters of inputs that arrived (not problems).
+INPUT_COUNTERS = ("sets_completed", "tf_received")
 
 
 class PipelineStats:
     """Thread-safe: outputs are recorded by the worker, status read by a timer."""
 
     def __init__(self, window: int = 100, rate_window_s: float = 5.0,
-                 stale_after_s: float = 5.0, clock=time.monotonic):
+                 stale_after_s: float = 5.0, clock=time.monotonic,
+                 max_tf_rate: float = float("inf")):
         self._lock = threading.Lock()
         self._clock = clock
         self._output_times: deque[float] = deque(maxlen=window)   # monotonic
@@ -35,7 +38,12 @@ class PipelineStats:
         self.rate_window_s = float(rate_window_s)
         self.stale_after_s = float(stale_after_s)
         self.outputs = 0
+        self.max_tf_rate = float(max_tf_rate)
         self._previous_counters: dict[str, int] = {}
+        self._started = clock()
+        # (clock, counters) of the reports of the last stale_after_s: what happened meanwhile
+        self._counter_history: deque[tuple[float, dict[str, int]]] = deque()
+        self._window_base: dict[str, int] = {}
 
     def record_output(self, image_stamp: float, now: float, timings: dict[str, float]) -> None:
         """One published result: its image stamp and the node clock ``now`` (seconds)."""
@@ -80,17 +88,47 @@ class PipelineStats:
         """A DiagnosticStatus as a dict: {'level', 'message', 'values': [(key, str)]}.
 
         OK while sets flow and nothing was skipped since the last call; WARN when sets were
-        skipped or dropped incomplete since the last call, or before the first output;
-        ERROR when outputs stopped for ``stale_after_s``.
+        skipped or dropped incomplete since the last call, before the first output, or when
+        /tf brings more than ``max_tf_rate`` transforms/s; ERROR when no output came for
+        ``stale_after_s`` (since the start or the last output) while inputs kept arriving,
+        with the dominant reason they were dropped over that time.
         """
         snap = self.snapshot()
+        now = self._clock()
         increased = {k: v - self._previous_counters.get(k, 0) for k, v in counters.items()
                      if v > self._previous_counters.get(k, 0)}
+        elapsed = now - self._counter_history[-1][0] if self._counter_history else 0.0
         self._previous_counters = dict(counters)
-        problems = {k: v for k, v in increased.items() if k not in LOAD_COUNTERS}
+        problems = {k: v for k, v in increased.items()
+                    if k not in LOAD_COUNTERS and k not in INPUT_COUNTERS}
         problem_text = ", ".join(f"{k}: {v}" for k, v in sorted(problems.items()))
 
-        if snap["outputs"] == 0:
+        # what happened over the last stale_after_s (the oldest report inside it as base)
+        while self._counter_history and now - self._counter_history[0][0] > self.stale_after_s:
+            self._window_base = self._counter_history.popleft()[1]
+        self._counter_history.append((now, dict(counters)))
+        base = self._window_base
+        window = {k: v - base.get(k, 0) for k, v in counters.items() if v > base.get(k, 0)}
+        arriving = any(k not in LOAD_COUNTERS for k in window)
+        silent_for = (snap["seconds_since_output"] if snap["outputs"]
+                      else now - self._started)
+        tf_rate = increased.get("tf_received", 0) / elapsed if elapsed > 0 else 0.0
+
+        if silent_for > self.stale_after_s and arriving:
+            level = ERROR
+            message = f"no output for {silent_for:.1f} s while inputs arrive"
+            drops = {k: v for k, v in window.items()
+                     if k not in LOAD_COUNTERS and k not in INPUT_COUNTERS}
+            if drops:
+                kind = max(drops, key=drops.get)
+                total = sum(drops.values())
+                message += (f": {100.0 * drops[kind] / total:.0f} % of dropped sets and "
+                            f"inputs were {kind} ({drops[kind]} of {total})")
+            elif window.get("sets_completed"):
+                message += ": sets complete but inference gives no output (see the log)"
+            else:
+                message += ": no complete camera set"
+        elif snap["outputs"] == 0:
             level = WARN
             message = "waiting for the first complete camera set"
             if problem_text:
@@ -106,6 +144,10 @@ class PipelineStats:
         else:
             level = OK
             message = f"running at {snap['rate_hz']:.1f} Hz"
+        if tf_rate > self.max_tf_rate:
+            level = max(level, WARN)
+            message += (f"; /tf flood: {tf_rate:.0f} transforms/s (> {self.max_tf_rate:.0f}), "
+                        f"{increased.get('tf_ignored', 0)} dropped unread as not needed")
 
         def fmt(value):
             return "n/a" if value is None else f"{value:.1f}"

@@ -15,10 +15,15 @@ BAD_INPUT_KINDS = (
     "wrong_image_size",     # decoded size differs from the CameraInfo
     "missing_camera_info",  # no CameraInfo received yet for a camera of the set
     "bad_camera_info",      # CameraInfo with a zero / non-finite K or zero size
+    "implausible_camera_info",  # focal length / principal point out of range for the size
     "bad_pose",             # NaN or non-orthonormal pose
+    "implausible_motion",   # pose sample faster / accelerating more than a car can: a glitch
+    "bad_tf",               # TF link that would close a loop
     "pose_miss",            # no pose at a camera stamp (outside the buffer + bound)
     "missing_extrinsics",   # no base_link -> camera transform
     "future_stamp",         # image stamp ahead of the node clock
+    "bad_stamp",            # header stamp that is no valid time (nanosec outside [0, 1e9))
+    "image_too_large",      # encoded header declares more pixels than max_image_pixels
     "unknown_camera",       # message from a camera not in the configured list
 )
 

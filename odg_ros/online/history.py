@@ -5,10 +5,13 @@ by the next k-1 decodes (the predictor keeps them in the model's FeatureRing). A
 what the decoder needs to look back at it: its ego pose, its ego->image matrices and its
 stamp. The history starts over when time runs
 backwards (a bag loop, a replayed set) or jumps forward by more than ``max_gap`` seconds
-(dropped input): frames across such a break would be warped with a meaningless ego motion.
+(dropped input), or when the ego moved between two frames faster than ``max_speed`` (a
+teleport: relocalisation): frames across such a break would be warped with a meaningless
+ego motion.
 """
 from __future__ import annotations
 
+import math
 from collections import deque
 from dataclasses import dataclass
 
@@ -36,13 +39,15 @@ class Frame:
 class FrameHistory:
     """Newest-first list of at most ``capacity`` frames."""
 
-    def __init__(self, capacity: int, max_gap: float = 1.0):
-        if capacity < 1 or not max_gap > 0:
-            raise ValueError(f"bad history settings: capacity={capacity}, max_gap={max_gap}")
+    def __init__(self, capacity: int, max_gap: float = 1.0, max_speed: float = math.inf):
+        if capacity < 1 or not max_gap > 0 or not max_speed > 0:
+            raise ValueError(f"bad history settings: capacity={capacity}, max_gap={max_gap}, "
+                             f"max_speed={max_speed}")
         self.capacity = int(capacity)
         self.max_gap = float(max_gap)
+        self.max_speed = float(max_speed)
         self._frames: deque[Frame] = deque(maxlen=self.capacity)
-        self.resets = {"time_backwards": 0, "gap": 0}
+        self.resets = {"time_backwards": 0, "gap": 0, "teleport": 0}
 
     def __len__(self) -> int:
         return len(self._frames)
@@ -60,6 +65,9 @@ class FrameHistory:
                 reason = "time_backwards"
             elif frame.stamp - newest > self.max_gap:
                 reason = "gap"
+            elif not (np.linalg.norm(frame.pose[:3, 3] - self._frames[0].pose[:3, 3])
+                      <= self.max_speed * (frame.stamp - newest)):
+                reason = "teleport"
         if reason is not None:
             self.resets[reason] += 1
             self._frames.clear()

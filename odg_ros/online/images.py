@@ -5,6 +5,10 @@ Decoding: ``sensor_msgs/CompressedImage`` payloads in JPEG or PNG (Pillow), and 
 ``BadInput`` with a specific kind (corrupt data, an encoding we do not decode, a size that
 disagrees with the CameraInfo), never a crash and never a silently wrong image.
 The resize/crop and the intrinsics adjustment are preprocess.py's, shared with training.
+
+The size of a compressed image is read from its header (JPEG SOF, PNG IHDR: Pillow's open
+reads no pixel data) and checked against the CameraInfo and ``max_pixels`` before anything
+is decoded: a small PNG of a huge blank image costs no memory.
 """
 from __future__ import annotations
 
@@ -16,6 +20,9 @@ from PIL import Image, UnidentifiedImageError
 
 from ..preprocess import adjust_intrinsics, draft_jpeg, resize_crop
 from .errors import BadInput
+
+# Decoded images larger than this are refused unread (16 MP: a 4K camera fits twice).
+DEFAULT_MAX_PIXELS = 4096 * 4096
 
 # raw encoding -> (channels, channel order to take RGB from)
 RAW_ENCODINGS = {
@@ -46,7 +53,17 @@ class EncodedImage:
     step: int = 0
 
 
-def _decode_pillow(data: bytes, fmt: str, reduce_for=None) -> tuple[np.ndarray, tuple[int, int]]:
+def _check_size(height: int, width: int, expected_hw, max_pixels: int) -> None:
+    if height * width > max_pixels:
+        raise BadInput("image_too_large", f"image header declares {height}x{width} (HxW) "
+                       f"= {height * width} pixels > max_image_pixels {max_pixels}")
+    if expected_hw is not None and (height, width) != tuple(expected_hw):
+        raise BadInput("wrong_image_size", f"image is {height}x{width} (HxW) but its "
+                       f"CameraInfo says {expected_hw[0]}x{expected_hw[1]}")
+
+
+def _decode_pillow(data: bytes, fmt: str, reduce_for=None, expected_hw=None,
+                   max_pixels: int = DEFAULT_MAX_PIXELS) -> tuple[np.ndarray, tuple[int, int]]:
     """-> (RGB array, original (H, W)). See decode_compressed / decode_for_input."""
     lowered = fmt.lower()
     if "compresseddepth" in lowered or "16uc" in lowered or "32fc" in lowered:
@@ -57,6 +74,7 @@ def _decode_pillow(data: bytes, fmt: str, reduce_for=None) -> tuple[np.ndarray, 
     try:
         with Image.open(io.BytesIO(data), formats=("JPEG", "PNG")) as image:
             width, height = image.size
+            _check_size(height, width, expected_hw, max_pixels)     # before any decoding
             if reduce_for is not None:
                 try:
                     draft_jpeg(image, reduce_for)
@@ -86,12 +104,14 @@ class _NoInputSize(Exception):
     """The image has a size no network input can be made of."""
 
 
-def decode_compressed(data: bytes, fmt: str = "") -> np.ndarray:
+def decode_compressed(data: bytes, fmt: str = "",
+                      max_pixels: int = DEFAULT_MAX_PIXELS) -> np.ndarray:
     """JPEG/PNG bytes -> HxWx3 uint8 RGB. Raises BadInput on corrupt or unsupported data."""
-    return _decode_pillow(data, fmt)[0]
+    return _decode_pillow(data, fmt, max_pixels=max_pixels)[0]
 
 
-def decode_raw(data: bytes, encoding: str, height: int, width: int, step: int) -> np.ndarray:
+def decode_raw(data: bytes, encoding: str, height: int, width: int, step: int,
+               max_pixels: int = DEFAULT_MAX_PIXELS) -> np.ndarray:
     """Raw ``sensor_msgs/Image`` buffer -> HxWx3 uint8 RGB."""
     if encoding not in RAW_ENCODINGS:
         raise BadInput("unsupported_encoding", f"raw encoding {encoding!r} is not supported; "
@@ -99,6 +119,7 @@ def decode_raw(data: bytes, encoding: str, height: int, width: int, step: int) -
     channels, order = RAW_ENCODINGS[encoding]
     if height <= 0 or width <= 0:
         raise BadInput("corrupt_image", f"raw image of size {height}x{width}")
+    _check_size(height, width, None, max_pixels)
     if step < width * channels:
         raise BadInput("corrupt_image", f"raw {encoding} step {step} < width*channels "
                        f"{width * channels}")
@@ -117,19 +138,23 @@ def decode(image: EncodedImage) -> np.ndarray:
     return decode_raw(image.data, image.format, image.height, image.width, image.step)
 
 
-def decode_for_input(image: EncodedImage, input_hw) -> tuple[np.ndarray, tuple[int, int]]:
+def decode_for_input(image: EncodedImage, input_hw, expected_hw=None,
+                     max_pixels: int = DEFAULT_MAX_PIXELS) -> tuple[np.ndarray, tuple[int, int]]:
     """Decode for a network input of size ``input_hw``: (RGB array, original (H, W)).
 
     JPEGs may come back reduced (preprocess.draft_jpeg) when that leaves the network input
     unchanged up to JPEG-level noise; pass the result to ``to_network_input`` with
-    ``original_hw``.
+    ``original_hw``. ``expected_hw`` (the CameraInfo's size) and ``max_pixels`` are checked
+    on the encoded header, before decoding.
     """
     if image.compressed:
         try:
-            return _decode_pillow(image.data, image.format, reduce_for=tuple(input_hw))
+            return _decode_pillow(image.data, image.format, reduce_for=tuple(input_hw),
+                                  expected_hw=expected_hw, max_pixels=max_pixels)
         except _NoInputSize as err:
             raise BadInput("wrong_image_size", str(err)) from None
-    rgb = decode_raw(image.data, image.format, image.height, image.width, image.step)
+    rgb = decode_raw(image.data, image.format, image.height, image.width, image.step,
+                     max_pixels)
     return rgb, tuple(rgb.shape[:2])
 
 

@@ -25,11 +25,11 @@ import numpy as np
 from ..geometry import is_rigid
 from .diagnostics import PipelineStats
 from .errors import BAD_INPUT_KINDS, BadInput
-from .images import EncodedImage, decode_for_input, to_network_input
+from .images import DEFAULT_MAX_PIXELS, EncodedImage, decode_for_input, to_network_input
 from .mailbox import LatestMailbox
 from .poses import PoseBuffer
 from .predictor import OnlinePredictor
-from .rig import CameraCalibration, check_intrinsics, set_ego2img
+from .rig import CameraCalibration, IntrinsicsRange, check_intrinsics, set_ego2img
 from .sync import CameraSet, CameraSetSync
 
 
@@ -37,13 +37,19 @@ from .sync import CameraSet, CameraSetSync
 class PipelineSettings:
     """slop: max stamp spread of one set (s); max_future: how far an image stamp may be
     ahead of the node clock (s); pose_max_extrapolation: beyond the pose buffer (s);
-    time_jump: a stamp this much older than the newest one means the source restarted (s)."""
+    time_jump: a stamp this much older than the newest one means the source restarted (s);
+    plausibility: intrinsics (CameraInfo), max_speed (m/s) / max_acceleration (m/s^2) of the
+    ego between poses, max_image_pixels of a decoded image."""
 
     camera_names: Sequence[str]
     slop: float = 0.05
     max_future: float = 0.5
     pose_max_extrapolation: float = 0.05
     time_jump: float = 1.0
+    intrinsics: IntrinsicsRange = IntrinsicsRange()
+    max_speed: float = 70.0
+    max_acceleration: float = 30.0
+    max_image_pixels: int = DEFAULT_MAX_PIXELS
 
 
 @dataclass
@@ -86,7 +92,9 @@ class OnlinePipeline:
         self.input_hw = tuple(predictor.cfg.image_size)
         self.extrinsics = extrinsics
         self.poses = PoseBuffer(max_extrapolation=settings.pose_max_extrapolation,
-                                time_jump=settings.time_jump)
+                                time_jump=settings.time_jump, max_speed=settings.max_speed,
+                                max_acceleration=settings.max_acceleration)
+        predictor.history.max_speed = settings.max_speed    # a teleport restarts the history
         self.pose_lookup = pose_lookup if pose_lookup is not None else self._buffer_lookup
         self.sync = CameraSetSync(self.camera_names, settings.slop, time_jump=settings.time_jump)
         self.mailbox = LatestMailbox()
@@ -129,7 +137,8 @@ class OnlinePipeline:
             raise self.count_bad_input(
                 BadInput("unknown_camera", f"camera {camera!r} is not configured"))
         try:
-            calibration = check_intrinsics(K, height, width, frame_id)
+            calibration = check_intrinsics(K, height, width, frame_id,
+                                           self.settings.intrinsics)
         except BadInput as error:
             raise self.count_bad_input(error) from None
         with self._input_lock:
@@ -182,7 +191,9 @@ class OnlinePipeline:
         def prepare(camera):
             image, _ = camera_set.payloads[camera]
             try:
-                rgb, original_hw = decode_for_input(image, self.input_hw)
+                rgb, original_hw = decode_for_input(image, self.input_hw,
+                                                    infos[camera].image_hw,
+                                                    self.settings.max_image_pixels)
                 return to_network_input(rgb, infos[camera].image_hw, infos[camera].intrinsics,
                                         self.input_hw, original_hw)
             except BadInput as error:
@@ -221,10 +232,13 @@ class OnlinePipeline:
         out["late_messages"] = sync["late_messages"]
         out["duplicate_messages"] = sync["duplicate_messages"]
         out["input_time_jumps"] = sync["time_jumps"]
+        out["sets_completed"] = sync["sets_emitted"]
+        out["pose_teleports"] = self.poses.teleports
         out["stale_sets_dropped"] = self.mailbox.dropped
         history_resets = self.predictor.history.resets
         out["history_resets_time_backwards"] = history_resets["time_backwards"]
         out["history_resets_gap"] = history_resets["gap"]
+        out["history_resets_teleport"] = history_resets["teleport"]
         return out
 
     def close(self) -> None:

@@ -6,6 +6,12 @@ buffered interval a pose is extrapolated (same formulas, constant velocity of th
 poses) only up to ``max_extrapolation`` seconds; farther is a pose miss, never a guess. Two
 neighbours farther apart than ``max_interpolation_gap`` (odometry dropped out) are a pose
 miss too.
+
+A sample that would make the ego move faster than ``max_speed`` or accelerate harder than
+``max_acceleration`` from its neighbours is a glitch: rejected (``implausible_motion``), so it
+is never interpolated into a camera pose. A jump that persists (``teleport_samples`` glitches
+in a row, consistent with each other: relocalisation, a new map) is a teleport: the buffer
+starts over from them (``teleports`` counts it).
 """
 from __future__ import annotations
 
@@ -68,17 +74,29 @@ def pose_from_xyz_xyzw(translation, quaternion_xyzw) -> np.ndarray:
 class PoseBuffer:
     """Time-sorted, bounded buffer of ego poses. Not thread-safe; the pipeline locks it."""
 
+    # Speeds are measured over at least this long: pose noise over a few milliseconds
+    # would otherwise look like an impossible speed.
+    MIN_MOTION_DT = 0.05
+
     def __init__(self, capacity: int = 2000, max_extrapolation: float = 0.05,
-                 max_interpolation_gap: float = 0.5, time_jump: float = 1.0):
-        if capacity < 2 or max_extrapolation < 0 or not max_interpolation_gap > 0:
+                 max_interpolation_gap: float = 0.5, time_jump: float = 1.0,
+                 max_speed: float = math.inf, max_acceleration: float = math.inf,
+                 teleport_samples: int = 3):
+        if capacity < 2 or max_extrapolation < 0 or not max_interpolation_gap > 0 \
+                or not max_speed > 0 or not max_acceleration > 0 or teleport_samples < 1:
             raise ValueError("bad pose buffer settings")
         self.capacity = int(capacity)
         self.max_extrapolation = float(max_extrapolation)
         self.max_interpolation_gap = float(max_interpolation_gap)
         self.time_jump = float(time_jump)
+        self.max_speed = float(max_speed)
+        self.max_acceleration = float(max_acceleration)
+        self.teleport_samples = int(teleport_samples)
         self._stamps: list[float] = []
         self._poses: list[np.ndarray] = []
+        self._suspects: list[tuple[float, np.ndarray]] = []   # consecutive rejected samples
         self.resets = 0
+        self.teleports = 0
 
     def __len__(self) -> int:
         return len(self._stamps)
@@ -86,6 +104,11 @@ class PoseBuffer:
     def clear(self) -> None:
         self._stamps.clear()
         self._poses.clear()
+        self._suspects.clear()
+
+    @property
+    def newest_stamp(self) -> float | None:
+        return self._stamps[-1] if self._stamps else None
 
     @property
     def span(self) -> tuple[float, float] | None:
@@ -103,6 +126,15 @@ class PoseBuffer:
         if self._stamps and stamp < self._stamps[-1] - self.time_jump:
             self.clear()        # time went backwards (bag loop): old poses are another run
             self.resets += 1
+        problem = self._implausible(stamp, T)
+        if problem is not None:
+            self._suspect(stamp, T, problem)
+            return
+        if self._suspects and stamp > self._suspects[-1][0]:
+            self._suspects.clear()      # back on track after a glitch
+        self._insert(stamp, T)
+
+    def _insert(self, stamp: float, T: np.ndarray) -> None:
         i = bisect.bisect_left(self._stamps, stamp)
         if i < len(self._stamps) and self._stamps[i] == stamp:
             self._poses[i] = T  # same stamp again: the newer message wins
@@ -112,6 +144,54 @@ class PoseBuffer:
         if len(self._stamps) > self.capacity:
             del self._stamps[0]
             del self._poses[0]
+
+    def _suspect(self, stamp: float, T: np.ndarray, problem: str) -> None:
+        """A rejected sample: a glitch, or one more step of a teleport that persists."""
+        if self._suspects and (stamp <= self._suspects[-1][0] or self._motion_problem(
+                *self._suspects[-1], stamp, T) is not None):
+            self._suspects.clear()      # not a continuation of the previous suspects
+        self._suspects.append((stamp, T))
+        if len(self._suspects) >= self.teleport_samples:
+            suspects = list(self._suspects)
+            self.clear()
+            for s, pose in suspects:
+                self._insert(s, pose)
+            self.teleports += 1
+            return
+        raise BadInput("implausible_motion", f"pose at t={stamp:.3f} rejected: {problem}")
+
+    def _motion_problem(self, t0: float, T0, t1: float, T1, v_before=None) -> str | None:
+        """Why going from (t0, T0) to (t1, T1) is not a car's motion, or None."""
+        dt = max(abs(t1 - t0), self.MIN_MOTION_DT)
+        velocity = (T1[:3, 3] - T0[:3, 3]) / dt * (1.0 if t1 >= t0 else -1.0)
+        speed = float(np.linalg.norm(velocity))
+        if not speed <= self.max_speed:
+            return f"{speed:.3g} m/s from the pose at t={t0:.3f} (max_speed {self.max_speed})"
+        if v_before is not None:
+            acceleration = float(np.linalg.norm(velocity - v_before)) / dt
+            if not acceleration <= self.max_acceleration:
+                return (f"{acceleration:.3g} m/s^2 after the pose at t={t0:.3f} "
+                        f"(max_acceleration {self.max_acceleration})")
+        return None
+
+    def _implausible(self, stamp: float, T: np.ndarray) -> str | None:
+        """Checks a new sample against its neighbours in time (either arrival order)."""
+        if math.isinf(self.max_speed) and math.isinf(self.max_acceleration):
+            return None
+        stamps, poses = self._stamps, self._poses
+        i = bisect.bisect_left(stamps, stamp)
+        j = i + 1 if i < len(stamps) and stamps[i] == stamp else i   # next neighbour
+        if i > 0:
+            v_before = None
+            if i > 1:
+                dt = max(stamps[i - 1] - stamps[i - 2], self.MIN_MOTION_DT)
+                v_before = (poses[i - 1][:3, 3] - poses[i - 2][:3, 3]) / dt
+            problem = self._motion_problem(stamps[i - 1], poses[i - 1], stamp, T, v_before)
+            if problem is not None:
+                return problem
+        if j < len(stamps):
+            return self._motion_problem(stamps[j], poses[j], stamp, T)
+        return None
 
     def lookup(self, stamp: float) -> np.ndarray:
         """``T_global_from_ego`` at ``stamp``; raises ``BadInput('pose_miss')`` if unknown."""

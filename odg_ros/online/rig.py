@@ -40,8 +40,21 @@ class Rig:
     cameras: dict[str, CameraCalibration]
 
 
-def check_intrinsics(K, height: int, width: int, frame_id: str = "") -> CameraCalibration:
-    """Validate a CameraInfo's K and size; raises ``BadInput('bad_camera_info')``."""
+@dataclass(frozen=True)
+class IntrinsicsRange:
+    """Plausible pinhole intrinsics for an image of width W and height H: fx and fy within
+    [min_focal, max_focal] * W (a 170 deg fisheye rectified to 0.1 W, a 5 deg tele lens at
+    11 W) and the principal point within ``principal_margin`` * size of the image."""
+
+    min_focal: float = 0.1
+    max_focal: float = 20.0
+    principal_margin: float = 0.5
+
+
+def check_intrinsics(K, height: int, width: int, frame_id: str = "",
+                     plausible: IntrinsicsRange | None = IntrinsicsRange()) -> CameraCalibration:
+    """Validate a CameraInfo's K and size; raises ``BadInput('bad_camera_info')`` for an
+    unusable one, ``BadInput('implausible_camera_info')`` for one out of ``plausible``."""
     K = np.asarray(K, dtype=np.float64).reshape(3, 3)
     where = f" (frame {frame_id!r})" if frame_id else ""
     if height <= 0 or width <= 0:
@@ -50,6 +63,18 @@ def check_intrinsics(K, height: int, width: int, frame_id: str = "") -> CameraCa
             or np.any(K[2, :2] != 0):
         raise BadInput("bad_camera_info", f"CameraInfo{where} has an unusable K "
                        f"(uncalibrated camera?): {K.ravel().tolist()}")
+    if plausible is not None:
+        fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+        lo, hi, margin = plausible.min_focal * width, plausible.max_focal * width, \
+            plausible.principal_margin
+        if not (lo <= fx <= hi and lo <= fy <= hi):
+            raise BadInput("implausible_camera_info", f"CameraInfo{where}: focal length "
+                           f"fx={fx:.4g}, fy={fy:.4g} px outside [{lo:.4g}, {hi:.4g}] for an "
+                           f"image {width} px wide")
+        if not (-margin * width <= cx <= (1 + margin) * width
+                and -margin * height <= cy <= (1 + margin) * height):
+            raise BadInput("implausible_camera_info", f"CameraInfo{where}: principal point "
+                           f"({cx:.4g}, {cy:.4g}) px far outside the {width}x{height} image")
     return CameraCalibration(frame_id=frame_id, image_hw=(int(height), int(width)), intrinsics=K)
 
 

@@ -39,6 +39,17 @@ import math
 from dataclasses import dataclass, field
 from typing import Any, Sequence
 
+from .errors import BadInput
+
+
+def stamp_to_seconds(sec: int, nanosec: int) -> float:
+    """A ``builtin_interfaces/Time`` in seconds; raises ``BadInput('bad_stamp')`` for one that
+    is no valid time (nanosec outside [0, 1e9)), which a reply would otherwise repeat."""
+    if not 0 <= nanosec < 1_000_000_000:
+        raise BadInput("bad_stamp", f"header stamp sec={sec}, nanosec={nanosec}: nanosec "
+                       "must be in [0, 1e9)")
+    return sec + nanosec * 1e-9
+
 
 @dataclass
 class CameraSet:

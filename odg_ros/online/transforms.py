@@ -3,14 +3,29 @@
 tf2_ros has no PyPI wheel, and the node needs only two kinds of lookups: the ego pose
 (e.g. map -> base_link, possibly through odom) at each camera stamp and the camera
 extrinsics (base_link -> camera frame, usually static). This buffer keeps the transform
-tree the TF messages describe (one parent per child, as TF requires): a static edge is one
-transform, a dynamic edge a PoseBuffer (interpolation + the same no-extrapolation bound as
-odometry). A lookup composes the edges along the path between the two frames, each at the
-requested stamp. Thread-safe.
+tree the TF messages describe (one parent per child, as TF requires) and composes the edges
+along the path between two frames, each at the requested stamp. Thread-safe.
+
+What a hostile or busy TF tree cannot do to it (tf2's rules where tf2 has one):
+
+* a link that would close a loop is rejected (``bad_tf``); the rest of the tree stays usable;
+* a frame's static and dynamic transforms are kept apart: a static transform stays valid for
+  good, a dynamic one (a PoseBuffer: interpolation, the no-extrapolation bound and the
+  motion plausibility checks of odometry) lives as long as it is updated, and the static one
+  wins where both exist, so a stray dynamic copy of a static link never replaces it;
+* a dynamic frame not updated for ``cache_time`` seconds (the buffer's duration, tf2's 10 s)
+  is forgotten, and at most ``max_static_frames`` static frames are kept: memory is bounded
+  whatever frame names arrive;
+* with ``wanted`` frames set (the frames looked up from: the ego frame and the camera frames),
+  only the dynamic transforms on their chains up the tree are converted and stored; every
+  other one is dropped by its child frame name before any arithmetic (``wants``) and counted
+  in ``counters['tf_ignored']``.
 """
 from __future__ import annotations
 
+import math
 import threading
+import time
 
 import numpy as np
 
@@ -18,57 +33,152 @@ from ..geometry import invert_transform, is_rigid
 from .errors import BadInput
 from .poses import PoseBuffer
 
+MAX_DEPTH = 64      # deeper than any real TF tree; a longer walk means a loop
+
 
 class TransformBuffer:
     def __init__(self, max_extrapolation: float = 0.05, time_jump: float = 1.0,
-                 capacity: int = 2000):
+                 capacity: int = 2000, cache_time: float = 10.0, max_static_frames: int = 1000,
+                 max_speed: float = math.inf, max_acceleration: float = math.inf,
+                 wanted=None, clock=time.monotonic):
         self.max_extrapolation = max_extrapolation
         self.time_jump = time_jump
         self.capacity = capacity
-        self._parent: dict[str, str] = {}                 # child -> parent
-        self._static: dict[str, np.ndarray] = {}          # child -> T_parent_from_child
-        self._dynamic: dict[str, PoseBuffer] = {}         # child -> buffer of T_parent_from_child
+        self.cache_time = float(cache_time)
+        self.max_static_frames = int(max_static_frames)
+        self.max_speed = max_speed
+        self.max_acceleration = max_acceleration
+        self._clock = clock
+        self._static: dict[str, tuple[str, np.ndarray]] = {}    # child -> (parent, T)
+        # child -> [parent, buffer of T_parent_from_child, clock of the last update]
+        self._dynamic: dict[str, list] = {}
+        self._wanted: frozenset[str] | None = None
+        self._needed: frozenset[str] | None = None      # child frames whose edges we keep
+        self._last_prune = clock()
+        self.counters = {"tf_received": 0, "tf_ignored": 0, "tf_frames_forgotten": 0,
+                         "pose_teleports": 0}
         self._lock = threading.Lock()
+        if wanted is not None:
+            self.set_wanted(wanted)
+
+    # ------------------------------------------------------------------------ filtering
+    def set_wanted(self, frames) -> None:
+        """The frames lookups start from (None: keep every transform)."""
+        with self._lock:
+            wanted = None if frames is None else frozenset(frames)
+            if wanted != self._wanted:
+                self._wanted = wanted
+                self._update_needed()
+
+    def wants(self, child: str) -> bool:
+        """Whether a dynamic transform to ``child`` is worth converting (cheap, no lock: a
+        frozenset read is atomic). Counts the ones that are not."""
+        needed = self._needed
+        self.counters["tf_received"] += 1
+        if needed is None or child in needed:
+            return True
+        self.counters["tf_ignored"] += 1
+        return False
+
+    def _update_needed(self) -> None:
+        if self._wanted is None:
+            self._needed = None
+            return
+        needed = set()
+        for frame in self._wanted:
+            for _ in range(MAX_DEPTH):
+                if frame in needed:
+                    break
+                needed.add(frame)
+                frame = self._parent_of(frame)
+                if frame is None:
+                    break
+        self._needed = frozenset(needed)
+
+    # --------------------------------------------------------------------------- adding
+    def _parent_of(self, child: str) -> str | None:
+        if child in self._static:
+            return self._static[child][0]
+        edge = self._dynamic.get(child)
+        return edge[0] if edge is not None else None
+
+    def _closes_loop(self, parent: str, child: str) -> bool:
+        frame = parent
+        for _ in range(MAX_DEPTH):
+            if frame == child:
+                return True
+            frame = self._parent_of(frame)
+            if frame is None:
+                return False
+        return True
 
     def add(self, parent: str, child: str, stamp: float, T_parent_from_child,
             static: bool = False) -> None:
-        """One transform of a TFMessage. Raises BadInput('bad_pose') if it is not rigid."""
+        """One transform of a TFMessage. Raises BadInput: 'bad_pose' if it is not rigid,
+        'bad_tf' if it would close a loop, 'implausible_motion' for a glitch sample."""
         T = np.asarray(T_parent_from_child, dtype=np.float64)
         if not parent or not child or parent == child:
-            raise BadInput("bad_pose", f"transform with frames {parent!r} -> {child!r}")
+            raise BadInput("bad_tf", f"transform with frames {parent!r} -> {child!r}")
         if not is_rigid(T):
             raise BadInput("bad_pose", f"transform {parent} -> {child} is not a finite rigid "
                            "transform")
         with self._lock:
-            if self._parent.get(child, parent) != parent:
-                # TF allows one parent per frame; a re-parented frame restarts its edge.
-                self._static.pop(child, None)
-                self._dynamic.pop(child, None)
-            self._parent[child] = parent
+            now = self._clock()
+            if now - self._last_prune > min(1.0, self.cache_time):
+                self._forget_stale(now)
+            if self._closes_loop(parent, child):
+                raise BadInput("bad_tf", f"link {parent} -> {child} would close a loop "
+                               "(rejected; the tree keeps its other links)")
             if static:
-                self._static[child] = T
-                self._dynamic.pop(child, None)
+                if child not in self._static and len(self._static) >= self.max_static_frames:
+                    self.counters["tf_ignored"] += 1
+                    return
+                self._static[child] = (parent, T)
             else:
-                buffer = self._dynamic.get(child)
-                if buffer is None:
-                    buffer = self._dynamic[child] = PoseBuffer(
-                        self.capacity, self.max_extrapolation, time_jump=self.time_jump)
-                self._static.pop(child, None)
-                buffer.add(stamp, T)
+                edge = self._dynamic.get(child)
+                if edge is None or edge[0] != parent:
+                    # a new frame, or TF re-parented it: its edge starts over
+                    edge = self._dynamic[child] = [parent, PoseBuffer(
+                        self.capacity, self.max_extrapolation, time_jump=self.time_jump,
+                        max_speed=self.max_speed, max_acceleration=self.max_acceleration),
+                        now]
+                edge[2] = now
+                buffer = edge[1]
+                teleports = buffer.teleports
+                try:
+                    buffer.add(stamp, T)
+                finally:
+                    self.counters["pose_teleports"] += buffer.teleports - teleports
+            if self._needed is not None and parent not in self._needed:
+                self._update_needed()
+
+    def _forget_stale(self, now: float) -> None:
+        stale = [c for c, edge in self._dynamic.items() if now - edge[2] > self.cache_time]
+        for child in stale:
+            del self._dynamic[child]
+        self.counters["tf_frames_forgotten"] += len(stale)
+        self._last_prune = now
+        if stale:
+            self._update_needed()
 
     def frames(self) -> set[str]:
         with self._lock:
             return self._frames_unlocked()
 
     def _frames_unlocked(self) -> set[str]:
-        return set(self._parent) | set(self._parent.values())
+        frames = set(self._static) | set(self._dynamic)
+        frames |= {p for p, _ in self._static.values()} | {e[0] for e in self._dynamic.values()}
+        return frames
 
+    # -------------------------------------------------------------------------- lookups
     def _chain_to_root(self, frame: str) -> list[str]:
         chain = [frame]
-        while chain[-1] in self._parent:
-            chain.append(self._parent[chain[-1]])
-            if len(chain) > 64:
-                raise BadInput("missing_extrinsics", f"TF loop at {frame!r}")
+        parent = self._parent_of(frame)
+        while parent is not None:
+            chain.append(parent)
+            if len(chain) > MAX_DEPTH:     # add() rejects loops; this only bounds the walk
+                raise BadInput("bad_tf", f"TF chain from {frame!r} deeper than {MAX_DEPTH}")
+            parent = self._parent_of(parent)
         return chain
 
     def _root_from(self, chain: list[str], stamp: float, kind: str) -> np.ndarray:
@@ -76,12 +186,13 @@ class TransformBuffer:
         T = np.eye(4)
         for child in chain[:-1]:
             if child in self._static:
-                edge = self._static[child]
+                edge = self._static[child][1]
             else:
+                parent, buffer, _ = self._dynamic[child]
                 try:
-                    edge = self._dynamic[child].lookup(stamp)
+                    edge = buffer.lookup(stamp)
                 except BadInput as error:
-                    raise BadInput(kind, f"TF {self._parent[child]} -> {child}: "
+                    raise BadInput(kind, f"TF {parent} -> {child}: "
                                    f"{error.message}") from None
             T = edge @ T
         return T
@@ -94,10 +205,14 @@ class TransformBuffer:
                 return np.eye(4)
             up_source = self._chain_to_root(source)
             up_target = self._chain_to_root(target)
-            common = next((f for f in up_source if f in set(up_target)), None)
+            targets = set(up_target)
+            common = next((f for f in up_source if f in targets), None)
             if common is None:
+                known = sorted(self._frames_unlocked())
+                shown = ", ".join(known[:20]) + (f", ... ({len(known)} in all)"
+                                                 if len(known) > 20 else "")
                 raise BadInput(kind, f"no TF path between {target!r} and {source!r} "
-                               f"(known frames: {sorted(self._frames_unlocked())})")
+                               f"(known frames: {shown})")
             to_common_source = up_source[:up_source.index(common) + 1]
             to_common_target = up_target[:up_target.index(common) + 1]
             common_from_source = self._root_from(to_common_source, stamp, kind)
