@@ -63,7 +63,8 @@ from ..online.images import EncodedImage
 from ..online.pipeline import OnlinePipeline, PipelineSettings
 from ..online.poses import pose_from_xyz_xyzw
 from ..online.predictor import OnlinePredictor
-from ..online.rig import load_rig
+from ..online.rig import IntrinsicsRange, load_rig
+from ..online.sync import stamp_to_seconds
 from ..online.transforms import TransformBuffer
 from ..resources import resource_path
 
@@ -88,7 +89,8 @@ TF_STATIC_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
 
 
 def stamp_seconds(stamp) -> float:
-    return stamp.sec + stamp.nanosec * 1e-9
+    """Raises BadInput('bad_stamp') for a stamp that is no valid time."""
+    return stamp_to_seconds(stamp.sec, stamp.nanosec)
 
 
 def _u8(data: bytes) -> array.array:
@@ -175,7 +177,14 @@ class OdgNode(Node):
                                     precision=p["precision"])
 
         # --- poses and extrinsics ---------------------------------------------------------
-        self.tf = TransformBuffer(max_extrapolation=float(p["max_pose_extrapolation"]))
+        self.tf = TransformBuffer(max_extrapolation=float(p["max_pose_extrapolation"]),
+                                  cache_time=float(p["tf_cache_time"]),
+                                  max_speed=float(p["max_speed"]),
+                                  max_acceleration=float(p["max_acceleration"]))
+        # /tf frames looked up from: the ego frame, and each camera's CameraInfo frame
+        self._tf_base = {p["base_frame"]} if p["pose_source"] == "tf" else set()
+        self._tf_cameras: dict[str, str] = {}
+        self.tf.set_wanted(self._tf_base)
         pose_lookup = None
         if p["pose_source"] == "tf":
             global_frame, base = p["global_frame"], p["base_frame"]
@@ -192,13 +201,20 @@ class OdgNode(Node):
             extrinsics = lambda camera, frame_id, t: self.tf.lookup(  # noqa
                 base, frame_id, t, "missing_extrinsics")
 
-        self.stats = PipelineStats()
+        self.stats = PipelineStats(stale_after_s=float(p["no_output_timeout"]),
+                                   max_tf_rate=float(p["max_tf_rate"]))
         self.internal_errors = 0
         self.pipeline = OnlinePipeline(
             predictor,
             PipelineSettings(cameras, slop=float(p["slop"]),
                              max_future=float(p["max_future_stamp"]),
-                             pose_max_extrapolation=float(p["max_pose_extrapolation"])),
+                             pose_max_extrapolation=float(p["max_pose_extrapolation"]),
+                             intrinsics=IntrinsicsRange(
+                                 float(p["min_focal_length"]), float(p["max_focal_length"]),
+                                 float(p["max_principal_point_offset"])),
+                             max_speed=float(p["max_speed"]),
+                             max_acceleration=float(p["max_acceleration"]),
+                             max_image_pixels=int(p["max_image_pixels"])),
             extrinsics, pose_lookup, self.stats)
         self._bad_input_loggers = {}
 
@@ -262,38 +278,58 @@ class OdgNode(Node):
             image = EncodedImage(False, msg.encoding, bytes(msg.data), msg.height, msg.width,
                                  msg.step)
         try:
-            self.pipeline.on_image(camera, stamp_seconds(msg.header.stamp), image,
-                                   self.now_seconds(), header=msg.header.stamp)
+            stamp = self._checked_stamp(msg.header.stamp)
+            self.pipeline.on_image(camera, stamp, image, self.now_seconds(),
+                                   header=msg.header.stamp)
         except BadInput as error:
             self.warn_bad_input(error)
 
+    def _checked_stamp(self, stamp) -> float:
+        try:
+            return stamp_seconds(stamp)
+        except BadInput as error:
+            raise self.pipeline.count_bad_input(error) from None
+
     def on_camera_info(self, camera: str, msg: CameraInfo) -> None:
         try:
+            self._checked_stamp(msg.header.stamp)
             self.pipeline.on_camera_info(camera, np.asarray(msg.k), msg.height, msg.width,
                                          msg.header.frame_id)
         except BadInput as error:
             self.warn_bad_input(error)
+            return
+        if self.params["extrinsics_source"] == "tf" and \
+                self._tf_cameras.get(camera) != msg.header.frame_id:
+            self._tf_cameras[camera] = msg.header.frame_id
+            self.tf.set_wanted(self._tf_base | set(self._tf_cameras.values()))
 
     def on_odometry(self, msg: Odometry) -> None:
         position, orientation = msg.pose.pose.position, msg.pose.pose.orientation
         try:
+            stamp = stamp_seconds(msg.header.stamp)
             T = pose_from_xyz_xyzw((position.x, position.y, position.z),
                                    (orientation.x, orientation.y, orientation.z, orientation.w))
         except BadInput as error:
             self.warn_bad_input(self.pipeline.count_bad_input(error))
             return
         try:
-            self.pipeline.on_pose(stamp_seconds(msg.header.stamp), T)
+            self.pipeline.on_pose(stamp, T)
         except BadInput as error:     # counted by the pipeline
             self.warn_bad_input(error)
 
     def on_tf(self, msg, static: bool) -> None:
+        wants = self.tf.wants
         for transform in msg.transforms:
+            # A busy tree: most dynamic transforms are off the chains we look up; drop them
+            # by name before converting anything (statics are few and kept, up to a cap).
+            if not static and not wants(transform.child_frame_id):
+                continue
             t, r = transform.transform.translation, transform.transform.rotation
             try:
+                stamp = stamp_seconds(transform.header.stamp)
                 T = pose_from_xyz_xyzw((t.x, t.y, t.z), (r.x, r.y, r.z, r.w))
-                self.tf.add(transform.header.frame_id, transform.child_frame_id,
-                            stamp_seconds(transform.header.stamp), T, static)
+                self.tf.add(transform.header.frame_id, transform.child_frame_id, stamp, T,
+                            static)
             except BadInput as error:
                 self.warn_bad_input(self.pipeline.count_bad_input(error))
 
@@ -388,6 +424,9 @@ class OdgNode(Node):
     # ----------------------------------------------------------------------- diagnostics
     def counters(self) -> dict[str, int]:
         counters = self.pipeline.counters()
+        tf_counters = dict(self.tf.counters)
+        tf_counters["pose_teleports"] += counters.pop("pose_teleports")
+        counters.update(tf_counters)
         counters["internal_errors"] = self.internal_errors
         return counters
 
@@ -452,6 +491,11 @@ def main(args=None) -> int:
         if node is not None:
             node.destroy_node()
         rclpy.try_shutdown()
+        # Shut down cleanly already: more signals change nothing. Ignore them rather than
+        # leave our handlers, which Python resets to the default (death by the signal) for
+        # its own teardown, where a supervisor's SIGTERM would land.
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, signal.SIG_IGN)
     return 0
 
 

@@ -11,6 +11,7 @@ listens to the outputs.
 from __future__ import annotations
 
 import io
+import itertools
 import signal
 import subprocess
 import sys
@@ -423,3 +424,36 @@ def test_latest_wins_under_a_slow_model_with_tf_sources(
     assert "RANDOM WEIGHTS" in log.read()           # asked for by name, still a loud warning
     print(f"{num_sets} sets published at 24 Hz, {outputs} processed, "
           f"{counters['stale_sets_dropped']} stale sets dropped")
+
+
+def test_signals_during_inference_and_shutdown_exit_cleanly(
+        ros_context, rclpy_module, start_node):
+    # Ctrl-C, then a supervisor's stop 0.3 s later, while the (slow, random-weight) CPU
+    # preset is inside a step, then more of both until the process is gone (one landing in
+    # the interpreter's own teardown, where Python has put back the default handlers, used
+    # to kill it with -15): a clean shutdown and exit status 0.
+    child, params, log = start_node("random", preset="odg_cpu")
+    h = Harness(rclpy_module, ros_context)
+    h.wait_for_node(child, log)
+    t0 = time.time() - 5.0
+    h.publish_infos()
+    h.publish_poses(t0 - 0.5, t0 + 1.0, t0)
+    h.spin_until(lambda: False, 0.3)
+    h.publish_set(t0 + 0.2, set_images(0))
+    assert h.spin_until(lambda: int(h.counters()[0].get("sets_completed", "0")) >= 1, 30,
+                        child, log), f"the set never completed: {h.counters()[0]}"
+    assert not h.received["grid"], "inference ended before the signals: nothing tested"
+    child.send_signal(signal.SIGINT)
+    time.sleep(0.3)
+    child.send_signal(signal.SIGTERM)
+    deadline = time.monotonic() + 30
+    for k in itertools.count():
+        if child.poll() is not None or time.monotonic() > deadline:
+            break
+        child.send_signal((signal.SIGINT, signal.SIGTERM)[k % 2])
+        time.sleep(0.01)
+    returncode = child.wait(timeout=5)
+    log.seek(0)
+    text = log.read()
+    assert returncode == 0, f"exit status {returncode}:\n{text}"
+    assert "Traceback" not in text
