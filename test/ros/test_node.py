@@ -457,3 +457,94 @@ def test_signals_during_inference_and_shutdown_exit_cleanly(
     text = log.read()
     assert returncode == 0, f"exit status {returncode}:\n{text}"
     assert "Traceback" not in text
+
+
+def tf_transform(h, parent, child_frame, t, T):
+    from geometry_msgs.msg import TransformStamped
+
+    from odg_ros.geometry import matrix_to_quaternion
+    msg = TransformStamped()
+    msg.header.stamp = h.stamp(t)
+    msg.header.frame_id, msg.child_frame_id = parent, child_frame
+    w, x, y, z = matrix_to_quaternion(T[:3, :3])
+    msg.transform.translation.x, msg.transform.translation.y, \
+        msg.transform.translation.z = T[:3, 3]
+    r = msg.transform.rotation
+    r.w, r.x, r.y, r.z = w, x, y, z
+    return msg
+
+
+def test_hostile_tf_and_bad_calibration_never_stop_the_node(
+        ros_context, rclpy_module, checkpoint, start_node):
+    """A TF loop, a stray dynamic copy of a static camera link, a busy tree of unneeded
+    frames, a CameraInfo with fx = fy = 1e300 and an image stamp with nanosec >= 1e9, all
+    between two clean sets: each is rejected and counted, and the next clean set gives the
+    grid of the offline model (as if no fault had happened)."""
+    child, params, log = start_node(checkpoint, pose_source="tf", extrinsics_source="tf")
+    h = Harness(rclpy_module, ros_context)
+    h.wait_for_node(child, log)
+    TFMessage = h.classes["TFMessage"]
+    t0 = time.time() - 10.0
+    h.tf_static.publish(TFMessage(transforms=[
+        tf_transform(h, "base_link", c, t0, RIG.cameras[c].sensor2ego) for c in CAMS]))
+
+    def publish_poses(t_from, t_to):
+        for t in np.arange(t_from, t_to, 0.02):
+            h.tf.publish(TFMessage(transforms=[tf_transform(h, "map", "base_link", float(t),
+                                                            pose_at(float(t), t0))]))
+            h.executor.spin_once(timeout_sec=0.001)
+
+    publish_poses(t0 - 0.5, t0 + 0.5)
+    h.publish_infos()
+    h.spin_until(lambda: False, 0.3)
+    sets = [(t0 + 0.2, set_images(0)), (t0 + 0.7, set_images(1))]
+    h.publish_set(*sets[0])
+    assert h.spin_until(lambda: len(h.received["grid"]) == 1, 60, child, log), \
+        f"no grid for the clean set: {h.counters()[0]}"
+
+    steady_rss = rss_mb(child.pid)
+
+    # the faults
+    h.tf.publish(TFMessage(transforms=[tf_transform(h, "base_link", "map", t0 + 0.4,
+                                                    np.eye(4))]))
+    h.tf.publish(TFMessage(transforms=[tf_transform(h, "base_link", "CAM_FRONT", t0 + 0.4,
+                                                    RIG.cameras["CAM_FRONT"].sensor2ego)]))
+    busy = TFMessage(transforms=[tf_transform(h, "world", f"fixed_{k}", t0, np.eye(4))
+                                 for k in range(250)])
+    for _ in range(4):
+        h.tf.publish(busy)
+    h.publish_infos(K_of=lambda c: np.diag([1e300, 1e300, 1.0]))
+    h.spin_until(lambda: False, 0.3)
+    h.publish_infos()
+    bad = h.classes["CompressedImage"](format="png", data=png(set_images(0)[0]))
+    bad.header.stamp.sec, bad.header.stamp.nanosec = int(t0) + 1, 1_500_000_000
+    h.images["CAM_FRONT"].publish(bad)
+    publish_poses(t0 + 0.5, t0 + 1.0)
+
+    def counted(kinds):
+        counters = h.counters()[0]
+        return all(int(counters.get(k, "0")) >= n for k, n in kinds.items())
+
+    faults = {"bad_tf": 1, "implausible_camera_info": 6, "bad_stamp": 1, "tf_ignored": 1000}
+    assert h.spin_until(lambda: counted(faults), 30, child, log), \
+        f"faults not all counted: {h.counters()[0]}"
+    h.publish_set(*sets[1])
+    assert h.spin_until(lambda: len(h.received["grid"]) == 2, 60, child, log), \
+        f"no grid after the faults: {h.counters()[0]}"
+    for msg, (grid, _) in zip(h.received["grid"], offline_grids(checkpoint, sets, t0)):
+        labels = np.frombuffer(bytes(msg.labels), np.uint8).reshape(grid.shape)
+        assert (labels != 17).sum() > 50
+        assert np.array_equal(labels, grid), f"{(labels != grid).sum()} voxels differ"
+    counters = h.counters()[0]
+    assert counters["missing_extrinsics"] == "0" and counters["pose_miss"] == "0"
+    assert rss_mb(child.pid) < steady_rss + 150, (steady_rss, rss_mb(child.pid))
+    print(f"node RSS {steady_rss:.0f} MB after the clean set, {rss_mb(child.pid):.0f} MB "
+          "after the faults and the next set")
+    assert child.poll() is None
+    log.seek(0)
+    assert "Traceback" not in log.read()
+
+
+def rss_mb(pid):
+    with open(f"/proc/{pid}/status") as f:
+        return next(int(line.split()[1]) for line in f if line.startswith("VmRSS")) / 1024
