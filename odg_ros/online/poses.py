@@ -147,7 +147,7 @@ class PoseBuffer:
 
     def _suspect(self, stamp: float, T: np.ndarray, problem: str) -> None:
         """A rejected sample: a glitch, or one more step of a teleport that persists."""
-        if self._suspects and (stamp <= self._suspects[-1][0] or self._motion_problem(
+        if self._suspects and (stamp <= self._suspects[-1][0] or self._speed_problem(
                 *self._suspects[-1], stamp, T) is not None):
             self._suspects.clear()      # not a continuation of the previous suspects
         self._suspects.append((stamp, T))
@@ -160,37 +160,39 @@ class PoseBuffer:
             return
         raise BadInput("implausible_motion", f"pose at t={stamp:.3f} rejected: {problem}")
 
-    def _motion_problem(self, t0: float, T0, t1: float, T1, v_before=None) -> str | None:
-        """Why going from (t0, T0) to (t1, T1) is not a car's motion, or None."""
+    def _speed_problem(self, t0: float, T0, t1: float, T1) -> str | None:
+        """Why going from (t0, T0) to (t1, T1) is faster than a car, or None."""
         dt = max(abs(t1 - t0), self.MIN_MOTION_DT)
-        velocity = (T1[:3, 3] - T0[:3, 3]) / dt * (1.0 if t1 >= t0 else -1.0)
-        speed = float(np.linalg.norm(velocity))
+        speed = float(np.linalg.norm(T1[:3, 3] - T0[:3, 3])) / dt
         if not speed <= self.max_speed:
             return f"{speed:.3g} m/s from the pose at t={t0:.3f} (max_speed {self.max_speed})"
-        if v_before is not None:
-            acceleration = float(np.linalg.norm(velocity - v_before)) / dt
-            if not acceleration <= self.max_acceleration:
-                return (f"{acceleration:.3g} m/s^2 after the pose at t={t0:.3f} "
-                        f"(max_acceleration {self.max_acceleration})")
         return None
 
     def _implausible(self, stamp: float, T: np.ndarray) -> str | None:
-        """Checks a new sample against its neighbours in time (either arrival order)."""
+        """Checks a new sample against its neighbours in time (either arrival order) for
+        speed and, when it is the newest, against the velocity before it for acceleration.
+        Velocities are taken over at least MIN_MOTION_DT, between real samples."""
         if math.isinf(self.max_speed) and math.isinf(self.max_acceleration):
             return None
         stamps, poses = self._stamps, self._poses
         i = bisect.bisect_left(stamps, stamp)
         j = i + 1 if i < len(stamps) and stamps[i] == stamp else i   # next neighbour
         if i > 0:
-            v_before = None
-            if i > 1:
-                dt = max(stamps[i - 1] - stamps[i - 2], self.MIN_MOTION_DT)
-                v_before = (poses[i - 1][:3, 3] - poses[i - 2][:3, 3]) / dt
-            problem = self._motion_problem(stamps[i - 1], poses[i - 1], stamp, T, v_before)
+            problem = self._speed_problem(stamps[i - 1], poses[i - 1], stamp, T)
             if problem is not None:
                 return problem
         if j < len(stamps):
-            return self._motion_problem(stamps[j], poses[j], stamp, T)
+            return self._speed_problem(stamps[j], poses[j], stamp, T)
+        a = bisect.bisect_right(stamps, stamp - self.MIN_MOTION_DT) - 1
+        b = bisect.bisect_right(stamps, stamps[a] - self.MIN_MOTION_DT) - 1 if a >= 0 else -1
+        if b < 0:
+            return None
+        v_new = (T[:3, 3] - poses[a][:3, 3]) / (stamp - stamps[a])
+        v_old = (poses[a][:3, 3] - poses[b][:3, 3]) / (stamps[a] - stamps[b])
+        acceleration = float(np.linalg.norm(v_new - v_old)) / (0.5 * (stamp - stamps[b]))
+        if not acceleration <= self.max_acceleration:
+            return (f"{acceleration:.3g} m/s^2 after the pose at t={stamps[a]:.3f} "
+                    f"(max_acceleration {self.max_acceleration})")
         return None
 
     def lookup(self, stamp: float) -> np.ndarray:

@@ -129,6 +129,29 @@ def test_a_pose_glitch_is_rejected_and_never_interpolated(offset):
     assert buffer.teleports == 0 and len(buffer) == 101
 
 
+def test_real_motion_with_noise_and_uneven_stamps_is_never_a_glitch():
+    """Ego poses at every camera stamp (6 within 42 ms, then a 41 ms gap), 1 cm of noise,
+    a car braking at 8 m/s^2 from 30 m/s, shuffled within each set."""
+    rng = np.random.default_rng(0)
+    buffer = PoseBuffer(max_speed=70.0, max_acceleration=30.0)
+    for k in range(40):
+        stamps = [k / 12 + o for o in (0.0, 0.008, 0.017, 0.025, 0.033, 0.042)]
+        for t in rng.permutation(stamps):
+            x = 30.0 * t - 4.0 * t * t
+            buffer.add(float(t), make_transform([1, 0, 0, 0], (x, 0.0, 0.0))
+                       @ make_transform([1, 0, 0, 0], rng.normal(0, 0.01, 3)))
+    assert len(buffer) == 240 and buffer.teleports == 0
+
+
+def test_a_jump_within_the_speed_limit_is_caught_by_the_acceleration():
+    buffer = PoseBuffer(max_speed=70.0, max_acceleration=30.0)
+    for t in np.arange(10.0, 11.0, 0.1):                      # 10 Hz at 10 m/s
+        buffer.add(float(t), pose_at(float(t)))
+    # 2 m ahead of where it should be: 30 m/s over the last 0.1 s, under max_speed
+    assert kind_of(buffer.add, 11.0, shifted(pose_at(11.0), 2.0)) == "implausible_motion"
+    buffer.add(11.0, pose_at(11.0))
+
+
 def test_a_teleport_that_persists_restarts_the_buffer_and_the_history():
     buffer = PoseBuffer(max_speed=70.0, max_acceleration=30.0, teleport_samples=3)
     for t in np.arange(10.0, 11.0, 0.02):
