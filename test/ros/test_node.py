@@ -479,7 +479,8 @@ def test_hostile_tf_and_bad_calibration_never_stop_the_node(
     """A TF loop, a stray dynamic copy of a static camera link, a busy tree of unneeded
     frames, a CameraInfo with fx = fy = 1e300 and an image stamp with nanosec >= 1e9, all
     between two clean sets: each is rejected and counted, and the next clean set gives the
-    grid of the offline model (as if no fault had happened)."""
+    grid of the offline model (as if no fault had happened). Then a /tf flood: sets still
+    give grids, the flood shows in diagnostics, RSS stays within 150 MB."""
     child, params, log = start_node(checkpoint, pose_source="tf", extrinsics_source="tf")
     h = Harness(rclpy_module, ros_context)
     h.wait_for_node(child, log)
@@ -537,9 +538,32 @@ def test_hostile_tf_and_bad_calibration_never_stop_the_node(
         assert np.array_equal(labels, grid), f"{(labels != grid).sum()} voxels differ"
     counters = h.counters()[0]
     assert counters["missing_extrinsics"] == "0" and counters["pose_miss"] == "0"
+
+    # A busy tree: 250 fixed frames at 20 Hz (5,000 transforms/s) with sets at 2 Hz. It used
+    # to starve the executor (0 grids for 16 sets on the loaded 2-core machine).
+    busy = TFMessage(transforms=[tf_transform(h, "world", f"fixed_{k}", t0, np.eye(4))
+                                 for k in range(250)])
+    start = time.time()
+    grids_before, sets_in_flood, next_set = len(h.received["grid"]), 0, start + 1.0
+    while time.time() < start + 4.0:
+        now = time.time()
+        h.tf.publish(busy)
+        for dt in (-0.04, -0.02, 0.0):
+            h.tf.publish(TFMessage(transforms=[tf_transform(h, "map", "base_link", now + dt,
+                                                            pose_at(now + dt, t0))]))
+        if now >= next_set:
+            h.publish_set(now - 0.142, set_images(sets_in_flood))
+            sets_in_flood, next_set = sets_in_flood + 1, next_set + 0.5
+        h.spin_until(lambda: False, max(0.0, 0.05 - (time.time() - now)))
+    h.spin_until(lambda: len(h.received["grid"]) - grids_before >= sets_in_flood - 1, 10)
+    grids_in_flood = len(h.received["grid"]) - grids_before
+    assert grids_in_flood >= sets_in_flood - 2, (grids_in_flood, sets_in_flood)
+    assert any("/tf flood" in status.message for array in h.received["diagnostics"]
+               for status in array.status), "the flood never showed in diagnostics"
     assert rss_mb(child.pid) < steady_rss + 150, (steady_rss, rss_mb(child.pid))
     print(f"node RSS {steady_rss:.0f} MB after the clean set, {rss_mb(child.pid):.0f} MB "
-          "after the faults and the next set")
+          f"after the faults and a /tf flood; {grids_in_flood} grids for {sets_in_flood} "
+          "sets during the flood")
     assert child.poll() is None
     log.seek(0)
     assert "Traceback" not in log.read()
