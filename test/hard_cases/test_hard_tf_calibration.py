@@ -332,3 +332,16 @@ def test_after_the_faults_stop_the_next_clean_set_gives_the_same_grid(model_and_
     assert np.array_equal(result.grid, expected.grid)
     counters = faulty.counters()
     assert counters["image_too_large"] == 1 and counters["implausible_camera_info"] == 1
+
+
+def test_odometry_glitches_are_rejected_and_counted_by_the_pipeline(model_and_cfg):
+    pipeline, _ = tf_pipeline(model_and_cfg)
+    for t in np.arange(10.0, 11.0, 0.02):
+        pipeline.on_pose(float(t), pose_at(float(t)))
+    with pytest.raises(BadInput) as error:
+        pipeline.on_pose(10.99, shifted(pose_at(10.99), -1000.0))
+    assert error.value.kind == "implausible_motion"
+    for t in np.arange(11.0, 11.1, 0.02):                     # a teleport that stays
+        kind_of(pipeline.on_pose, float(t), shifted(pose_at(float(t)), 1000.0))
+    counters = pipeline.counters()
+    assert counters["implausible_motion"] == 3 and counters["pose_teleports"] == 1
