@@ -36,9 +36,6 @@ def peak_mb() -> float:
 def bomb(protected: bool) -> dict:
     import numpy as np
     from PIL import Image
-
-    from odg_ros.online.errors import BadInput
-    from odg_ros.online.images import EncodedImage, decode_for_input
     buffer = io.BytesIO()
     Image.fromarray(np.zeros((8000, 8000), np.uint8)).save(buffer, format="PNG")
     data = buffer.getvalue()
