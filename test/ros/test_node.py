@@ -233,6 +233,7 @@ class Harness:
 def offline_grids(checkpoint, sets, t0):
     """The model run offline (every frame's features recomputed) on the same frames."""
     from odg_ros.network.checkpoint import load_model
+    from odg_ros.network.padding import pad_occupancy
     from odg_ros.network.postprocess import box_list, occupancy_grid
     model, cfg = load_model(checkpoint, device="cpu", score_threshold=0.0,
                             box_score_threshold=0.0)
@@ -256,7 +257,10 @@ def offline_grids(checkpoint, sets, t0):
                                                for f in chosen]), dtype=torch.float32)[None],
                         torch.tensor([chosen[0]["stamp"] - f["stamp"] for f in chosen],
                                      dtype=torch.float32)[None])
-        grid, _ = occupancy_grid(out, cfg)
+        grid, confidence = occupancy_grid(out, cfg)
+        if cfg.occupancy_padding:       # the node publishes the padded grid, as evaluated
+            grid, confidence = pad_occupancy(grid, confidence, cfg.num_classes,
+                                             cfg.score_threshold)
         grids.append((grid[0].numpy(), len(box_list(out, cfg)[0])))
     return grids
 
