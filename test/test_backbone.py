@@ -1,7 +1,8 @@
-"""ResNet layout: torchvision-compatible state_dict keys, frozen stage 1, BN in eval."""
+"""ResNet layout: torchvision-compatible state_dict keys, frozen stage 1, BN in eval (loading
+pretrained weights: test_backbone_weights.py)."""
 import torch
 
-from odg_ros.network.backbone import ResNet, load_torchvision_state_dict
+from odg_ros.network.backbone import ResNet
 
 # Parameter counts of torchvision's resnet18/34/50 minus their 1000-way fc layer.
 TORCHVISION_PARAMS_WITHOUT_FC = {"resnet18": 11_689_512 - 513_000,
@@ -48,32 +49,6 @@ def torchvision_layout(name):
 def test_parameter_counts_match_torchvision():
     for name, expected in TORCHVISION_PARAMS_WITHOUT_FC.items():
         assert sum(p.numel() for p in ResNet(name).parameters()) == expected, name
-
-
-def test_loads_a_torchvision_layout_checkpoint_from_file(tmp_path):
-    for name in ("resnet18", "resnet50"):
-        layout = torchvision_layout(name)
-        g = torch.Generator().manual_seed(1)
-        state = {k: (torch.randn(s, generator=g) if s else torch.tensor(7))
-                 for k, s in layout.items()}
-        path = tmp_path / f"{name}.pth"
-        torch.save(state, path)
-        model = ResNet(name)
-        ignored = load_torchvision_state_dict(model, path)
-        assert sorted(ignored) == ["fc.bias", "fc.weight"]
-        own = model.state_dict()
-        assert set(own) == set(layout) - {"fc.weight", "fc.bias"}
-        for k in own:
-            assert torch.equal(own[k], state[k]), k
-
-
-def test_wrong_checkpoint_is_rejected():
-    state = {k: torch.zeros(s) for k, s in torchvision_layout("resnet18").items()}
-    try:
-        load_torchvision_state_dict(ResNet("resnet50"), state)
-    except (KeyError, ValueError):
-        return
-    raise AssertionError("a resnet18 checkpoint loaded into a resnet50")
 
 
 def test_stage_one_frozen_and_batchnorm_in_eval():

@@ -48,8 +48,12 @@ def add_arguments(parser):
                         help="model config override, repeatable, e.g. --set das_attention=false "
                              "(the keys of model/odg_cpu.yaml; default: the preset as it is)")
     parser.add_argument("--backbone-weights", type=existing_file,
-                        help="torchvision-layout ResNet .pth to start from (default: the "
-                             "preset's backbone from scratch)")
+                        help="ResNet checkpoint to start the backbone from: torchvision, timm, "
+                             "or mmdetection/mmdet3d (backbone.* / img_backbone.* keys, e.g. "
+                             "nuImages Cascade Mask R-CNN); presets with frozen stages need it")
+    parser.add_argument("--backbone-from-scratch", action="store_true",
+                        help="no pretrained weights: unfreeze a preset's frozen stem/layer1 and "
+                             "train its BatchNorm statistics too")
     parser.add_argument("--init", type=existing_file,
                         help="start from this checkpoint's weights (default: fresh weights)")
     parser.add_argument("--checkpoint-every", type=positive_int, default=500,
@@ -67,7 +71,9 @@ def run(args) -> int:
                         render_pixels_per_camera=args.render_pixels, renderer=args.renderer,
                         history_grad=not args.no_history_grad,
                         checkpoint_every=args.checkpoint_every, device=args.device,
-                        backbone_weights=args.backbone_weights, init_checkpoint=args.init,
+                        backbone_weights=args.backbone_weights,
+                        backbone_from_scratch=args.backbone_from_scratch,
+                        init_checkpoint=args.init,
                         resume=args.resume)
     try:
         summary, rank = _fit(cfg, args.data, opts)

@@ -1,14 +1,12 @@
 """ResNet-18/34/50 image encoder with torchvision-compatible state_dict keys.
 
 A standard ImageNet checkpoint saved from torchvision (``conv1.weight``, ``layer1.0.bn1.*``,
-``layer2.0.downsample.0.weight``, ...) loads with ``load_torchvision_state_dict``; the
-classifier (``fc.*``) is ignored. As in OPUS/SparseBEV the stem and ``layer1`` are frozen
+``layer2.0.downsample.0.weight``, ...), timm or mmdetection loads with
+``backbone_weights.load_backbone_weights``. As in OPUS/SparseBEV the stem and ``layer1`` are frozen
 (``frozen_stages=1``) and every BatchNorm stays in eval mode, even while training; a backbone
 trained from scratch (the CPU preset) uses ``frozen_stages=-1, norm_eval=False`` instead.
 """
 from __future__ import annotations
-
-from pathlib import Path
 
 import torch
 from torch import nn
@@ -121,24 +119,3 @@ class ResNet(nn.Module):
             feats.append(x)
         return feats
 
-
-def load_torchvision_state_dict(backbone: ResNet, source) -> list[str]:
-    """Load a torchvision-layout state_dict (a dict or a ``.pth`` path). Returns ignored keys.
-
-    Raises on missing or mis-shaped backbone keys so a wrong checkpoint never loads silently.
-    """
-    state = torch.load(source, map_location="cpu", weights_only=True) if isinstance(
-        source, (str, Path)) else source
-    if "state_dict" in state and isinstance(state["state_dict"], dict):
-        state = state["state_dict"]
-    own = backbone.state_dict()
-    ignored = [k for k in state if k not in own]
-    missing = [k for k in own if k not in state]
-    if missing:
-        raise KeyError(f"checkpoint lacks {len(missing)} backbone keys, e.g. {missing[:3]}")
-    for k in own:
-        if own[k].shape != state[k].shape:
-            raise ValueError(f"{k}: checkpoint shape {tuple(state[k].shape)} "
-                             f"!= model shape {tuple(own[k].shape)}")
-    backbone.load_state_dict({k: state[k] for k in own})
-    return ignored

@@ -37,7 +37,7 @@ from ..data.batch import collate
 from ..data.dataset import OccDataset, replay_history_draws
 from ..losses.criterion import ODGCriterion
 from ..network import ODG
-from ..network.backbone import load_torchvision_state_dict
+from ..network.backbone_weights import backbone_start, load_backbone_weights
 from ..network.checkpoint import load_weights, read_checkpoint, save_checkpoint, tensor_bytes
 from .schedule import warmup_cosine
 
@@ -63,7 +63,8 @@ class TrainOptions:
     history_grad: bool = True             # False: no backbone gradient through past frames
     checkpoint_every: int = 500
     device: str = "auto"
-    backbone_weights: str | None = None   # torchvision-layout ResNet state_dict (.pth)
+    backbone_weights: str | None = None   # ResNet checkpoint (network/backbone_weights.py)
+    backbone_from_scratch: bool = False   # unfreeze a preset's frozen backbone (no weights)
     init_checkpoint: str | None = None    # start from these weights (not a resume)
     resume: bool = False
     progress: bool = True
@@ -189,6 +190,9 @@ class EpochSampler(torch.utils.data.distributed.DistributedSampler):
 class Trainer:
     def __init__(self, cfg: ModelConfig, infos, opts: TrainOptions):
         """``infos``: one infos path/dict, or a list of them (several dataroots train together)."""
+        cfg = backbone_start(cfg, opts.backbone_weights,
+                             weights_elsewhere=bool(opts.init_checkpoint or opts.resume),
+                             from_scratch=opts.backbone_from_scratch)
         self.cfg, self.opts = cfg, opts
         self.rank, self.world, local_rank = distributed_context()
         self.device = process_device(opts.device, local_rank)
@@ -210,7 +214,8 @@ class Trainer:
 
         self.model = ODG(cfg)
         if opts.backbone_weights:
-            load_torchvision_state_dict(self.model.backbone, opts.backbone_weights)
+            report = load_backbone_weights(self.model.backbone, opts.backbone_weights)
+            log.info("backbone weights %s: %s", opts.backbone_weights, report.summary())
         if opts.init_checkpoint:
             payload = read_checkpoint(opts.init_checkpoint)
             load_weights(self.model, payload["model"])
