@@ -159,6 +159,32 @@ def test_box_loss_hand_checked():
     assert codes.grad[0, 2].abs().sum() == 0          # unmatched prediction gets no L1 gradient
 
 
+def test_box_loss_normaliser_is_the_mean_matched_count_over_ddp_processes(monkeypatch):
+    """Under DDP (two processes: this one matched 2 boxes, the other 6) the loss is divided
+    by the mean count 4, not by this process's 2 (DETR), so DDP's gradient average weighs
+    every box alike; an all-reduce that finds no box anywhere still divides by 1."""
+    from odg_ros.losses import box as box_module
+    gt = torch.tensor([_box(10.0, 0.0), _box(-5.0, 3.0)])
+    labels = torch.tensor([0, 8])
+    codes = encode_boxes(torch.tensor([_box(-5.0, 3.5), _box(9.0, 0.0), _box(30.0, 30.0)]))[None]
+    logits = torch.full((1, 3, 10), -4.0)
+    alone = box_loss(codes, logits, [gt], [labels])
+    other_process = {"matched": 6.0}
+
+    def all_reduce(tensor):
+        tensor += other_process["matched"]
+    monkeypatch.setattr(box_module.dist, "is_initialized", lambda: True)
+    monkeypatch.setattr(box_module.dist, "get_world_size", lambda: 2)
+    monkeypatch.setattr(box_module.dist, "all_reduce", all_reduce)
+    shared = box_loss(codes, logits, [gt], [labels])
+    assert shared.num_matched == 2
+    assert shared.l1.item() == pytest.approx(alone.l1.item() * 2 / 4, rel=1e-6)
+    assert shared.focal.item() == pytest.approx(alone.focal.item() * 2 / 4, rel=1e-6)
+    other_process["matched"] = 0.0
+    empty = box_loss(codes, logits, [gt[:0]], [labels[:0]])
+    assert torch.isfinite(empty.focal) and empty.l1.item() == 0.0
+
+
 def test_box_loss_no_gt_is_focal_on_all_negatives():
     codes = torch.randn(2, 4, 10, requires_grad=True)
     logits = torch.randn(2, 4, 10, requires_grad=True)

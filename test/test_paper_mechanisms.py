@@ -76,6 +76,20 @@ def test_decoder_warps_dynamic_queries_by_velocity_and_every_query_by_ego_motion
     assert velocities[1].abs().max() > 0.1   # the test exercises a real velocity warp
 
 
+def test_initial_box_velocity_is_zero_and_detached():
+    """Layer 1 warps with the initial box velocity: it starts at zero (a still object, as
+    SparseBEV) and no loss moves it; the initial size and yaw do train."""
+    cfg = tiny_config()
+    model = ODG(cfg).train()
+    _, _, boxes = model.queries(1)
+    assert (boxes[..., 8:10] == 0).all()
+    out = model(*model_inputs(cfg, seed=6))
+    (out.layers[0].boxes.sum() + out.layers[0].means.sum() + out.last.logits.sum()).backward()
+    grad = model.queries.init_box.grad
+    assert (grad[:, 5:7] == 0).all()
+    assert grad[:, :5].abs().sum() > 0
+
+
 def test_das_attention_is_local_and_the_distance_bias_pulls_towards_near_queries():
     """With q = k = 0 the attention weights are softmax(-tau * distance): every query reads
     its own value most and a near query's far more than a far one's (float64 reference)."""

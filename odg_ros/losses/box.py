@@ -11,8 +11,9 @@ ours keeps x, y, z together -- same entries.)
 Loss per layer, as SparseBEV's nuScenes config (whose matcher and weights ODG's box head takes):
 * Hungarian matching (``matcher.py``);
 * L1 on the code of matched pairs, code weights (2, 2, 1, 1, 1, 1, 1, 1, 1, 1) -- twice the
-  weight on cx, cy -- loss weight 0.25, normalised by the number of matched GT in the batch
-  (at least 1);
+  weight on cx, cy -- loss weight 0.25, normalised by the number of matched GT in the batch,
+  averaged over the DDP processes as DETR does (at least 1), so that DDP's mean of the
+  processes' gradients weighs every matched box alike however the boxes fall on them;
 * sigmoid focal loss (gamma 2, alpha 0.25, weight 2.0) on the box class logits, one-hot targets
   for matched predictions and all-zero targets for the rest, same normaliser.
 GT code entries that are not finite (velocity missing in nuScenes) are left out of the L1 term
@@ -25,6 +26,7 @@ from dataclasses import dataclass
 from typing import Sequence
 
 import torch
+import torch.distributed as dist
 
 from .focal import FOCAL_ALPHA, FOCAL_GAMMA, one_hot_targets, sigmoid_focal_loss
 from .matcher import box_match_cost, hungarian_match
@@ -63,6 +65,16 @@ def check_gt_boxes(boxes: torch.Tensor, labels: torch.Tensor, num_classes: int) 
         raise ValueError("gt_boxes has a size <= 0")
     if labels.numel() and (labels.min() < 0 or labels.max() >= num_classes):
         raise ValueError(f"gt_labels outside [0, {num_classes})")
+
+
+def matched_normaliser(num_matched: int, device) -> float | torch.Tensor:
+    """This process's matched count, or under DDP the mean count over the processes (one
+    all-reduce); at least 1."""
+    if not (dist.is_available() and dist.is_initialized()) or dist.get_world_size() == 1:
+        return max(num_matched, 1)
+    count = torch.tensor(float(num_matched), device=device)
+    dist.all_reduce(count)
+    return (count / dist.get_world_size()).clamp(min=1.0)
 
 
 @dataclass
@@ -111,7 +123,7 @@ def box_loss(codes: torch.Tensor, logits: torch.Tensor, gt_boxes: Sequence[torch
             targets[pred_idx] = one_hot_targets(labels[gt_idx], num_classes, logits.dtype)
             num_matched += int(pred_idx.numel())
         focal_sum = focal_sum + sigmoid_focal_loss(logits[b], targets, alpha, gamma).sum()
-    norm = max(num_matched, 1)
+    norm = matched_normaliser(num_matched, codes.device)
     return BoxLossResult(l1=l1_weight * l1_sum / norm, focal=focal_weight * focal_sum / norm,
                          num_matched=num_matched, num_nonfinite_costs=num_bad_cost,
                          num_nonfinite_targets=num_bad_target)

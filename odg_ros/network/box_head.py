@@ -1,6 +1,9 @@
 """Box head on the dynamic queries (paper Eq. 13): a 10-d box code and 10 box class logits
-per dynamic query and layer. Boxes are refined layer by layer like SparseBEV: the new code
-is the previous (detached) code plus a predicted residual.
+per dynamic query and layer. Every layer refines all ten entries residually: the new code is
+the previous layer's (detached) code plus a predicted residual, from a zero-initialised last
+layer, so a new layer starts as the identity. SparseBEV refines only the centre this way and
+predicts size, yaw and velocity anew in every layer; a residual velocity here means the
+velocity that warps layer l + 1's sampling is layer l's estimate refined, never a fresh guess.
 
 Box code: (cx, cy, cz [m, current ego], log w, log l, log h, sin yaw, cos yaw, vx, vy [m/s]).
 """

@@ -2,8 +2,11 @@
 
 Every query has a feature vector and learnable initial Gaussian means, initialised from
 U[0, 1] of the grid range. Dynamic queries also carry box attributes (Eq. 3:
-log w, log l, log h, sin, cos, vx, vy; the box centre is the centroid of its means), also
-initialised from U[0, 1] as the paper says.
+log w, log l, log h, sin, cos, vx, vy; the box centre is the centroid of its means): the
+size and yaw terms learnable from U[0, 1] as the paper says, the velocity zero and detached
+as SparseBEV's: layer 1's velocity warp starts from a still object instead of a random
+0-1 m/s drift, and its residual velocity is the first estimate. (A checkpoint trained with
+a learnable initial velocity keeps its stored values; they just no longer train.)
 """
 from __future__ import annotations
 
@@ -23,6 +26,8 @@ class DualGaussianQueries(nn.Module):
         self.features = nn.Parameter(torch.zeros(num, embed_dims))
         self.init_points = nn.Parameter(torch.rand(num, 1, 3))        # normalised, U[0, 1]
         self.init_box = nn.Parameter(torch.rand(num_dynamic, 7))      # U[0, 1], paper Sec. 3.2
+        with torch.no_grad():
+            self.init_box[:, 5:7] = 0.0                                # vx, vy: see above
 
     def forward(self, batch_size: int):
         """-> features [B, Q, E], means [B, Q, 1, 3] metres, boxes [B, D, 10] or None."""
@@ -32,6 +37,7 @@ class DualGaussianQueries(nn.Module):
         boxes = None
         if self.num_dynamic:
             centre = means[:, :self.num_dynamic, 0]
-            attrs = self.init_box.unsqueeze(0).expand(batch_size, -1, -1)
+            attrs = torch.cat([self.init_box[:, :5], self.init_box[:, 5:7].detach()], dim=-1)
+            attrs = attrs.unsqueeze(0).expand(batch_size, -1, -1)
             boxes = torch.cat([centre, attrs], dim=-1)
         return features, means, boxes
