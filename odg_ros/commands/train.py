@@ -44,6 +44,8 @@ def add_arguments(parser):
     parser.add_argument("--no-history-grad", action="store_true",
                         help="backbone gradients through the current frame only (faster, "
                              "SparseBEV's stop_prev_grad)")
+    parser.add_argument("--no-augment", action="store_true",
+                        help="no data augmentation (flip, resize-and-crop, photometric)")
     parser.add_argument("--set", action="append", metavar="KEY=VALUE",
                         help="model config override, repeatable, e.g. --set das_attention=false "
                              "(the keys of model/odg_cpu.yaml; default: the preset as it is)")
@@ -69,7 +71,7 @@ def run(args) -> int:
                         backbone_lr_mult=args.backbone_lr_mult,
                         workers=args.workers, seed=args.seed, render=not args.no_render,
                         render_pixels_per_camera=args.render_pixels, renderer=args.renderer,
-                        history_grad=not args.no_history_grad,
+                        history_grad=not args.no_history_grad, augment=not args.no_augment,
                         checkpoint_every=args.checkpoint_every, device=args.device,
                         backbone_weights=args.backbone_weights,
                         backbone_from_scratch=args.backbone_from_scratch,

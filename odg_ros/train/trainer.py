@@ -33,6 +33,7 @@ from torch.nn.parallel import DistributedDataParallel
 from tqdm import tqdm
 
 from ..config import ModelConfig
+from ..data.augment import augment_batch
 from ..data.batch import collate
 from ..data.dataset import OccDataset, replay_history_draws
 from ..losses.criterion import ODGCriterion
@@ -61,6 +62,7 @@ class TrainOptions:
     render_pixels_per_camera: int = 512
     renderer: str = "torch"               # "gsplat": gsplat's CUDA rasteriser for the render loss
     history_grad: bool = True             # False: no backbone gradient through past frames
+    augment: bool = True                  # flip, resize-and-crop, photometric (data/augment.py)
     checkpoint_every: int = 500
     device: str = "auto"
     backbone_weights: str | None = None   # ResNet checkpoint (network/backbone_weights.py)
@@ -338,6 +340,8 @@ class Trainer:
         model = self.ddp or self.model
         model.train()
         batch = to_device(batch, self.device)
+        if self.opts.augment:
+            batch = augment_batch(batch, self.cfg.pc_range)
         self.optimizer.zero_grad(set_to_none=True)
         # BatchNorm statistics change in the forward pass already; a skipped step must leave
         # them as they were (a NaN batch would otherwise poison every later inference).
