@@ -194,9 +194,23 @@ def test_postprocess_ignores_nan_points_and_boxes_decode():
 
 
 def test_online_inputs_geometry_is_consistent():
+    """The benchmark's drive: 10 m/s straight ahead, so a static point x metres ahead now was
+    x + 10 dt ahead of the past ego; a point straight ahead of the front camera projects to
+    its image centre in every frame."""
+    from odg_ros.rig import ring_cameras
     cfg = tiny_config()
     _, e2i, warp, dt = online_inputs(cfg, 3, "cpu")
     assert e2i.shape == (1, 3, 6, 4, 4) and warp.shape == (1, 3, 4, 4) and dt.shape == (1, 3)
+    torch.testing.assert_close(dt[0], torch.tensor([0.0, 0.5, 1.0]))
+    mount = ring_cameras(cfg.image_size)[1][0][:3, 3]
+    point = torch.tensor([20.0, float(mount[1]), float(mount[2]), 1.0])
+    for t in range(3):
+        past = warp[0, t] @ point
+        torch.testing.assert_close(past, point + torch.tensor([10.0 * dt[0, t], 0, 0, 0]))
+        u, v, d = (e2i[0, t, 0] @ past)[:3]
+        H, W = cfg.image_size
+        torch.testing.assert_close(torch.stack([u / d, v / d]), torch.tensor([W / 2, H / 2]))
+        assert d == pytest.approx(20.0 + 10.0 * float(dt[0, t]) - float(mount[0]), rel=1e-5)
 
 
 def test_adaptive_pruning_drops_empty_queries_and_dynamic_queries_without_object():
