@@ -52,7 +52,8 @@ def add_arguments(parser):
     parser.add_argument("--backbone-weights", type=existing_file,
                         help="ResNet checkpoint to start the backbone from: torchvision, timm, "
                              "or mmdetection/mmdet3d (backbone.* / img_backbone.* keys, e.g. "
-                             "nuImages Cascade Mask R-CNN); presets with frozen stages need it")
+                             "nuImages Cascade Mask R-CNN; default: none, which presets "
+                             "with frozen stages refuse)")
     parser.add_argument("--backbone-from-scratch", action="store_true",
                         help="no pretrained weights: unfreeze a preset's frozen stem/layer1 and "
                              "train its BatchNorm statistics too")
