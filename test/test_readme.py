@@ -54,7 +54,9 @@ COMMANDS = {
         "the GPU install (a CUDA build of PyTorch from its registry)",
     "make setup": "part of make test / make demo",
     "rviz2 -d config/odg.rviz": "needs RViz; the file is checked by test_rviz_config",
-    "colcon build --packages-select odg_ros_msgs odg_ros": "needs a ROS 2 install",
+    "cd ~/ws && git clone <this repo> src/odg_ros": "a ROS 2 workspace",
+    "rosdep install --from-paths src src/odg_ros/msg -y --ignore-src": "needs a ROS 2 install",
+    "colcon build --base-paths src src/odg_ros/msg": "needs a ROS 2 install",
     "source install/setup.bash": "needs a ROS 2 install",
     "ros2 launch odg_ros odg.launch.py": "needs a ROS 2 install",
 }
