@@ -5,6 +5,11 @@ history). The ring keeps them laid out: each frame is written once, into the slo
 oldest one, when it is pushed; ``ODG.decode_ring`` samples the slots in place and reads them
 in time order through a frame index. Memory: ``capacity`` frames per level, allocated at the
 first push (the zero rows of the camera-rows layout are never written).
+
+Static shapes (the compiled online step): ``advance`` does the bookkeeping on the host and
+returns the slot to write; ``write_slot`` writes it with the slot in a device tensor and
+``all_levels`` gives all ``capacity`` slots whatever the fill level, so every step has the
+same shapes; the frame index says which slots the decoder reads.
 """
 from __future__ import annotations
 
@@ -35,6 +40,15 @@ class FeatureRing:
         """features: L levels [B, N, C, h, w] of the newest frame (``ODG.extract_features``).
         replace_newest: overwrite the newest frame instead of adding one (the online history
         keeps a frame only when it is far enough from the last one kept)."""
+        self.check(features)
+        slot = self.advance(replace_newest)
+        for f, memory in zip(features, self._memory):
+            per_slot = memory.shape[0] // self.capacity
+            camera_rows_layout([f.detach()], self.num_groups,
+                               out=memory[slot * per_slot:(slot + 1) * per_slot])
+
+    def check(self, features: list[torch.Tensor]) -> None:
+        """Allocate the memory for ``features`` at the first call; later ones must match."""
         shapes = [tuple(f.shape) for f in features]
         if self._memory is None:
             self._allocate(features)
@@ -43,13 +57,26 @@ class FeatureRing:
             raise ValueError(f"feature shapes {shapes} ({features[0].dtype} on "
                              f"{features[0].device}) differ from the ring's {self._shapes} "
                              f"({self._memory[0].dtype} on {self._memory[0].device})")
+
+    def advance(self, replace_newest: bool = False) -> int:
+        """Host bookkeeping of a push: -> the storage slot the newest frame goes to."""
         if not (replace_newest and self._count):
             self._head = (self._head + 1) % self.capacity
             self._count = min(self._count + 1, self.capacity)
+        return self._head
+
+    def write_slot(self, features: list[torch.Tensor], slot: torch.Tensor) -> None:
+        """Write ``features`` (as for ``push``) into storage slot ``slot`` (long [1], on the
+        device): the same shapes and no host read whichever slot it is."""
         for f, memory in zip(features, self._memory):
             per_slot = memory.shape[0] // self.capacity
-            camera_rows_layout([f.detach()], self.num_groups,
-                               out=memory[self._head * per_slot:(self._head + 1) * per_slot])
+            layout = camera_rows_layout([f.detach()], self.num_groups).permute(0, 2, 3, 1)
+            memory.view(self.capacity, per_slot, *memory.shape[1:]).index_copy_(
+                0, slot, layout.reshape(1, per_slot, *memory.shape[1:]).to(memory.dtype))
+
+    def all_levels(self) -> list[torch.Tensor]:
+        """L levels [capacity*B*G, c, N*(h+1), w] over every slot, filled or not."""
+        return [camera_rows_view(memory) for memory in self._memory or []]
 
     def slots(self) -> list[int]:
         """Storage slot of each cached frame, newest first."""

@@ -1,52 +1,75 @@
-"""Inference outputs (docs/architecture.md sec. 4): the Occ3D grid and the box list.
+"""Inference outputs: the Occ3D grid and the box list, with static shapes and no host sync.
 
 Grid: the last layer's points with max sigmoid score > threshold that lie within 3 m of
 their query's centroid are voxelised; scores are averaged per voxel; label = argmax;
-everything else is free (17). Only occupied voxels are touched (no dense class volume).
-Boxes: one per dynamic query, score = max box class probability.
+everything else is free (``free_label``, by default the class count: 17 on Occ3D-nuScenes,
+15 on Occ3D-Waymo). The points are grouped by voxel with a sort (no ``unique``: its output
+size would need a host read), dropped points go to one dummy voxel past the grid, and only
+the P = Q*K per-point segments carry class scores (no dense class volume).
+Boxes: one per dynamic query, score = max box class probability; on the device a fixed
+top-D tensor sorted by score with a valid mask, turned into dicts on the host.
 """
 from __future__ import annotations
 
 import math
 
+import numpy as np
 import torch
 
-from ..classes import BOX_CLASSES, FREE_LABEL
+from ..classes import BOX_CLASSES
 from ..config import ModelConfig
 from .outputs import ODGOutput
 
 
 @torch.no_grad()
-def occupancy_grid(output: ODGOutput, cfg: ModelConfig):
-    """-> labels uint8 [B, X, Y, Z] (17 = free), confidence uint8 [B, X, Y, Z] (0..255)."""
+def occupancy_grid(output: ODGOutput, cfg: ModelConfig, free_label: int | None = None):
+    """-> labels uint8 [B, X, Y, Z] (``free_label``, default cfg.num_classes, where empty),
+    confidence uint8 [B, X, Y, Z] (0..255)."""
     layer = output.last
-    means, scores = layer.means.float(), layer.logits.float().sigmoid()
-    B = means.shape[0]
+    labels, confidence = voxelise(layer.means, layer.logits, cfg,
+                                  cfg.num_classes if free_label is None else free_label)
+    B = labels.shape[0]
+    return labels.view(B, *cfg.grid_shape), confidence.view(B, *cfg.grid_shape)
+
+
+def voxelise(means: torch.Tensor, logits: torch.Tensor, cfg: ModelConfig, free_label: int):
+    """means [B, Q, K, 3], logits [B, Q, K, C] -> labels, confidence uint8 [B, X*Y*Z]."""
+    means, scores = means.float(), logits.float().sigmoid()
+    B, Q, K, C = scores.shape
     X, Y, Z = cfg.grid_shape
-    lo = torch.tensor(cfg.pc_range[:3], device=means.device)
+    cells = X * Y * Z                                  # index ``cells``: the dummy voxel
     centroid = means.mean(dim=2, keepdim=True)
-    best = scores.max(dim=-1).values
-    keep = (best > cfg.score_threshold) & (
+    keep = (scores.max(dim=-1).values > cfg.score_threshold) & (
         (means - centroid).norm(dim=-1) <= cfg.max_distance_to_centroid)
-    index = torch.floor((means - lo) / cfg.voxel_size).long()
-    inside = ((index >= 0) & (index < torch.tensor([X, Y, Z], device=means.device))).all(-1)
-    keep &= inside & torch.isfinite(means).all(-1)
-    labels = torch.full((B, X * Y * Z), FREE_LABEL, dtype=torch.uint8, device=means.device)
-    confidence = torch.zeros((B, X * Y * Z), dtype=torch.uint8, device=means.device)
-    for b in range(B):  # per sample: the number of kept points differs
-        idx = index[b][keep[b]]
-        if idx.numel() == 0:
-            continue
-        flat = (idx[:, 0] * Y + idx[:, 1]) * Z + idx[:, 2]
-        voxels, inverse = torch.unique(flat, return_inverse=True)
-        summed = torch.zeros(len(voxels), scores.shape[-1], device=means.device)
-        summed.index_add_(0, inverse, scores[b][keep[b]])
-        counts = torch.bincount(inverse, minlength=len(voxels)).unsqueeze(1)
-        mean_scores = summed / counts
-        top, label = mean_scores.max(dim=1)
-        labels[b, voxels] = label.to(torch.uint8)
-        confidence[b, voxels] = (top * 255).round().clamp(0, 255).to(torch.uint8)
-    return labels.view(B, X, Y, Z), confidence.view(B, X, Y, Z)
+    keep &= torch.isfinite(means).all(-1)
+    # per axis with Python scalars: a constant tensor would be a host-to-device copy
+    index = []
+    for axis, size in enumerate((X, Y, Z)):
+        i = torch.floor((means[..., axis] - cfg.pc_range[axis]) / cfg.voxel_size)
+        keep &= (i >= 0) & (i < size)
+        index.append(torch.where(keep, i, torch.zeros_like(i)).long())
+    flat = torch.where(keep, (index[0] * Y + index[1]) * Z + index[2],
+                       torch.full_like(index[0], cells)).view(B, Q * K)
+    scores = torch.where(keep.unsqueeze(-1), scores, torch.zeros_like(scores)).view(B, Q * K, C)
+    # a stable sort keeps each voxel's points in query order: the same summation order as
+    # adding them up point by point
+    voxel, order = torch.sort(flat, dim=1, stable=True)
+    starts = torch.ones_like(voxel, dtype=torch.bool)
+    starts[:, 1:] = voxel[:, 1:] != voxel[:, :-1]
+    segment = starts.long().cumsum(dim=1) - 1                         # [B, P] in 0..P-1
+    summed = torch.zeros_like(scores).scatter_add_(
+        1, segment.unsqueeze(-1).expand(-1, -1, C), scores.gather(1, order.unsqueeze(-1)
+                                                                  .expand(-1, -1, C)))
+    counts = torch.zeros(B, Q * K, device=means.device).scatter_add_(
+        1, segment, torch.ones_like(voxel, dtype=torch.float32))
+    segment_voxel = torch.full_like(voxel, cells).scatter_(1, segment, voxel)
+    top, label = (summed / counts.clamp(min=1).unsqueeze(-1)).max(dim=-1)
+    labels = torch.full((B, cells + 1), free_label, dtype=torch.uint8, device=means.device)
+    labels.scatter_(1, segment_voxel, label.to(torch.uint8))
+    confidence = torch.zeros((B, cells + 1), dtype=torch.uint8, device=means.device)
+    confidence.scatter_(1, segment_voxel,
+                        (top * 255).round().clamp(0, 255).to(torch.uint8))
+    return labels[:, :cells], confidence[:, :cells]
 
 
 def decode_box_code(code: torch.Tensor) -> torch.Tensor:
@@ -56,27 +79,38 @@ def decode_box_code(code: torch.Tensor) -> torch.Tensor:
     return torch.cat([code[..., :3], size, yaw.unsqueeze(-1), code[..., 8:10]], dim=-1)
 
 
+def ranked_boxes(boxes: torch.Tensor, box_logits: torch.Tensor, threshold: float):
+    """boxes [B, D, 10] codes, box_logits [B, D, C_box] -> every query's box sorted by score,
+    the ones that pass first: boxes [B, D, 9] (decoded), score [B, D], label [B, D],
+    valid [B, D] (score > threshold and a finite code and box)."""
+    score, label = box_logits.float().sigmoid().max(dim=-1)
+    decoded = decode_box_code(boxes.float())
+    # the code, not only the decoded box: the size clamp would turn an inf code into 50 m
+    valid = (score > threshold) & torch.isfinite(boxes.float()).all(-1) & \
+        torch.isfinite(decoded).all(-1)
+    key = torch.where(valid, score, torch.full_like(score, -1.0))    # scores are in [0, 1]
+    order = torch.argsort(key, dim=1, descending=True, stable=True)
+    return (decoded.gather(1, order.unsqueeze(-1).expand(-1, -1, decoded.shape[-1])),
+            score.gather(1, order), label.gather(1, order), valid.gather(1, order))
+
+
+def box_dicts(boxes: np.ndarray, score: np.ndarray, label: np.ndarray,
+              valid: np.ndarray) -> list[dict]:
+    """One sample of ``ranked_boxes`` on the host -> list of dicts {label, class_name, score,
+    center, size (w, l, h), yaw, velocity}, the valid ones, by score."""
+    return [{"label": int(label[i]), "class_name": BOX_CLASSES[int(label[i])],
+             "score": float(score[i]), "center": boxes[i, :3].tolist(),
+             "size": boxes[i, 3:6].tolist(), "yaw": float(boxes[i, 6]),
+             "velocity": boxes[i, 7:9].tolist()} for i in np.flatnonzero(valid)]
+
+
 @torch.no_grad()
 def box_list(output: ODGOutput, cfg: ModelConfig, score_threshold: float | None = None):
-    """-> per sample a list of dicts {label, class_name, score, center, size (w, l, h), yaw,
-    velocity}, sorted by score, for dynamic queries whose score passes the threshold."""
+    """-> per sample a list of dicts (``box_dicts``), sorted by score, for dynamic queries
+    whose score passes the threshold."""
     threshold = cfg.box_score_threshold if score_threshold is None else score_threshold
     layer = output.last
     if layer.boxes is None:
         return [[] for _ in range(layer.means.shape[0])]
-    probs = layer.box_logits.float().sigmoid()
-    score, label = probs.max(dim=-1)
-    boxes = decode_box_code(layer.boxes.float())
-    # the code, not only the decoded box: the size clamp would turn an inf code into 50 m
-    finite = torch.isfinite(layer.boxes.float()).all(-1) & torch.isfinite(boxes).all(-1)
-    result = []
-    for b in range(boxes.shape[0]):
-        keep = (score[b] > threshold) & finite[b]
-        order = torch.argsort(score[b][keep], descending=True)
-        sel_boxes, sel_score, sel_label = boxes[b][keep][order], score[b][keep][order], \
-            label[b][keep][order]
-        result.append([{
-            "label": int(l), "class_name": BOX_CLASSES[int(l)], "score": float(s),
-            "center": bx[:3].tolist(), "size": bx[3:6].tolist(), "yaw": float(bx[6]),
-            "velocity": bx[7:9].tolist()} for bx, s, l in zip(sel_boxes, sel_score, sel_label)])
-    return result
+    ranked = [t.cpu().numpy() for t in ranked_boxes(layer.boxes, layer.box_logits, threshold)]
+    return [box_dicts(*(t[b] for t in ranked)) for b in range(ranked[0].shape[0])]

@@ -1,15 +1,19 @@
 """Streaming inference: one camera set in, one occupancy grid + box list out.
 
-The backbone runs on the newest set only; its features are written once into the model's
-FeatureRing (already in the sampling layout) and the rolling history (history.py) keeps each
-set's pose, ego->image matrices and stamp. The decoder looks at the cached features of the
-last k sets, with the ego motion between them (ego_warp = P_t^-1 P_0) and their time
-differences. This gives the
-same result as running the model offline over the same k sets (test_online_predictor.py),
-at the cost of one backbone pass per set instead of k.
+The backbone runs on the newest set only; its features are written once into a FeatureRing
+(already in the sampling layout) and the rolling history (history.py) keeps each set's pose,
+ego->image matrices and stamp. The decoder looks at the cached features of the last k sets,
+with the ego motion between them (ego_warp = P_t^-1 P_0) and their time differences. This
+gives the same result as running the model offline over the same k sets
+(test_online_predictor.py), at the cost of one backbone pass per set instead of k.
+
+The device work of a step is one static-shape function (step.OnlineStep), run eagerly,
+compiled, or replayed as a CUDA graph (``compile``); the host packs the geometry into one
+buffer, copies it and the images up, and reads the results back with one wait.
 """
 from __future__ import annotations
 
+import logging
 import time
 from dataclasses import dataclass, field
 
@@ -18,19 +22,24 @@ import torch
 
 from ..config import ModelConfig
 from ..geometry import ego_warp
-from ..network.feature_ring import FeatureRing
 from ..network.outputs import ODGOutput
-from ..network.padding import pad_occupancy
-from ..network.postprocess import box_list, occupancy_grid
+from ..network.postprocess import box_dicts
 from ..network.precision import precision_context
-from ..preprocess import normalize
 from .history import Frame, FrameHistory
+from .step import MODES, OnlineStep
+
+LOG = logging.getLogger(__name__)
+# compile="auto": graphs on CUDA; on the CPU the mode measured fastest for odg_cpu
+# (docs/compiled_node.md)
+CPU_DEFAULT_MODE = "eager"
 
 
 @dataclass
 class Prediction:
-    """grid uint8 [X, Y, Z] labels (17 free); confidence uint8 [X, Y, Z] (0..255);
-    boxes: list of dicts (network.postprocess.box_list); timings: seconds per stage;
+    """grid uint8 [X, Y, Z] labels (the free label where empty); confidence uint8 [X, Y, Z] (0..255);
+    boxes: list of dicts (network.postprocess.box_dicts); timings: seconds per stage
+    (upload: geometry + images to the device; model: the device step; download: results
+    back and into Python objects);
     num_frames: frames the decoder saw; history_reset: why the history restarted, or None."""
 
     grid: np.ndarray
@@ -42,13 +51,26 @@ class Prediction:
     output: ODGOutput | None = field(default=None, repr=False)
 
 
+def resolve_mode(mode: str, device) -> str:
+    """compile parameter -> eager | compiled | graphs ("auto": graphs on CUDA)."""
+    device = torch.device(device)
+    if mode == "auto":
+        return "graphs" if device.type == "cuda" else CPU_DEFAULT_MODE
+    if mode not in MODES:
+        raise ValueError(f"compile {mode!r}: expected auto or one of {MODES}")
+    if mode == "graphs" and device.type != "cuda":
+        raise ValueError("compile=graphs replays CUDA graphs: it needs a CUDA device "
+                         "(use compiled or eager on the CPU)")
+    return mode
+
+
 class OnlinePredictor:
     """Not thread-safe: one worker thread calls ``step``."""
 
     def __init__(self, model: torch.nn.Module, cfg: ModelConfig, device: str | torch.device,
                  max_gap: float = 1.0, num_frames: int | None = None,
                  keep_output: bool = False, min_interval: float = 0.0,
-                 precision: str = "fp32"):
+                 precision: str = "fp32", compile: str = "eager"):
         """num_frames: history length k (current set included), at most cfg.num_frames
         (None = cfg.num_frames); max_gap: seconds between sets that restart the history;
         min_interval: seconds between the history frames kept, so the decoder sees the
@@ -57,7 +79,10 @@ class OnlinePredictor:
         ``min_interval`` after the last set kept, else the next set takes its place. So kept
         frames are >= min_interval apart, and frame 1 is 0..~2 x min_interval before frame 0
         (training draws 0.33-0.67 s). precision: fp32, or bf16 / fp16 autocast for the
-        backbone and decoder (network.precision; fp16 on CUDA only)."""
+        backbone and decoder (network.precision; fp16 on CUDA only). compile: eager,
+        compiled, graphs (CUDA) or auto (``resolve_mode``); the compile and the graph
+        capture happen here, at start-up (``startup_seconds``). The grid's free label is
+        the model's class count (cfg.num_classes)."""
         k = cfg.num_frames if num_frames is None else int(num_frames)
         if not 1 <= k <= cfg.num_frames:
             raise ValueError(f"history of {k} frames; the model takes 1..{cfg.num_frames}")
@@ -65,19 +90,80 @@ class OnlinePredictor:
         self.cfg = cfg
         self.device = torch.device(device)
         self.history = FrameHistory(k, max_gap)
-        self.ring = FeatureRing(k, cfg.num_groups)     # same capacity: slots follow history
         self.keep_output = keep_output   # tests compare the raw network output
         self.min_interval = float(min_interval)
         precision_context(precision, self.device)      # an unknown / unusable one fails here
         self.precision = precision
+        self.mode = resolve_mode(compile, self.device)
+        self.online_step = OnlineStep(model, cfg, k, self.device, precision)
+        self.ring = self.online_step.ring              # same capacity: slots follow history
+        self.layout = self.online_step.layout
+        cuda = self.device.type == "cuda"
+        H, W = cfg.image_size
+        # static inputs: the step (and a captured graph) always reads these device buffers
+        self._images_host = torch.zeros(cfg.num_cams, H, W, 3, dtype=torch.uint8,
+                                        pin_memory=cuda)
+        self._packed_host = torch.zeros(self.layout.size, pin_memory=cuda)
+        self._images = self._images_host.to(self.device)
+        self._packed = self._packed_host.to(self.device)
+        self._function = self.online_step
+        if self.mode != "eager":
+            self._function = torch.compile(self.online_step, fullgraph=True, dynamic=False)
+        self._graph = None
+        self._outputs = self._host_outputs = None
+        start = time.perf_counter()
+        self._warm_up()
+        self.startup_seconds = time.perf_counter() - start
+        LOG.info("online step: %s mode, start-up (compile / capture) %.1f s", self.mode,
+                 self.startup_seconds)
 
     def reset(self) -> None:
         self.history.clear()
         self.ring.clear()
 
-    def _sync(self) -> None:
-        if self.device.type == "cuda":
-            torch.cuda.synchronize(self.device)
+    @torch.inference_mode()
+    def _warm_up(self) -> None:
+        """Run the step on blank inputs (compiling it); for graphs, capture it after that.
+        The ring slot it writes is rewritten before any step reads it."""
+        k = self.layout.capacity
+        self.layout.pack(self._packed_host.numpy(), 0.0, np.broadcast_to(np.eye(4), (k, 4, 4)),
+                         0.0, 0, 0)
+        self._packed.copy_(self._packed_host)
+        if self.mode != "graphs":
+            self._function(self._images, self._packed)
+            return
+        side = torch.cuda.Stream(self.device)
+        side.wait_stream(torch.cuda.current_stream(self.device))
+        with torch.cuda.stream(side):
+            for _ in range(2):
+                self._function(self._images, self._packed)
+        torch.cuda.current_stream(self.device).wait_stream(side)
+        self._graph = torch.cuda.CUDAGraph()
+        with torch.cuda.graph(self._graph):
+            self._outputs = self._function(self._images, self._packed)
+
+    def _run(self):
+        """The device step on the static input buffers -> its output tensors."""
+        if self._graph is None:
+            return self._function(self._images, self._packed)
+        self._graph.replay()
+        return self._outputs
+
+    def _pack_geometry(self, frames, slots) -> None:
+        """History frames (newest first) stored in ring ``slots`` -> the packed buffer, in
+        storage-slot order; empty slots get the oldest frame's geometry (finite, never read)."""
+        current, oldest = frames[0], frames[-1]
+        k, N = self.layout.capacity, self.cfg.num_cams
+        ego2img = np.broadcast_to(oldest.ego2img, (k, N, 4, 4)).copy()
+        warps = np.broadcast_to(ego_warp(current.pose, oldest.pose), (k, 4, 4)).copy()
+        deltas = np.full(k, current.stamp - oldest.stamp)
+        for frame, slot in zip(frames, slots):
+            ego2img[slot] = frame.ego2img
+            warps[slot] = ego_warp(current.pose, frame.pose)
+            deltas[slot] = current.stamp - frame.stamp
+        frame_index = slots + [slots[-1]] * (self.cfg.num_frames - len(slots))
+        self.layout.pack(self._packed_host.numpy(), ego2img, warps, deltas, frame_index,
+                         slots[0])
 
     @torch.inference_mode()
     def step(self, images: np.ndarray, ego2img: np.ndarray, pose: np.ndarray,
@@ -88,18 +174,7 @@ class OnlinePredictor:
         if images.shape[1:] != (*self.cfg.image_size, 3) or N != self.cfg.num_cams:
             raise ValueError(f"images {images.shape}, expected [{self.cfg.num_cams}, "
                              f"{self.cfg.image_size[0]}, {self.cfg.image_size[1]}, 3]")
-        timings = {}
         t0 = time.perf_counter()
-        x = normalize(torch.from_numpy(np.ascontiguousarray(images)).to(self.device))
-        self._sync()
-        t1 = time.perf_counter()
-        timings["decode_images"] = t1 - t0
-        with precision_context(self.precision, self.device):
-            features = self.model.extract_features(x.unsqueeze(0))   # L x [1, N, C, h, w]
-        self._sync()
-        t2 = time.perf_counter()
-        timings["backbone"] = t2 - t1
-
         # the newest kept set is provisional while it is closer than min_interval to the one
         # before it: this set takes its place
         kept = self.history.frames()
@@ -109,33 +184,50 @@ class OnlinePredictor:
                                         stamp=float(stamp)), replace_newest=replace)
         if reset is not None:
             self.ring.clear()
-        self.ring.push(features, replace_newest=replace)
+        self.ring.advance(replace_newest=replace)
         frames = self.history.frames()
         assert len(frames) == len(self.ring)
-        current = frames[0]
-        warps = np.stack([ego_warp(current.pose, f.pose) for f in frames])
-        deltas = np.array([current.stamp - f.stamp for f in frames])
+        self._pack_geometry(frames, self.ring.slots())
+        self._images_host.numpy()[...] = images
+        self._images.copy_(self._images_host, non_blocking=True)
+        self._packed.copy_(self._packed_host, non_blocking=True)
+        t1 = time.perf_counter()
 
-        def as_tensor(array):
-            return torch.as_tensor(array, dtype=torch.float32, device=self.device)
+        cuda = self.device.type == "cuda"
+        if cuda:   # CUDA events: no synchronize inside the step
+            started, finished = (torch.cuda.Event(enable_timing=True) for _ in range(2))
+            started.record()
+        outputs = self._run()
+        if cuda:
+            finished.record()
+            for host, value in zip(self._host_outputs_for(outputs), outputs):
+                host.copy_(value, non_blocking=True)
+            copied = torch.cuda.Event()
+            copied.record()
+            copied.synchronize()                          # the step's only wait
+            outputs = self._host_outputs
+        t2 = time.perf_counter()
+        # copies of their own: the buffers are rewritten by the next step
+        labels, confidence, boxes, score, label, valid = (o.numpy().copy() for o in outputs)
+        X, Y, Z = self.cfg.grid_shape
+        boxes = box_dicts(boxes, score, label, valid)
+        model_seconds = started.elapsed_time(finished) / 1e3 if cuda else t2 - t1
+        timings = {"upload": t1 - t0, "model": model_seconds,
+                   "download": max(0.0, time.perf_counter() - t1 - model_seconds)}
+        return Prediction(grid=labels.reshape(X, Y, Z), confidence=confidence.reshape(X, Y, Z),
+                          boxes=boxes, timings=timings, num_frames=len(frames),
+                          history_reset=reset,
+                          output=self._raw_output() if self.keep_output else None)
 
+    def _host_outputs_for(self, outputs):
+        if self._host_outputs is None:
+            self._host_outputs = [torch.empty_like(o, device="cpu").pin_memory()
+                                  for o in outputs]
+        return self._host_outputs
+
+    def _raw_output(self) -> ODGOutput:
+        """The decoder's full output over the ring as the step just saw it (tests)."""
+        ego2img, warps, deltas, frame_index, _ = self.layout.unpack(self._packed)
         with precision_context(self.precision, self.device):
-            output = self.model.decode_ring(
-                self.ring,
-                as_tensor(np.stack([f.ego2img for f in frames]))[None],   # [1, T, N, 4, 4]
-                as_tensor(warps)[None],                                   # [1, T, 4, 4]
-                as_tensor(deltas)[None])                                  # [1, T]
-        self._sync()
-        t3 = time.perf_counter()
-        timings["decoder"] = t3 - t2
-
-        grid, confidence = occupancy_grid(output, self.cfg)
-        if self.cfg.occupancy_padding:
-            grid, confidence = pad_occupancy(grid, confidence, self.cfg.num_classes,
-                                             self.cfg.score_threshold)
-        boxes = box_list(output, self.cfg)[0]
-        grid, confidence = grid[0].cpu().numpy(), confidence[0].cpu().numpy()
-        timings["postprocess"] = time.perf_counter() - t3
-        return Prediction(grid=grid, confidence=confidence, boxes=boxes, timings=timings,
-                          num_frames=len(frames), history_reset=reset,
-                          output=output if self.keep_output else None)
+            return self.model._decode_stored(self.ring.all_levels(), ego2img, warps, deltas,
+                                             frame_index, False, None)

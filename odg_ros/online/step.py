@@ -1,0 +1,110 @@
+"""The online step as one function of static-shape device tensors (the node's compiled step).
+
+    images uint8 [N, H, W, 3] + packed geometry float32 [n]
+      -> normalise -> backbone -> ring slot write -> decoder over all k ring slots
+      -> grid (voxelise) + top-D boxes with a valid mask
+
+Every step has the same shapes and no host read, whatever the history's fill level: the
+decoder samples all ``capacity`` ring slots and a frame index (in the packed geometry) says
+which slot each of the model's time steps reads (a missing frame repeats the oldest); the
+geometry of an empty slot is the oldest frame's, so it stays finite. So one trace serves
+every step (``torch.compile(fullgraph=True)``) and the step can be replayed as a CUDA graph.
+
+Execution modes (``OnlinePredictor(compile=...)``):
+- eager: the step as plain PyTorch;
+- compiled: ``torch.compile(fullgraph=True, dynamic=False)`` (Inductor);
+- graphs: compiled, then captured once into a CUDA graph after a warm-up and replayed
+  (CUDA only): one launch per step instead of thousands of kernel launches.
+"""
+from __future__ import annotations
+
+import numpy as np
+import torch
+from torch import nn
+
+from ..config import ModelConfig
+from ..network.feature_ring import FeatureRing
+from ..network.padding import pad_occupancy
+from ..network.postprocess import ranked_boxes, voxelise
+from ..network.precision import precision_context
+from ..preprocess import IMAGENET_MEAN, IMAGENET_STD
+
+MODES = ("eager", "compiled", "graphs")
+
+
+class GeometryLayout:
+    """Offsets of the packed per-step geometry (one host-to-device copy per step):
+    ego2img [1, k, N, 4, 4], ego_warp [1, k, 4, 4], time_delta [1, k] in storage-slot order,
+    frame_index [num_frames] (slot read by each time step), slot [1] (the slot written)."""
+
+    def __init__(self, capacity: int, num_cams: int, num_frames: int):
+        self.capacity, self.num_cams, self.num_frames = capacity, num_cams, num_frames
+        sizes = {"ego2img": capacity * num_cams * 16, "ego_warp": capacity * 16,
+                 "time_delta": capacity, "frame_index": num_frames, "slot": 1}
+        self.slices, start = {}, 0
+        for name, size in sizes.items():
+            self.slices[name] = slice(start, start + size)
+            start += size
+        self.size = start
+
+    def pack(self, out: np.ndarray, ego2img, ego_warp, time_delta, frame_index, slot) -> None:
+        """Host arrays in storage-slot order -> ``out`` float32 [size] (indices are exact)."""
+        out[self.slices["ego2img"]] = np.asarray(ego2img).ravel()
+        out[self.slices["ego_warp"]] = np.asarray(ego_warp).ravel()
+        out[self.slices["time_delta"]] = np.asarray(time_delta).ravel()
+        out[self.slices["frame_index"]] = frame_index
+        out[self.slices["slot"]] = slot
+
+    def unpack(self, packed: torch.Tensor):
+        k, N = self.capacity, self.num_cams
+        part = {name: packed[s] for name, s in self.slices.items()}
+        return (part["ego2img"].view(1, k, N, 4, 4), part["ego_warp"].view(1, k, 4, 4),
+                part["time_delta"].view(1, k), part["frame_index"].long(), part["slot"].long())
+
+
+class OnlineStep(nn.Module):
+    """One online step over device tensors; holds the feature ring (written in place)."""
+
+    def __init__(self, model: nn.Module, cfg: ModelConfig, capacity: int, device,
+                 precision: str = "fp32"):
+        super().__init__()
+        self.model, self.cfg, self.precision = model, cfg, precision
+        self.free_label = cfg.num_classes           # Occ3D: free = the class count
+        self.device = torch.device(device)
+        self.layout = GeometryLayout(capacity, cfg.num_cams, cfg.num_frames)
+        self.register_buffer("mean", torch.tensor(IMAGENET_MEAN, device=device),
+                             persistent=False)
+        self.register_buffer("std", torch.tensor(IMAGENET_STD, device=device),
+                             persistent=False)
+        self.ring = FeatureRing(capacity, cfg.num_groups)
+        with torch.no_grad(), precision_context(precision, self.device):   # shapes only
+            H, W = cfg.image_size
+            zeros = torch.zeros(1, cfg.num_cams, 3, H, W, device=self.device)
+            self.ring.check(model.extract_features(zeros))
+
+    def forward(self, images: torch.Tensor, packed: torch.Tensor):
+        """images uint8 [N, H, W, 3]; packed float32 [layout.size] -> labels, confidence
+        uint8 [X*Y*Z]; boxes [D, 9], score [D], label [D], valid [D] (by score)."""
+        ego2img, ego_warp, time_delta, frame_index, slot = self.layout.unpack(packed)
+        x = ((images.float() / 255.0 - self.mean) / self.std).movedim(-1, -3).contiguous()
+        with precision_context(self.precision, self.device):
+            features = self.model.extract_features(x.unsqueeze(0))
+        self.ring.write_slot(features, slot)
+        with precision_context(self.precision, self.device):
+            output = self.model._decode_stored(self.ring.all_levels(), ego2img, ego_warp,
+                                               time_delta, frame_index, False, None)
+        layer = output.last
+        labels, confidence = voxelise(layer.means, layer.logits, self.cfg, self.free_label)
+        if self.cfg.occupancy_padding:      # static shapes too: filters over the whole grid
+            grid = (1, *self.cfg.grid_shape)
+            labels, confidence = (t.flatten(1) for t in pad_occupancy(
+                labels.view(grid), confidence.view(grid), self.free_label,
+                self.cfg.score_threshold))
+        if layer.boxes is None:                        # a model without dynamic queries
+            empty = layer.means.new_zeros(1, 0)
+            boxes, score = layer.means.new_zeros(1, 0, 9), empty
+            label, valid = empty.long(), empty.bool()
+        else:
+            boxes, score, label, valid = ranked_boxes(layer.boxes, layer.box_logits,
+                                                      self.cfg.box_score_threshold)
+        return labels[0], confidence[0], boxes[0], score[0], label[0], valid[0]
