@@ -68,11 +68,13 @@ class FeatureRing:
     def write_slot(self, features: list[torch.Tensor], slot: torch.Tensor) -> None:
         """Write ``features`` (as for ``push``) into storage slot ``slot`` (long [1], on the
         device): the same shapes and no host read whichever slot it is."""
+        G = self.num_groups
         for f, memory in zip(features, self._memory):
-            per_slot = memory.shape[0] // self.capacity
-            layout = camera_rows_layout([f.detach()], self.num_groups).permute(0, 2, 3, 1)
-            memory.view(self.capacity, per_slot, *memory.shape[1:]).index_copy_(
-                0, slot, layout.reshape(1, per_slot, *memory.shape[1:]).to(memory.dtype))
+            B, N, C, h, w = f.shape
+            rows = memory.view(self.capacity, B, G, N, h + 1, w, C // G)[:, :, :, :, 1:]
+            # the camera-rows layout of one frame, below the zero rows left as allocated
+            rows.index_copy_(0, slot, f.detach().view(B, N, G, C // G, h, w)
+                             .permute(0, 2, 1, 4, 5, 3).unsqueeze(0).to(memory.dtype))
 
     def all_levels(self) -> list[torch.Tensor]:
         """L levels [capacity*B*G, c, N*(h+1), w] over every slot, filled or not."""
