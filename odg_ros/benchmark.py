@@ -290,3 +290,61 @@ def bench_fast_paths(cfg: ModelConfig, device="cpu", iters: int = 5, warmup: int
                              "logits": float((last.logits.float() - reference.logits.float())
                                              .abs().max())}}
     return result
+
+
+def node_inputs(cfg: ModelConfig, num_sets: int, seed: int = 0):
+    """Camera sets as the node feeds its predictor: uint8 images, ego2img of a ring rig,
+    poses of a car driving 10 m/s straight ahead, 0.5 s apart."""
+    g = torch.Generator().manual_seed(seed)
+    H, W = cfg.image_size
+    ego2img = ring_ego2img(cfg.image_size, 1, cfg.num_cams)[0, 0].double().numpy()
+    sets = []
+    for k in range(num_sets):
+        pose = torch.eye(4, dtype=torch.float64)
+        pose[0, 3] = 5.0 * k
+        images = torch.randint(0, 256, (cfg.num_cams, H, W, 3), generator=g,
+                               dtype=torch.uint8).numpy()
+        sets.append((images, ego2img, pose.numpy(), 10.0 + 0.5 * k))
+    return sets
+
+
+def bench_node_step(cfg: ModelConfig, device="cpu", modes=("eager", "compiled"),
+                    iters: int = 5, warmup: int = 1, precision: str = "fp32",
+                    model: ODG | None = None, progress: bool = True) -> dict:
+    """``OnlinePredictor.step`` (what the node runs per camera set: upload, the device step,
+    download) in each execution mode, interleaved set by set over one stream of sets; the
+    history fills as in the node. Grids compared with the first mode's."""
+    from .online.predictor import OnlinePredictor
+    model = (model or ODG(cfg)).to(device).eval()
+    predictors = {}
+    for mode in modes:
+        predictors[mode] = OnlinePredictor(model, cfg, device, max_gap=1.0,
+                                           precision=precision, compile=mode)
+    sets = node_inputs(cfg, warmup + iters)
+    times = {mode: {"step": [], "upload": [], "model": [], "download": []} for mode in modes}
+    agreement = {mode: [] for mode in modes}
+    for i, camera_set in enumerate(tqdm(sets, desc=f"node step {cfg.name}",
+                                        disable=not progress)):
+        results = {}
+        for mode in modes:
+            start = time.perf_counter()
+            results[mode] = predictors[mode].step(*camera_set)
+            if i >= warmup:
+                times[mode]["step"].append((time.perf_counter() - start) * 1e3)
+                for stage, seconds in results[mode].timings.items():
+                    times[mode][stage].append(seconds * 1e3)
+        first = results[modes[0]].grid
+        for mode in modes:
+            agreement[mode].append(float((results[mode].grid == first).mean()))
+    reference = statistics.median(times[modes[0]]["step"])
+    return {"preset": cfg.name, "device": str(device), "iters": iters,
+            "threads": torch.get_num_threads(), "torch": torch.__version__,
+            "precision": precision, "input": [cfg.num_cams, 3, *cfg.image_size],
+            "frames": cfg.num_frames, "reference": modes[0],
+            "modes": {mode: {
+                "latency_ms": {k: round(statistics.median(v), 3) for k, v in
+                               times[mode].items()},
+                "fps": round(1e3 / statistics.median(times[mode]["step"]), 2),
+                "speedup": round(reference / statistics.median(times[mode]["step"]), 3),
+                "startup_s": round(predictors[mode].startup_seconds, 2),
+                "grid_agreement_min": min(agreement[mode])} for mode in modes}}

@@ -2,6 +2,8 @@
 
     odg bench --preset NAME [--device cpu|cuda] [--frames K] [--iters N] [--json]
               [--checkpoint CKPT] [--precision fp32|bf16|fp16] [--prune T] [--no-ring]
+    odg bench --compile eager,compiled[,graphs] --preset NAME
+                                                the node's step in each execution mode
     odg bench --fast-paths --preset NAME        each fast path against the plain path
     odg bench --sweep --data INFOS [--checkpoint CKPT] --out DIR [--limit N] [--configs ...]
 """
@@ -42,6 +44,10 @@ def add_arguments(parser):
                         help="first layer pruned after")
     parser.add_argument("--no-ring", action="store_true",
                         help="re-lay out the cached history every step (no FeatureRing)")
+    parser.add_argument("--compile", default=None, metavar="MODES",
+                        help="time the node's own step (OnlinePredictor.step) in these "
+                             "comma-separated execution modes (eager, compiled, graphs), "
+                             "interleaved; the first is the reference")
     parser.add_argument("--fast-paths", action="store_true",
                         help="compare each fast path with the plain path (random weights)")
     parser.add_argument("--sweep", action="store_true",
@@ -75,6 +81,8 @@ def run(args) -> int:
         args.iters = 3 if args.sweep else 5
     if args.sweep:
         return run_sweep_command(args)
+    if args.compile:
+        return run_compile_command(args)
     if args.fast_paths:
         result = bench_fast_paths(load_preset(args.preset), args.device, args.iters,
                                   args.warmup, progress=not args.json)
@@ -128,6 +136,38 @@ def run(args) -> int:
                 + f" {r['other']:7.2f} {r['total']:7.2f}")
         print(f"    outside the layers (history layout without a ring, pruning, Phi MLPs): "
               f"{lat['decoder_outside_layers']:.2f}")
+    return 0
+
+
+def run_compile_command(args) -> int:
+    from ..benchmark import bench_node_step
+    from ..network.checkpoint import load_model
+    from ..online.step import MODES
+    modes = tuple(m.strip() for m in args.compile.split(",") if m.strip())
+    unknown = [m for m in modes if m not in MODES]
+    if unknown or not modes:
+        raise SystemExit(f"odg bench --compile: unknown mode(s) {unknown}; expected a "
+                         f"comma-separated list of {MODES}")
+    if "graphs" in modes and args.device != "cuda":
+        raise SystemExit("odg bench --compile graphs: CUDA graphs need --device cuda")
+    model, cfg = load_model(args.checkpoint, preset=args.preset, device=args.device)
+    result = bench_node_step(cfg, args.device, modes, args.iters, args.warmup,
+                             args.precision, model, progress=not args.json)
+    result["weights"] = args.checkpoint or "random"
+    if args.json:
+        print(json.dumps(result, indent=2))
+        return 0
+    print(f"{result['preset']} on {result['device']} ({result['threads']} threads), "
+          f"{result['frames']} frames, input {result['input']}, {result['precision']}, "
+          f"weights {result['weights']}: the node's step, median of {result['iters']} "
+          f"interleaved sets")
+    print(f"  {'mode':<10}{'step ms':>9}{'model':>9}{'upload':>8}{'download':>9}{'FPS':>8}"
+          f"{'speedup':>8}{'start-up s':>11}{'grid =':>8}")
+    for mode, r in result["modes"].items():
+        lat = r["latency_ms"]
+        print(f"  {mode:<10}{lat['step']:9.1f}{lat['model']:9.1f}{lat['upload']:8.1f}"
+              f"{lat['download']:9.1f}{r['fps']:8.2f}{r['speedup']:8.2f}{r['startup_s']:11.1f}"
+              f"{r['grid_agreement_min']:8.4f}")
     return 0
 
 

@@ -8,6 +8,8 @@ trained from scratch (the CPU preset) uses ``frozen_stages=-1, norm_eval=False``
 """
 from __future__ import annotations
 
+import copy
+
 import torch
 from torch import nn
 
@@ -119,3 +121,25 @@ class ResNet(nn.Module):
             feats.append(x)
         return feats
 
+
+def folded_for_inference(backbone: ResNet) -> ResNet:
+    """An inference copy of ``backbone``: every BatchNorm (with its running statistics)
+    folded into the convolution before it, which gains a bias, and the weights in
+    channels-last memory, the layout the features run in (cuDNN / oneDNN then need no
+    weight re-layout per call). The original is left as it is (training keeps its BN)."""
+    from torch.nn.utils.fusion import fuse_conv_bn_eval
+    folded = copy.deepcopy(backbone).eval()
+    for module in list(folded.modules()):
+        for i in (1, 2, 3):
+            conv, bn = getattr(module, f"conv{i}", None), getattr(module, f"bn{i}", None)
+            if isinstance(conv, nn.Conv2d) and isinstance(bn, nn.BatchNorm2d):
+                setattr(module, f"conv{i}", fuse_conv_bn_eval(conv, bn))
+                setattr(module, f"bn{i}", nn.Identity())
+        if isinstance(module, nn.Sequential) and len(module) == 2 and \
+                isinstance(module[0], nn.Conv2d) and isinstance(module[1], nn.BatchNorm2d):
+            module[0] = fuse_conv_bn_eval(module[0], module[1])
+            module[1] = nn.Identity()
+    remaining = [m for m in folded.modules() if isinstance(m, nn.BatchNorm2d)]
+    if remaining:
+        raise RuntimeError(f"{len(remaining)} BatchNorm layers follow no convolution")
+    return folded.to(memory_format=torch.channels_last)

@@ -23,6 +23,7 @@ import torch
 from torch import nn
 
 from ..config import ModelConfig
+from ..network.backbone import folded_for_inference
 from ..network.feature_ring import FeatureRing
 from ..network.padding import pad_occupancy
 from ..network.postprocess import ranked_boxes, voxelise
@@ -76,19 +77,28 @@ class OnlineStep(nn.Module):
                              persistent=False)
         self.register_buffer("std", torch.tensor(IMAGENET_STD, device=device),
                              persistent=False)
+        self.backbone = folded_for_inference(model.backbone)
+        if self.device.type == "cuda":   # fixed shapes: cuDNN's measured fastest algorithms
+            torch.backends.cudnn.benchmark = True
         self.ring = FeatureRing(capacity, cfg.num_groups)
         with torch.no_grad(), precision_context(precision, self.device):   # shapes only
             H, W = cfg.image_size
-            zeros = torch.zeros(1, cfg.num_cams, 3, H, W, device=self.device)
-            self.ring.check(model.extract_features(zeros))
+            self.ring.check(self.features(torch.zeros(cfg.num_cams, 3, H, W,
+                                                      device=self.device)))
+
+    def features(self, images: torch.Tensor) -> list[torch.Tensor]:
+        """images [N, 3, H, W] normalised -> L levels [1, N, C, h, w]: ``ODG.extract_features``
+        with the folded channels-last backbone."""
+        x = images.contiguous(memory_format=torch.channels_last)
+        return [f.unsqueeze(0) for f in self.model.neck(self.backbone(x))]
 
     def forward(self, images: torch.Tensor, packed: torch.Tensor):
         """images uint8 [N, H, W, 3]; packed float32 [layout.size] -> labels, confidence
         uint8 [X*Y*Z]; boxes [D, 9], score [D], label [D], valid [D] (by score)."""
         ego2img, ego_warp, time_delta, frame_index, slot = self.layout.unpack(packed)
-        x = ((images.float() / 255.0 - self.mean) / self.std).movedim(-1, -3).contiguous()
+        x = ((images.float() / 255.0 - self.mean) / self.std).movedim(-1, -3)
         with precision_context(self.precision, self.device):
-            features = self.model.extract_features(x.unsqueeze(0))
+            features = self.features(x)
         self.ring.write_slot(features, slot)
         with precision_context(self.precision, self.device):
             output = self.model._decode_stored(self.ring.all_levels(), ego2img, ego_warp,

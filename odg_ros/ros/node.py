@@ -174,7 +174,9 @@ class OdgNode(Node):
         predictor = OnlinePredictor(model, cfg, device, max_gap=float(p["history_max_gap"]),
                                     num_frames=history,
                                     min_interval=float(p["history_interval"]),
-                                    precision=p["precision"])
+                                    precision=p["precision"], compile=p["compile"])
+        self.get_logger().info(f"online step: {predictor.mode} mode, start-up (compile, "
+                               f"capture) {predictor.startup_seconds:.1f} s")
 
         # --- poses and extrinsics ---------------------------------------------------------
         self.tf = TransformBuffer(max_extrapolation=float(p["max_pose_extrapolation"]),
