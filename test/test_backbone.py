@@ -1,5 +1,7 @@
 """ResNet layout: torchvision-compatible state_dict keys, frozen stage 1, BN in eval (loading
-pretrained weights: test_backbone_weights.py)."""
+pretrained weights: test_backbone_weights.py); the folded inference copy."""
+import copy
+
 import torch
 
 from odg_ros.network.backbone import ResNet
@@ -76,3 +78,31 @@ def test_from_scratch_backbone_trains_every_stage_and_its_batchnorm():
 def test_feature_strides():
     feats = ResNet("resnet18")(torch.randn(1, 3, 64, 128))
     assert [tuple(f.shape[-2:]) for f in feats] == [(16, 32), (8, 16), (4, 8), (2, 4)]
+
+
+def test_folded_backbone_equals_the_backbone_with_batchnorm():
+    """Non-trivial BN statistics and affine terms; float64 for the exact comparison, float32
+    (the runtime) within rounding; the original keeps its BatchNorm layers."""
+    from odg_ros.network.backbone import folded_for_inference
+    torch.manual_seed(0)
+    for name in ("resnet18", "resnet50"):
+        backbone = ResNet(name, frozen_stages=-1, norm_eval=False).eval()
+        for m in backbone.modules():
+            if isinstance(m, torch.nn.BatchNorm2d):
+                m.running_mean.uniform_(-0.5, 0.5)
+                m.running_var.uniform_(0.5, 2.0)
+                m.weight.data.uniform_(0.5, 1.5)
+                m.bias.data.uniform_(-0.2, 0.2)
+        folded = folded_for_inference(backbone)
+        assert not any(isinstance(m, torch.nn.BatchNorm2d) for m in folded.modules())
+        assert any(isinstance(m, torch.nn.BatchNorm2d) for m in backbone.modules())
+        assert folded.layer2[0].conv1.weight.is_contiguous(memory_format=torch.channels_last)
+        x = torch.randn(1, 3, 32, 64)
+        with torch.no_grad():
+            backbone64 = copy.deepcopy(backbone).double()
+            exact = backbone64(x.double())
+            for a, b in zip(folded_for_inference(backbone64)(x.double()), exact):
+                torch.testing.assert_close(a, b, atol=1e-9, rtol=1e-9)
+            for a, b in zip(folded(x), exact):
+                scale = b.abs().max()
+                assert ((a.double() - b).abs().max() / scale) < 1e-4
