@@ -95,7 +95,7 @@ class OnlinePredictor:
         precision_context(precision, self.device)      # an unknown / unusable one fails here
         self.precision = precision
         self.mode = resolve_mode(compile, self.device)
-        self.online_step = OnlineStep(model, cfg, k, self.device, precision)
+        self.online_step = OnlineStep(model, cfg, k, self.device, precision).eval()
         self.ring = self.online_step.ring              # same capacity: slots follow history
         self.layout = self.online_step.layout
         cuda = self.device.type == "cuda"
