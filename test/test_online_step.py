@@ -175,3 +175,14 @@ def test_static_postprocess_equals_the_loop_postprocess(classes):
         for a, b in zip(boxes, ref_boxes):
             assert [x["score"] for x in a] == [x["score"] for x in b]
             assert sorted(map(str, a)) == sorted(map(str, b))    # ties in any order
+
+
+def test_bench_times_the_predictor_step_per_mode():
+    from odg_ros.benchmark import bench_node_step
+    model, cfg = make_model()
+    result = bench_node_step(cfg, "cpu", ("eager",), iters=1, warmup=1, model=model,
+                             progress=False)
+    eager = result["modes"]["eager"]
+    assert set(eager["latency_ms"]) == {"step", "upload", "model", "download"}
+    assert eager["latency_ms"]["step"] >= eager["latency_ms"]["model"] > 0
+    assert eager["grid_agreement_min"] == 1.0 and eager["startup_s"] > 0
