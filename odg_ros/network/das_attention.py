@@ -30,15 +30,18 @@ class DaSAttention(nn.Module):
         """query [B, Q, E] (dynamic first), centroids [B, Q, 3] metres -> [B, Q, E]."""
         B, Q, E = query.shape
         H = self.num_heads
-        dist = torch.cdist(centroids, centroids)                       # [B, Q, Q]
-        tau = self.gen_tau(query).permute(0, 2, 1)                     # [B, H, Q]
-        bias = -dist.unsqueeze(1) * tau.unsqueeze(-1)                  # [B, H, Q, Q]
+        q, k, v = self.qkv(query).view(B, Q, 3, H, E // H).permute(2, 0, 3, 1, 4)
+        # the [B, H, Q, Q] bias is made directly in the attention's dtype: under bf16 / fp16
+        # autocast no float32 copy of it (4 bytes x heads x Q^2, ~740 MB per layer at 4,800
+        # queries and 8 heads) is written and read back before the cast
+        dist = torch.cdist(centroids, centroids).to(q.dtype)           # [B, Q, Q]
+        tau = self.gen_tau(query).permute(0, 2, 1).to(q.dtype)         # [B, H, Q]
+        bias = dist.unsqueeze(1) * -tau.unsqueeze(-1)                  # [B, H, Q, Q]
         if not self.mix_sets and 0 < num_dynamic < Q:
             is_dyn = torch.arange(Q, device=query.device) < num_dynamic
             cross = is_dyn[:, None] != is_dyn[None, :]
             bias = bias.masked_fill(cross, float("-inf"))
-        q, k, v = self.qkv(query).view(B, Q, 3, H, E // H).permute(2, 0, 3, 1, 4)
         out = F.scaled_dot_product_attention(
-            q, k, v, attn_mask=bias.to(q.dtype),
+            q, k, v, attn_mask=bias,
             dropout_p=self.dropout if self.training else 0.0)
         return self.proj(out.transpose(1, 2).reshape(B, Q, E))
