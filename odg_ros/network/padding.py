@@ -18,16 +18,15 @@ import torch
 
 def _box_filter(grid: torch.Tensor, op) -> torch.Tensor:
     """3x3x3 max (op = torch.maximum) or min filter of [N, X, Y, Z], voxels outside the grid
-    ignored; done as three 3-voxel passes, one per axis (the cube filter is separable)."""
+    ignored; done as three 3-voxel passes, one per axis (the cube filter is separable).
+    Out of place with the edge voxel as its own missing neighbour (op(v, v) = v), so the
+    online step traces it as one graph (no ``out=`` into strided views)."""
     for dim in (1, 2, 3):
         n = grid.shape[dim]
-        out = grid.clone()
         if n > 1:
-            ahead = out.narrow(dim, 1, n - 1)
-            op(ahead, grid.narrow(dim, 0, n - 1), out=ahead)
-            behind = out.narrow(dim, 0, n - 1)
-            op(behind, grid.narrow(dim, 1, n - 1), out=behind)
-        grid = out
+            before = torch.cat([grid.narrow(dim, 0, 1), grid.narrow(dim, 0, n - 1)], dim)
+            after = torch.cat([grid.narrow(dim, 1, n - 1), grid.narrow(dim, n - 1, 1)], dim)
+            grid = op(op(grid, before), after)
     return grid
 
 
