@@ -36,8 +36,8 @@ CPU_DEFAULT_MODE = "eager"
 
 @dataclass
 class Prediction:
-    """grid uint8 [X, Y, Z] labels (the free label where empty); confidence uint8 [X, Y, Z] (0..255);
-    boxes: list of dicts (network.postprocess.box_dicts); timings: seconds per stage
+    """grid uint8 [X, Y, Z] labels (free = cfg.num_classes); confidence uint8 [X, Y, Z]
+    (0..255); boxes: list of dicts (network.postprocess.box_dicts); timings: seconds per stage
     (upload: geometry + images to the device; model: the device step; download: results
     back and into Python objects);
     num_frames: frames the decoder saw; history_reset: why the history restarted, or None."""
