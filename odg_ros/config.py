@@ -7,6 +7,7 @@ from pathlib import Path
 
 import yaml
 
+from .classes import OccLabels, occ_labels
 from .resources import resource_path
 
 PRESET_NAMES = ("odg_t", "odg_l", "odg_cpu")
@@ -44,7 +45,8 @@ class ModelConfig:
     # grid / classes
     pc_range: tuple[float, ...] = (-40.0, -40.0, -1.0, 40.0, 40.0, 5.4)
     voxel_size: float = 0.4
-    num_classes: int = 17
+    dataset: str = "nuscenes"            # label set: nuscenes (0..16, 17 free) | waymo (0..14, 15 free)
+    num_classes: int = 17                # classes without free; must match the dataset's label set
     num_box_classes: int = 10
     # post-processing (docs/architecture.md sec. 4)
     score_threshold: float = 0.5
@@ -64,8 +66,20 @@ class ModelConfig:
         if self.fpn_channels != self.embed_dims:
             raise ValueError("fpn_channels must equal embed_dims: sampled features are mixed "
                              "in the query's channel groups")
+        if self.num_classes != occ_labels(self.dataset).num_classes:
+            raise ValueError(f"num_classes={self.num_classes} does not match the {self.dataset} "
+                             f"label set ({occ_labels(self.dataset).num_classes} classes + free)")
         if self.backbone not in ("resnet18", "resnet34", "resnet50"):
             raise ValueError(f"unknown backbone {self.backbone!r}")
+
+    @property
+    def labels(self) -> OccLabels:
+        """The occupancy label set: class names, free label, loss weights (classes.py)."""
+        return occ_labels(self.dataset)
+
+    @property
+    def free_label(self) -> int:
+        return self.num_classes
 
     @property
     def num_queries(self) -> int:

@@ -484,7 +484,8 @@ def test_waymo_layout(tmp_path):
     np.savez_compressed(tmp_path / "gts" / "000" / "002_04.npz", voxel_label=label,
                         origin_voxel_state=state, final_voxel_state=state, infov=state)
     world["infos"][2]["occ_path"] = "000/002_04.npz"
-    s = OccDataset(world, cfg().replace(num_cams=5, num_classes=15))[2]
+    waymo_cfg = cfg().replace(num_cams=5, dataset="waymo", num_classes=15)
+    s = OccDataset(world, waymo_cfg)[2]
     assert s["images"].shape == (3, 5, 3, *INPUT_HW) and s["ego2img"].shape == (3, 5, 4, 4)
     assert s["has_occ"] and s["occ_semantics"][100, 100, 3] == 13
     assert (s["occ_semantics"] == 15).sum() == 200 * 200 * 16 - 1
@@ -494,4 +495,6 @@ def test_waymo_layout(tmp_path):
     std = torch.tensor(preprocess.IMAGENET_STD).view(3, 1, 1)
     rgb = ((s["images"][0, 1] * std + mean) * 255).mean(dim=(1, 2))
     torch.testing.assert_close(rgb, torch.tensor(colour(12, 2), dtype=torch.float32), rtol=0, atol=3.0)
-    assert OccDataset(world, cfg().replace(num_cams=5))[0]["occ_semantics"].unique().tolist() == [15]
+    assert OccDataset(world, waymo_cfg)[0]["occ_semantics"].unique().tolist() == [15]
+    with pytest.raises(ValueError, match="the data is waymo.*dataset='nuscenes'"):
+        OccDataset(world, cfg().replace(num_cams=5))   # a nuScenes model on Waymo labels

@@ -141,6 +141,10 @@ class OccDataset(torch.utils.data.Dataset):
             self.occ_root = Path(occ_root)
         else:  # the rule of metrics/score.resolve_occ_root, so training and scoring agree
             self.occ_root = self.dataroot / (infos.get("occ_root") or "gts")
+        if cfg.dataset != self.dataset:
+            raise ValueError(f"the data is {self.dataset} (labels 0..{occ_io.free_label_of(self.dataset)}"
+                             f", free last), the model config {cfg.name!r} has dataset="
+                             f"{cfg.dataset!r}: use a {self.dataset} preset")
         self.image_size = tuple(cfg.image_size)
         self.grid_shape = tuple(cfg.grid_shape)
         cams = self.infos[0]["cams"]

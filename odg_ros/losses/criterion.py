@@ -65,7 +65,8 @@ class ODGCriterion:
         B = semantics.shape[0]
         device = output.init_means.device
         targets = [occupancy_target(semantics[b].to(device), mask_camera[b].to(device),
-                                    cfg.pc_range, cfg.voxel_size, method=self.nn_method)
+                                    cfg.pc_range, cfg.voxel_size, free_label=cfg.free_label,
+                                    method=self.nn_method)
                    for b in range(B)]
         stats = {"samples_without_occ_gt": sum(t.num == 0 for t in targets),
                  "boxes_matched": 0, "nonfinite_match_costs": 0, "nonfinite_box_targets": 0,
@@ -85,7 +86,8 @@ class ODGCriterion:
             means = layer.means.reshape(B, -1, 3)
             logits = layer.logits.reshape(B, means.shape[1], -1)
             _require_finite(f"occ_chamfer_l{l}", means=means)
-            occ = occupancy_loss(means, logits, targets, cfg.pc_range)
+            occ = occupancy_loss(means, logits, targets, cfg.pc_range,
+                                 class_weights=cfg.labels.class_weights)
             losses[f"occ_chamfer_l{l}"], losses[f"occ_focal_l{l}"] = occ.chamfer, occ.focal
             total = total + occ.chamfer + occ.focal
 

@@ -10,7 +10,9 @@ import math
 
 import numpy as np
 
-from ..classes import BOX_CLASSES, FREE_LABEL, OCC_CLASSES, OCC_COLORS
+from ..classes import BOX_CLASSES, LABEL_SETS, OCC_CLASSES, OCC_COLORS, OccLabels
+
+NUSCENES_LABELS = LABEL_SETS["nuscenes"]
 
 # sensor_msgs/PointField datatypes
 POINTFIELD_UINT8 = 2
@@ -21,10 +23,6 @@ CLOUD_DTYPE = np.dtype({"names": ["x", "y", "z", "label"],
                         "formats": ["<f4", "<f4", "<f4", "u1"],
                         "offsets": [0, 4, 8, 12], "itemsize": 16})
 
-# Labels that do not block a planner in the BEV map: free space and the drivable road.
-# Every other class (objects, but also sidewalk, terrain, other_flat) in the height band
-# marks the cell occupied: a planner must not drive there.
-BEV_PASSABLE = (FREE_LABEL, OCC_CLASSES.index("driveable_surface"))
 
 
 def voxel_centres(indices: np.ndarray, pc_range, voxel_size: float) -> np.ndarray:
@@ -33,10 +31,11 @@ def voxel_centres(indices: np.ndarray, pc_range, voxel_size: float) -> np.ndarra
 
 
 def voxel_grid_fields(grid: np.ndarray, confidence: np.ndarray | None, pc_range,
-                      voxel_size: float) -> dict:
+                      voxel_size: float, labels: OccLabels = NUSCENES_LABELS) -> dict:
     """odg_ros_msgs/SemanticVoxelGrid fields (all but the header).
 
-    grid uint8 [X, Y, Z] (17 = free); confidence uint8 [X, Y, Z] or None.
+    grid uint8 [X, Y, Z] (labels.free_label = free); confidence uint8 [X, Y, Z] or None;
+    labels: the model's label set (ModelConfig.labels), which names the classes.
     """
     if grid.dtype != np.uint8 or grid.ndim != 3:
         raise ValueError(f"grid must be uint8 [X, Y, Z], got {grid.dtype} {grid.shape}")
@@ -48,22 +47,23 @@ def voxel_grid_fields(grid: np.ndarray, confidence: np.ndarray | None, pc_range,
         "resolution": float(voxel_size),
         "size_x": X, "size_y": Y, "size_z": Z,
         "memory_order": "xyz_c",
-        "free_label": FREE_LABEL,
+        "free_label": labels.free_label,
         "unknown_label": 255,
         "labels": np.ascontiguousarray(grid).tobytes(),
         "confidence": b"" if confidence is None else
         np.ascontiguousarray(confidence, dtype=np.uint8).tobytes(),
         "observed": b"",
-        "class_names": list(OCC_CLASSES),
+        "class_names": list(labels.names),
     }
 
 
-def cloud_fields(grid: np.ndarray, pc_range, voxel_size: float) -> dict:
+def cloud_fields(grid: np.ndarray, pc_range, voxel_size: float,
+                 labels: OccLabels = NUSCENES_LABELS) -> dict:
     """sensor_msgs/PointCloud2 fields (all but the header) of the occupied voxel centres.
 
     'fields' is a list of (name, offset, datatype, count) for sensor_msgs/PointField.
     """
-    indices = np.argwhere(grid != FREE_LABEL)                       # [M, 3], C order
+    indices = np.argwhere(grid != labels.free_label)                       # [M, 3], C order
     points = np.zeros(len(indices), dtype=CLOUD_DTYPE)
     if len(indices):
         centres = voxel_centres(indices, pc_range, voxel_size)
@@ -82,18 +82,20 @@ def cloud_fields(grid: np.ndarray, pc_range, voxel_size: float) -> dict:
 
 
 def bev_fields(grid: np.ndarray, pc_range, voxel_size: float, min_z: float,
-               max_z: float) -> dict:
+               max_z: float, labels: OccLabels = NUSCENES_LABELS) -> dict:
     """nav_msgs/OccupancyGrid fields (info + data) of a 2D obstacle map for planners.
 
     A cell (x, y) is occupied (100) if any voxel of its column whose centre height lies in
-    [min_z, max_z] (metres, grid frame) has a label other than free or driveable_surface;
-    otherwise free (0). The model predicts every voxel, so no cell is unknown (-1).
+    [min_z, max_z] (metres, grid frame) has a label other than free or a drivable class
+    (nuScenes: driveable_surface, Waymo: road); otherwise free (0). Every other class
+    (objects, but also sidewalk, terrain, other_flat) blocks: a planner must not drive there.
+    The model predicts every voxel, so no cell is unknown (-1).
     OccupancyGrid is row-major with x along a row: data[y * width + x].
     """
     X, Y, Z = grid.shape
     z_centres = (np.arange(Z) + 0.5) * voxel_size + pc_range[2]
     band = (z_centres >= min_z) & (z_centres <= max_z)
-    blocked = ~np.isin(grid[:, :, band], BEV_PASSABLE)               # [X, Y, Zb]
+    blocked = ~np.isin(grid[:, :, band], labels.passable())               # [X, Y, Zb]
     occupied = blocked.any(axis=2).T                                 # [Y, X]
     data = np.where(occupied, 100, 0).astype(np.int8)
     return {

@@ -357,7 +357,7 @@ class OdgNode(Node):
                         else TimeMsg(), frame_id=self.output_frame)
         cfg = self.cfg
         fields = packing.voxel_grid_fields(result.grid, result.confidence, cfg.pc_range,
-                                           cfg.voxel_size)
+                                           cfg.voxel_size, cfg.labels)
         grid = SemanticVoxelGrid(header=header, origin=_pose_msg(fields["origin_position"]),
                                  resolution=fields["resolution"], size_x=fields["size_x"],
                                  size_y=fields["size_y"], size_z=fields["size_z"],
@@ -370,7 +370,7 @@ class OdgNode(Node):
         self.pub_grid.publish(grid)
 
         if self.pub_cloud.get_subscription_count():
-            c = packing.cloud_fields(result.grid, cfg.pc_range, cfg.voxel_size)
+            c = packing.cloud_fields(result.grid, cfg.pc_range, cfg.voxel_size, cfg.labels)
             cloud = PointCloud2(header=header, height=c["height"], width=c["width"],
                                 fields=[PointField(name=n, offset=o, datatype=d, count=k)
                                         for n, o, d, k in c["fields"]],
@@ -382,7 +382,7 @@ class OdgNode(Node):
         if self.pub_bev.get_subscription_count():
             b = packing.bev_fields(result.grid, cfg.pc_range, cfg.voxel_size,
                                    float(self.params["bev_min_z"]),
-                                   float(self.params["bev_max_z"]))
+                                   float(self.params["bev_max_z"]), cfg.labels)
             bev = OccupancyGrid(header=header)
             bev.info.map_load_time = header.stamp
             bev.info.resolution = b["resolution"]

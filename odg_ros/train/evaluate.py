@@ -8,7 +8,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from ..classes import DYNAMIC_OCC_CLASSES
+from ..classes import DYNAMIC_OCC_CLASSES, occ_labels
 from ..data.batch import collate
 from ..data.dataset import OccDataset
 from ..geometry import inside_bev_range
@@ -20,9 +20,10 @@ from ..network.postprocess import box_list, occupancy_grid
 from .trainer import to_device
 
 
-def dynamic_class_miou(result: dict) -> float | None:
-    """Mean IoU over the moving classes present in the split (paper Table 2's view)."""
-    values = [result["per_class"][c]["IoU"] for c in DYNAMIC_OCC_CLASSES
+def dynamic_class_miou(result: dict, dynamic=DYNAMIC_OCC_CLASSES) -> float | None:
+    """Mean IoU over the moving classes (``dynamic``: names) present in the split (paper
+    Table 2's view)."""
+    values = [result["per_class"][c]["IoU"] for c in dynamic
               if result["per_class"].get(c, {}).get("IoU") is not None]
     return round(float(np.mean(values)), 2) if values else None
 
@@ -93,7 +94,7 @@ def evaluate(model, cfg, infos, occ_root=None, save_pred: str | None = None, dev
                   batch["occ_mask_camera"][0].cpu().numpy().astype(bool),
                   origins(index) if origins is not None else None)
     result = score.result()
-    result["mIoU_dynamic"] = dynamic_class_miou(result)
+    result["mIoU_dynamic"] = dynamic_class_miou(result, occ_labels(dataset.dataset).dynamic)
     result["occupancy_padding"] = bool(cfg.occupancy_padding)
     if boxes is not None:
         result["boxes"] = boxes.result()
