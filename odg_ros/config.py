@@ -10,7 +10,7 @@ import yaml
 from .classes import OccLabels, occ_labels
 from .resources import resource_path
 
-PRESET_NAMES = ("odg_t", "odg_l", "odg_cpu")
+PRESET_NAMES = ("odg_t", "odg_l", "odg_cpu", "odg_waymo_t", "odg_waymo_cpu")
 
 
 @dataclass

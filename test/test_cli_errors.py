@@ -49,7 +49,7 @@ CASES = {   # name: (argv with {placeholders} from `files`, what the line must s
     "eval --device bogus": ("eval --checkpoint {truncated} --data {infos} --device gpu",
                             "expected auto, cpu, cuda or cuda:N"),
     "train: unknown preset": ("train --preset odg_x --data {infos} --out {root}/run",
-                              "unknown preset 'odg_x': one of odg_t, odg_l, odg_cpu"),
+                              "unknown preset 'odg_x': one of odg_t, odg_l, odg_cpu, odg_waymo_t"),
     "train --set nonsense=1": ("train --data {infos} --out {root}/run --set nonsense=1",
                                "--set nonsense: not a model setting"),
     "train --set typo": ("train --data {infos} --out {root}/run --set num_frame=2",

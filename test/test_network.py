@@ -16,7 +16,8 @@ from odg_ros.rig import ring_ego2img
 from helpers import model_inputs, tiny_config
 
 PAPER_GAUSSIANS = {"odg_t": [600, 2400, 9600, 19200, 38400, 76800],
-                   "odg_l": [4800, 9600, 19200, 38400, 76800, 76800]}
+                   "odg_l": [4800, 9600, 19200, 38400, 76800, 76800],
+                   "odg_waymo_t": [600, 2400, 9600, 19200, 38400, 76800]}
 
 
 def run(model, cfg, batch=1, frames=None, seed=0, **decode_options):
@@ -42,7 +43,7 @@ def test_preset_shapes_and_counts(name):
     assert len(out.layers) == 6
     for K, layer in zip(cfg.points_per_layer, out.layers):
         assert layer.means.shape == (1, Q, K, 3)
-        assert layer.logits.shape == (1, Q, K, 17)
+        assert layer.logits.shape == (1, Q, K, cfg.num_classes)
         assert layer.scales.shape == (1, Q, K, 3) and layer.rotations.shape == (1, Q, K, 4)
         assert layer.opacities.shape == (1, Q, K)
         assert layer.boxes.shape == (1, D, 10) and layer.box_logits.shape == (1, D, 10)

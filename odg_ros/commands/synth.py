@@ -23,12 +23,25 @@ def add_arguments(parser) -> None:
     parser.add_argument("--image-size", type=positive_int, nargs=2, default=list(DEFAULT_IMAGE_HW), metavar=("H", "W"),
                         help="camera image size (intrinsics are the nuScenes ones scaled from 900 x 1600)")
     parser.add_argument("--version", default="v1.0-trainval", help="name of the table folder")
+    parser.add_argument("--layout", choices=("nuscenes", "waymo"), default="nuscenes",
+                        help="nuscenes (tables, six cameras, Occ3D-nuScenes GT) or waymo (the "
+                             "Occ3D-Waymo layout: five cameras, Waymo labels, one frame per "
+                             "keyframe) (default: nuscenes)")
 
 
 def run(args) -> int:
     from odg_ros.data.synth.generate import generate
-    summary = generate(args.out, scenes=args.scenes, seconds=args.seconds, seed=args.seed,
-                       image_hw=tuple(args.image_size), version=args.version)
+    options = dict(scenes=args.scenes, seconds=args.seconds, seed=args.seed,
+                   image_hw=tuple(args.image_size), version=args.version)
+    if args.layout == "waymo":
+        from odg_ros.data.synth.waymo_layout import generate_waymo
+        summary = generate_waymo(args.out, **options)
+        print(f"wrote {summary['split']['train']} training and {summary['split']['val']} "
+              f"validation scenes in the Occ3D-Waymo layout to {args.out} in "
+              f"{summary['seconds']:.0f} s; next: odg prepare --layout waymo --frame-hz 2 "
+              f"--dataroot {args.out} --split train --out {args.out}/infos_train.pkl")
+        return 0
+    summary = generate(args.out, **options)
     print(f"wrote {summary['scenes']} scenes, {summary['keyframes']} keyframes, {summary['images']} images, "
           f"{summary['lidar_sweeps']} LiDAR sweeps to {args.out} in {summary['seconds']:.0f} s "
           f"({summary['bytes'] / 2 ** 20:.0f} MiB)")

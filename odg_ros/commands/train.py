@@ -5,7 +5,7 @@ import json
 import logging
 import traceback
 
-from ..config import load_preset
+from ..config import PRESET_NAMES, load_preset
 from ..train.trainer import Trainer, TrainOptions, end_distributed
 from .common import (config_overrides, device, existing_file, infos_file, nonnegative_int,
                      positive_float, positive_int, preset)
@@ -15,7 +15,7 @@ parse_overrides = config_overrides      # eval and the tools import it from here
 
 def add_arguments(parser):
     parser.add_argument("--preset", type=preset, default="odg_cpu",
-                        help="model preset (odg_t, odg_l, odg_cpu) or a preset YAML file")
+                        help=f"model preset ({', '.join(PRESET_NAMES)}) or a preset YAML file")
     parser.add_argument("--data", required=True, nargs="+", type=infos_file,
                         help="training infos (odg prepare); several files train together")
     parser.add_argument("--out", required=True, help="output dir: checkpoints, train_log.csv")
