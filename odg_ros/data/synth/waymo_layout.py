@@ -23,7 +23,7 @@ import numpy as np
 from odg_ros.classes import OCC_CLASSES, WAYMO_OCC_CLASSES
 from odg_ros.data import occ_io
 from odg_ros.data.prepare import build_infos
-from odg_ros.data.prepare_waymo import CAMERA_NAMES, IMAGE_FOLDER_OF_POSE, SPLITS
+from odg_ros.data.prepare_waymo import CAMERA_NAMES, SPLITS
 from odg_ros.geometry import invert_transform
 
 # Waymo camera (image folder order) <- synthetic nuScenes camera.
@@ -38,6 +38,9 @@ _NUSCENES_TO_WAYMO_NAME = {
     "sidewalk": "walkable", "terrain": "walkable", "manmade": "building",
     "vegetation": "vegetation",
 }
+# The release's pose files list the cameras in this order (the image folders in CAMERA_NAMES'
+# order); written out here on its own so that prepare's pairing is checked, not copied.
+POSE_FILE_ORDER = ("FRONT", "FRONT_LEFT", "SIDE_LEFT", "FRONT_RIGHT", "SIDE_RIGHT")
 # nuScenes label (0..17) -> label in a released Occ3D-Waymo file (0..14, free 23)
 NUSCENES_TO_WAYMO_FILE = np.array(
     [WAYMO_OCC_CLASSES.index(_NUSCENES_TO_WAYMO_NAME[n]) for n in OCC_CLASSES[:-1]]
@@ -99,10 +102,10 @@ def write_waymo_layout(source_infos: dict, out: str) -> dict:
                 for folder, w in enumerate(CAMERA_NAMES):
                     _place_image(os.path.join(src_root, cams[w]["data_path"]),
                                  os.path.join(out, "training", f"image_{folder}", stem + ".jpg"))
-                frames[frame] = {k: {"ego2global": cams[CAMERA_NAMES[f]]["ego_pose"],
-                                     "sensor2ego": cams[CAMERA_NAMES[f]]["sensor2ego"],
-                                     "intrinsics": cams[CAMERA_NAMES[f]]["intrinsics"]}
-                                 for k, f in enumerate(IMAGE_FOLDER_OF_POSE)}
+                frames[frame] = {k: {"ego2global": cams[w]["ego_pose"],
+                                     "sensor2ego": cams[w]["sensor2ego"],
+                                     "intrinsics": cams[w]["intrinsics"]}
+                                 for k, w in enumerate(POSE_FILE_ORDER)}
                 if not info["occ_path"]:
                     continue
                 semantics, mask_lidar, mask_camera = occ_io.load_occ3d_nuscenes(
