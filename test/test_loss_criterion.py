@@ -24,7 +24,7 @@ def make_output(cfg=CFG, boxes=True, seed=0):
         rot = torch.randn(B, Q, k, 4, generator=g)
         layers.append(LayerOutput(
             means=means.requires_grad_(True),
-            logits=torch.randn(B, Q, k, 17, generator=g, requires_grad=True),
+            logits=torch.randn(B, Q, k, cfg.num_classes, generator=g, requires_grad=True),
             scales=(torch.rand(B, Q, k, 3, generator=g) + 0.3).requires_grad_(True),
             rotations=(rot / rot.norm(dim=-1, keepdim=True)).requires_grad_(True),
             opacities=torch.rand(B, Q, k, generator=g).clamp(0.05, 0.95).requires_grad_(True),
@@ -182,3 +182,16 @@ def test_box_gt_encoding_consistency():
                                                     "gt_labels": [batch["gt_labels"][0],
                                                                   torch.zeros(0, dtype=torch.long)]})
     assert losses["box_l1_l1"].item() == pytest.approx(0.0, abs=1e-6)
+
+
+def test_waymo_label_set_free_15_and_15_class_weights():
+    """A Waymo config: 15 logits weighted by its 15 class weights, and 15 (not 17) is free."""
+    cfg = CFG.replace(dataset="waymo", num_classes=15)
+    batch = make_batch(lidar=False)
+    batch["occ_semantics"][batch["occ_semantics"] == 17] = 15
+    crit = ODGCriterion(cfg, render_pixels_per_camera=8)
+    losses = crit(make_output(cfg), batch)
+    assert torch.isfinite(losses["loss"]) and crit.last_stats["samples_without_occ_gt"] == 0
+    batch["occ_semantics"][:] = 15                     # nothing occupied in either sample
+    crit(make_output(cfg), batch)
+    assert crit.last_stats["samples_without_occ_gt"] == B

@@ -4,7 +4,8 @@ import math
 import numpy as np
 import pytest
 
-from odg_ros.classes import FREE_LABEL, OCC_CLASSES
+from odg_ros.classes import FREE_LABEL, OCC_CLASSES, WAYMO_OCC_CLASSES
+from odg_ros.config import load_preset
 from odg_ros.online import diagnostics
 from odg_ros.online.packing import CLOUD_DTYPE, bev_fields, cloud_fields, object_fields, \
     voxel_grid_fields, yaw_quaternion
@@ -63,6 +64,23 @@ def test_bev_marks_non_drivable_labels_in_the_height_band():
     assert fields["width"] == 200 and fields["origin_position"] == (-40.0, -40.0, 0.0)
     high = np.frombuffer(bev_fields(grid, RANGE, 0.4, 0.5, 5.4)["data"], np.int8)
     assert high.reshape(200, 200)[5, 199] == 100 and high.reshape(200, 200)[60, 50] == 0
+
+
+def test_waymo_model_messages_carry_the_waymo_label_set():
+    """The node passes cfg.labels: a Waymo model's grid says free = 15 and names Waymo's
+    classes; its cloud and BEV map treat 15 as free and road as drivable."""
+    labels = load_preset("odg_waymo_t").labels
+    grid = np.full((200, 200, 16), 15, np.uint8)
+    grid[100, 120, 3] = WAYMO_OCC_CLASSES.index("vehicle")
+    grid[0, 0, 0] = WAYMO_OCC_CLASSES.index("road")
+    grid[50, 60, 1] = WAYMO_OCC_CLASSES.index("walkable")
+    fields = voxel_grid_fields(grid, None, RANGE, 0.4, labels)
+    assert fields["free_label"] == 15 and fields["class_names"] == list(WAYMO_OCC_CLASSES)
+    assert cloud_fields(grid, RANGE, 0.4, labels)["width"] == 3
+    data = np.frombuffer(bev_fields(grid, RANGE, 0.4, -1.0, 2.0, labels)["data"], np.int8)
+    data = data.reshape(200, 200)
+    assert data[120, 100] == 100 and data[60, 50] == 100 and data[0, 0] == 0
+    assert (data == 100).sum() == 2
 
 
 def test_object_fields_follow_the_message_conventions():
