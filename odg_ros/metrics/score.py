@@ -16,11 +16,11 @@ from pathlib import Path
 
 import numpy as np
 
-from ..classes import OCC_CLASSES, WAYMO_OCC_CLASSES
+from ..classes import LABEL_SETS
 from .miou import MIOU_CONVENTIONS, MIoU, check_labels
 from .rayiou import RayIoU
 
-DATASETS = {"nuscenes": OCC_CLASSES, "waymo": WAYMO_OCC_CLASSES}  # names incl. free (last)
+DATASETS = {name: labels.names for name, labels in LABEL_SETS.items()}  # names incl. free (last)
 MIOU_NOTES = {
     "sparseocc": "sparseocc (SparseOcc / OPUS: a class absent from the GT is left out; "
                  "--miou-convention occ3d counts it as 0 where predicted)",
