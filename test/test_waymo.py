@@ -111,3 +111,7 @@ def test_prepare_refuses_mismatched_pose_and_image(tmp_path):
     path.write_bytes(pickle.dumps(poses))
     with pytest.raises(ValueError, match="principal point .* outside"):
         build_waymo_infos(tmp_path / "waymo", split="train", frame_hz=2)
+    del poses[0][0][1]["intrinsics"]
+    path.write_bytes(pickle.dumps(poses))
+    with pytest.raises(ValueError, match=r"camera 1: the pose file lacks \['intrinsics'\]"):
+        build_waymo_infos(tmp_path / "waymo", split="train", frame_hz=2)

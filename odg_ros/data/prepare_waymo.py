@@ -98,6 +98,9 @@ def _camera_set(dataroot, pose_frame, prefix, scene, frame, stamp, sizes, notes)
         folder = IMAGE_FOLDER_OF_POSE[k]
         name = CAMERA_NAMES[folder]
         what = f"scene {scene} frame {frame} camera {k}"
+        missing = [key for key in ("intrinsics", "sensor2ego", "ego2global") if key not in cam]
+        if missing:
+            raise ValueError(f"{what}: the pose file lacks {missing} (has {sorted(cam)})")
         rel = image_path(dataroot, folder, prefix, scene, frame)
         if name not in sizes:
             path = os.path.join(str(dataroot), rel)
