@@ -77,6 +77,10 @@ CASES = {   # name: (argv with {placeholders} from `files`, what the line must s
                                   "directory not found"),
     "prepare: wrong version": ("prepare --dataroot {root}/world --out {root}/i.pkl "
                                "--version v1.0-mini", "has no v1.0-mini/ table folder"),
+    "prepare waymo: no pose file": ("prepare --layout waymo --dataroot {root}/world --out "
+                                    "{root}/i.pkl", "cam_infos.pkl not found"),
+    "prepare waymo: split": ("prepare --layout waymo --dataroot {root}/world --out {root}/i.pkl "
+                             "--split all", "Occ3D-Waymo has train and val"),
     "score: missing infos": ("score --pred {root} --data {root}/nope.pkl",
                              "infos file not found"),
     "export: missing checkpoint": ("export --checkpoint {missing} --out {root}/o.pt",
