@@ -47,7 +47,7 @@ def add_arguments(parser):
     parser.add_argument("--compile", default=None, metavar="MODES",
                         help="time the node's own step (OnlinePredictor.step) in these "
                              "comma-separated execution modes (eager, compiled, graphs), "
-                             "interleaved; the first is the reference")
+                             "interleaved; the first is the reference (default: not timed by mode)")
     parser.add_argument("--fast-paths", action="store_true",
                         help="compare each fast path with the plain path (random weights)")
     parser.add_argument("--sweep", action="store_true",
