@@ -3,8 +3,8 @@
     python tools/node_parameters.py --write    # after editing config/odg_node.schema.yaml
     python tools/node_parameters.py --check    # exit 1 when config/odg.yaml or README is stale
 
-Writes config/odg.yaml (every parameter at its default) and the README's parameter table
-(between the parameters markers).
+Writes config/odg.yaml (every parameter at its default), docs/parameters.md (the full table)
+and the README's summary of the parameters (between the parameters markers).
 """
 from __future__ import annotations
 
@@ -15,7 +15,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from odg_ros.online.parameters import load_schema, markdown_table, params_file_text  # noqa: E402
+from odg_ros.online.parameters import (load_schema, markdown_table, params_file_text,  # noqa: E402
+                                      summary_table)
 
 BEGIN, END = "<!-- parameters:begin -->", "<!-- parameters:end -->"
 
@@ -28,8 +29,12 @@ def generated(root: Path = ROOT) -> dict[Path, str]:
         raise SystemExit(f"README.md needs one {BEGIN} ... {END} block")
     head, rest = readme.split(BEGIN)
     _, tail = rest.split(END)
+    reference = ("# odg_node parameters\n\nWritten from `config/odg_node.schema.yaml` by "
+                 "`python tools/node_parameters.py --write`; `odg_node --help` prints the same. "
+                 "Every parameter is read at start-up.\n\n" + markdown_table(schema) + "\n")
     return {root / "config/odg.yaml": params_file_text(schema),
-            root / "README.md": f"{head}{BEGIN}\n{markdown_table(schema)}\n{END}{tail}"}
+            root / "docs/parameters.md": reference,
+            root / "README.md": f"{head}{BEGIN}\n{summary_table(schema)}\n{END}{tail}"}
 
 
 def main(argv=None) -> int:
@@ -38,7 +43,8 @@ def main(argv=None) -> int:
     mode.add_argument("--write", action="store_true", help="rewrite the generated files")
     mode.add_argument("--check", action="store_true", help="exit 1 if one is stale")
     args = parser.parse_args(argv)
-    stale = [path for path, text in generated().items() if path.read_text() != text]
+    stale = [path for path, text in generated().items()
+             if not path.exists() or path.read_text() != text]
     if args.check:
         for path in stale:
             print(f"{path.relative_to(ROOT)} is stale: run python tools/node_parameters.py "

@@ -1,8 +1,8 @@
 """The node's parameters from their one source, config/odg_node.schema.yaml (ROS-free).
 
 The node declares them from here, validates the values it gets, and prints them for
-``odg_node --help``; tools/node_parameters.py writes config/odg.yaml and the README table
-from the same schema, and a test keeps both current.
+``odg_node --help``; tools/node_parameters.py writes config/odg.yaml, docs/parameters.md and
+the README's summary from the same schema, and a test keeps both current.
 """
 from __future__ import annotations
 
@@ -132,8 +132,19 @@ def help_text(schema: dict[str, Parameter] | None = None) -> str:
     return "\n".join(lines)
 
 
+def summary_table(schema: dict[str, Parameter] | None = None) -> str:
+    """The README's parameter table: every name, one row per group (the details are in
+    docs/parameters.md)."""
+    schema = load_schema() if schema is None else schema
+    rows = ["| group | parameters |", "|---|---|"]
+    for group, title in GROUPS.items():
+        names = ", ".join(f"`{p.name}`" for p in schema.values() if p.group == group)
+        rows.append(f"| {title} | {names} |")
+    return "\n".join(rows)
+
+
 def markdown_table(schema: dict[str, Parameter] | None = None) -> str:
-    """The README's parameter table."""
+    """docs/parameters.md's table: type, default, allowed values, description."""
     schema = load_schema() if schema is None else schema
     rows = ["| Parameter | Type | Default | Allowed | Description |", "|---|---|---|---|---|"]
     for p in schema.values():
