@@ -18,6 +18,7 @@ SUBCOMMANDS = {
     "prepare": "build the infos index from a nuScenes-format dataroot + Occ3D GT",
     "score": "mIoU / RayIoU of saved predictions against the GT",
     "train": "train a preset",
+    "profile": "ops and host syncs of a training step, by phase and source line",
     "eval": "run a checkpoint over a split and score it",
     "export": "training checkpoint -> shipped one (compressed, score threshold calibrated)",
     "bag": "write rosbag2 MCAP bags (synth world or nuScenes)",

@@ -337,23 +337,15 @@ class Trainer:
     # ------------------------------------------------------------------ one step
     def train_step(self, batch: dict) -> tuple[dict[str, float], bool]:
         """-> (loss terms as floats, applied). Non-finite loss or gradients: not applied."""
-        model = self.ddp or self.model
-        model.train()
-        batch = to_device(batch, self.device)
-        if self.opts.augment:
-            batch = augment_batch(batch, self.cfg.pc_range)
+        batch = self._load_batch(batch)
         self.optimizer.zero_grad(set_to_none=True)
         # BatchNorm statistics change in the forward pass already; a skipped step must leave
         # them as they were (a NaN batch would otherwise poison every later inference).
         buffers = {name: b.detach().clone() for name, b in self.model.named_buffers()}
         terms, finite = {}, True
         try:
-            with torch.autocast(self.device.type, dtype=self.amp_dtype,
-                                enabled=self.amp_dtype is not None):
-                output = model(batch["images"], batch["ego2img"], batch["ego_warp"],
-                               batch["time_delta"], history_grad=self.opts.history_grad)
-            losses = self.criterion(output, batch)
-            loss = losses["loss"] + zero_weight_anchor(output)
+            output = self._forward(batch)
+            losses, loss = self._losses(output, batch)
             finite = bool(torch.isfinite(loss))
         except FloatingPointError as err:
             log.warning("step %d: %s", self.step, err)
@@ -362,7 +354,32 @@ class Trainer:
         if not finite:
             self._restore_buffers(buffers)
             return {k: float("nan") for k in losses}, False
+        self._backward(loss)
+        return self._optimizer_step(losses, buffers)
+
+    # The phases of a step, each its own method so that a census can tell them apart.
+    def _load_batch(self, batch: dict) -> dict:
+        batch = to_device(batch, self.device)
+        if self.opts.augment:
+            batch = augment_batch(batch, self.cfg.pc_range)
+        return batch
+
+    def _forward(self, batch: dict):
+        model = self.ddp or self.model
+        model.train()
+        with torch.autocast(self.device.type, dtype=self.amp_dtype,
+                            enabled=self.amp_dtype is not None):
+            return model(batch["images"], batch["ego2img"], batch["ego_warp"],
+                         batch["time_delta"], history_grad=self.opts.history_grad)
+
+    def _losses(self, output, batch: dict):
+        losses = self.criterion(output, batch)
+        return losses, losses["loss"] + zero_weight_anchor(output)
+
+    def _backward(self, loss: torch.Tensor) -> None:
         self.scaler.scale(loss).backward()
+
+    def _optimizer_step(self, losses: dict, buffers: dict):
         self.scaler.unscale_(self.optimizer)
         grad_norm = torch.nn.utils.clip_grad_norm_(self.model.parameters(), self.opts.grad_clip)
         if not torch.isfinite(grad_norm):  # grads are all-reduced: every rank agrees

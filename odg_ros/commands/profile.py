@@ -1,0 +1,84 @@
+"""``odg profile train --preset P --data INFOS [--cuda-paths]``: the ops a training step
+launches and the host syncs it makes, by phase and by source line (odg_ros/train/census.py);
+on a GPU also the kernel time against the wall time of a step."""
+from __future__ import annotations
+
+import json
+import logging
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+
+from ..config import load_preset
+from ..data.batch import collate
+from ..train.census import census_of_steps
+from ..train.trainer import Trainer, TrainOptions
+
+
+def add_arguments(parser):
+    parser.add_argument("what", choices=("train",), help="what to profile: a training step")
+    parser.add_argument("--preset", default="odg_cpu")
+    parser.add_argument("--data", required=True, help="training infos (odg prepare)")
+    parser.add_argument("--device", default="cpu", help="cpu | cuda | cuda:N")
+    parser.add_argument("--cuda-paths", action="store_true",
+                        help="take the code paths of a CUDA run and count every op as a GPU op "
+                             "(the census of a GPU step, taken on the CPU)")
+    parser.add_argument("--image-size", type=int, nargs=2, metavar=("H", "W"),
+                        help="network input size (the counts do not depend on it)")
+    parser.add_argument("--batch-size", type=int, default=1)
+    parser.add_argument("--render-pixels", type=int, default=512)
+    parser.add_argument("--steps", type=int, default=1, help="counted steps (after a warm-up)")
+    parser.add_argument("--top", type=int, default=12, help="source lines to list")
+    parser.add_argument("--json", help="also write the census here")
+
+
+def run(args) -> int:
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    overrides = {"image_size": tuple(args.image_size)} if args.image_size else {}
+    try:
+        cfg = load_preset(args.preset, **overrides)
+        trainer = Trainer(cfg, args.data, TrainOptions(
+            out_dir=Path(tempfile.mkdtemp()), epochs=1, workers=0, progress=False,
+            device=args.device, batch_size=args.batch_size,
+            render_pixels_per_camera=args.render_pixels))
+    except (OSError, ValueError) as error:
+        print(f"odg profile: {error}")
+        return 1
+    dataset = trainer.dataset
+    batches = [collate([dataset[(i * args.batch_size + j) % len(dataset)]
+                        for j in range(args.batch_size)]) for i in range(args.steps + 1)]
+    start = time.perf_counter()
+    census = census_of_steps(trainer, batches, args.cuda_paths)
+    seconds = time.perf_counter() - start
+    where = "CUDA paths forced" if args.cuda_paths else str(trainer.device)
+    print(f"odg profile train: {cfg.name} {cfg.image_size[0]}x{cfg.image_size[1]}, batch "
+          f"{args.batch_size}, {where}, {args.steps} counted step(s) "
+          f"({seconds:.1f} s with the warm-up, under the census)\n")
+    print(census.report(args.top))
+    if trainer.device.type == "cuda":
+        print("\n" + cuda_profile(trainer, batches[-1]))
+    if args.json:
+        Path(args.json).write_text(json.dumps({
+            "preset": cfg.name, "image_size": list(cfg.image_size), "cuda_paths": args.cuda_paths,
+            "batch_size": args.batch_size, "ops_per_step": census.per_step(census.ops),
+            "syncs_per_step": census.per_step(census.syncs),
+            "syncs_by_line": census.by_line(census.syncs, args.top),
+            "ops_by_line": census.by_line(census.ops, args.top)}, indent=1))
+    return 0
+
+
+def cuda_profile(trainer, batch) -> str:
+    """Kernel time against wall time of one step on the GPU (a GPU-bound step has them close)."""
+    from torch.profiler import ProfilerActivity, profile
+    torch.cuda.synchronize()
+    with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as prof:
+        start = time.perf_counter()
+        trainer.train_step(batch)
+        torch.cuda.synchronize()
+        wall = time.perf_counter() - start
+    kernel = sum(e.self_device_time_total for e in prof.key_averages()) / 1e6
+    table = prof.key_averages().table(sort_by="self_cuda_time_total", row_limit=10)
+    return (f"one step on the GPU: {wall:.3f} s wall, {kernel:.3f} s of kernels "
+            f"({100 * kernel / wall:.0f}% busy under the profiler)\n{table}")

@@ -1,0 +1,178 @@
+"""Census of one training step: the ATen ops it launches and the host syncs it makes, by phase
+and by source line.
+
+An op is counted where it reaches a backend (a TorchDispatchMode, below autograd), so on CUDA
+one op is roughly one kernel launch (views, which launch nothing, are not counted). A host sync is an op whose result size or value the host
+must wait for: ``.item()`` / ``bool()`` / ``float()`` reads, ``nonzero``, boolean-mask indexing,
+``unique``, ``bincount``, ``repeat_interleave`` without ``output_size``, a copy to the CPU, and
+``.numpy()`` / ``.tolist()``. With ``cuda_paths`` the step takes the code paths a CUDA run takes
+(nearest neighbours on the device, foreach AdamW) and every op of the CPU run counts as if its
+tensors lived on the GPU, so the census of a GPU run can be taken on a CPU.
+"""
+from __future__ import annotations
+
+import collections
+import linecache
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import torch
+from torch.utils._python_dispatch import TorchDispatchMode
+
+aten = torch.ops.aten
+PHASES = ("data", "forward", "losses", "render", "backward", "optimizer")
+_PACKAGE = str(Path(__file__).resolve().parents[1]) + "/"
+_THIS_FILE = str(Path(__file__).resolve())
+# Trainer methods, outermost first, and the phase their ops belong to.
+_TRAINER_PHASES = {"_load_batch": "data", "_forward": "forward", "_losses": "losses",
+                   "_backward": "backward", "_optimizer_step": "optimizer"}
+_RENDER_FILES = ("render/", "losses/render_loss.py")
+
+# Ops whose output size or value the host needs before it can go on.
+_ALWAYS_SYNC = {aten._local_scalar_dense.default, aten.nonzero.default, aten.masked_select.default,
+                aten.equal.default, aten.is_nonzero.default, aten._unique.default,
+                aten._unique2.default, aten.unique_dim.default, aten.unique_consecutive.default,
+                aten.bincount.default}
+_HOST_READS = ("numpy", "tolist")
+
+
+def _is_sync(func, args, kwargs, device_type: str | None) -> bool:
+    tensors = [a for a in args if isinstance(a, torch.Tensor)]
+    on_device = device_type is None or any(t.device.type == device_type for t in tensors)
+    if func in _ALWAYS_SYNC:
+        return on_device
+    if func in (aten.repeat_interleave.Tensor, aten.repeat_interleave.self_Tensor):
+        return on_device and kwargs.get("output_size") is None
+    if func in (aten.index.Tensor, aten.index_put.default, aten.index_put_.default,
+                aten._index_put_impl_.default):
+        indices = args[1] if len(args) > 1 else ()
+        return on_device and any(i is not None and i.dtype in (torch.bool, torch.uint8)
+                                 for i in indices)
+    if func in (aten._to_copy.default, aten.copy_.default) and device_type is not None:
+        source = args[1] if func is aten.copy_.default else args[0]
+        target = args[0].device if func is aten.copy_.default else kwargs.get("device")
+        return (source.device.type == device_type and target is not None
+                and torch.device(target).type == "cpu")
+    return False
+
+
+def _where() -> tuple[str, str]:
+    """(phase, source line) of the op being dispatched, from the Python stack."""
+    frame, line, phase, render = sys._getframe(2), None, "other", False
+    while frame is not None:
+        filename = frame.f_code.co_filename
+        if filename.startswith(_PACKAGE) and filename != _THIS_FILE:
+            relative = filename[len(_PACKAGE):]
+            if line is None:
+                code = linecache.getline(filename, frame.f_lineno).strip()
+                line = f"{relative}:{frame.f_lineno} {code}"
+            render = render or relative.startswith(_RENDER_FILES)
+            if frame.f_code.co_name in _TRAINER_PHASES and relative == "train/trainer.py":
+                phase = _TRAINER_PHASES[frame.f_code.co_name]
+                break
+        frame = frame.f_back
+    if phase == "losses" and render:
+        phase = "render"
+    return phase, line or "(outside odg_ros)"
+
+
+@dataclass
+class Census:
+    """Counts per (phase, source line); ``steps`` divides them into per-step numbers."""
+    ops: collections.Counter = field(default_factory=collections.Counter)
+    syncs: collections.Counter = field(default_factory=collections.Counter)
+    steps: int = 1
+
+    def per_step(self, counter: collections.Counter, phase: str | None = None) -> float:
+        return sum(n for (p, _), n in counter.items() if phase in (None, p)) / self.steps
+
+    def by_line(self, counter: collections.Counter, top: int) -> list[tuple[float, str, str]]:
+        return [(n / self.steps, phase, line) for (phase, line), n in counter.most_common(top)]
+
+    def report(self, top: int = 12) -> str:
+        rows = [f"{'phase':10s} {'ops/step':>10s} {'syncs/step':>11s}"]
+        for phase in PHASES + ("other",):
+            ops, syncs = self.per_step(self.ops, phase), self.per_step(self.syncs, phase)
+            if ops or syncs:
+                rows.append(f"{phase:10s} {ops:10,.0f} {syncs:11,.0f}")
+        rows.append(f"{'total':10s} {self.per_step(self.ops):10,.0f} "
+                    f"{self.per_step(self.syncs):11,.0f}")
+        for title, counter in (("host syncs", self.syncs), ("launched ops", self.ops)):
+            rows.append(f"\n{title} per step by source line (top {top}):")
+            rows += [f"{n:9,.0f}  {phase:9s} {line}" for n, phase, line in
+                     self.by_line(counter, top)]
+        return "\n".join(rows)
+
+
+class CensusMode(TorchDispatchMode):
+    """Counts ops and host syncs into ``census``; ``device_type`` None counts every tensor as
+    a device tensor (the CUDA paths on a CPU), else only tensors of that device type sync.
+    ``host_tensors``: tensors that a CUDA run keeps on the host (the optimizer's step counters);
+    ops on them alone are neither launches nor syncs."""
+
+    def __init__(self, census: Census, device_type: str | None, host_tensors=()):
+        super().__init__()
+        self.census, self.device_type = census, device_type
+        self._host = {id(t) for t in host_tensors}
+        self._originals = {name: getattr(torch.Tensor, name) for name in _HOST_READS}
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        kwargs = kwargs or {}
+        if self._host and self._on_host_only(args):
+            return func(*args, **kwargs)
+        sync = _is_sync(func, args, kwargs, self.device_type)
+        if sync or not func.is_view:              # a view launches no kernel
+            where = _where()
+            self.census.ops[where] += 1
+            self.census.syncs[where] += sync
+        return func(*args, **kwargs)
+
+    def _on_host_only(self, args) -> bool:
+        flat = [t for a in args for t in (a if isinstance(a, (list, tuple)) else (a,))
+                if isinstance(t, torch.Tensor)]
+        return bool(flat) and all(id(t) in self._host for t in flat)
+
+    def __enter__(self):
+        for name, original in self._originals.items():
+            def counted(tensor, *args, _original=original, **kwargs):
+                if (self.device_type in (None, tensor.device.type)
+                        and id(tensor) not in self._host):
+                    self.census.syncs[_where()] += 1
+                return _original(tensor, *args, **kwargs)
+            setattr(torch.Tensor, name, counted)
+        return super().__enter__()
+
+    def __exit__(self, *exc):
+        for name, original in self._originals.items():
+            setattr(torch.Tensor, name, original)
+        return super().__exit__(*exc)
+
+
+def force_cuda_paths(trainer) -> None:
+    """The code paths a CUDA run takes, on whatever device ``trainer`` runs."""
+    trainer.criterion.nn_method = "cdist"
+    for group in trainer.optimizer.param_groups:
+        group["foreach"] = True
+
+
+def optimizer_host_tensors(optimizer) -> list[torch.Tensor]:
+    """The step counters that a CUDA run keeps on the host (all but fused / capturable AdamW)."""
+    keep_on_device = any(g.get("fused") or g.get("capturable") for g in optimizer.param_groups)
+    if keep_on_device:
+        return []
+    return [state["step"] for state in optimizer.state.values() if "step" in state]
+
+
+def census_of_steps(trainer, batches, cuda_paths: bool) -> Census:
+    """Census of ``trainer.train_step`` over ``batches`` (one warm-up step first, not counted)."""
+    if cuda_paths:
+        force_cuda_paths(trainer)
+    trainer.train_step(batches[0])
+    census = Census(steps=len(batches) - 1)
+    device_type = None if cuda_paths else trainer.device.type
+    with CensusMode(census, device_type, optimizer_host_tensors(trainer.optimizer)
+                    if cuda_paths else ()):
+        for batch in batches[1:]:
+            trainer.train_step(batch)
+    return census
