@@ -226,20 +226,50 @@ def test_nearest_neighbour_methods_agree_with_float64_bruteforce():
     assert idx.shape == (0,) and dist.shape == (0,)
 
 
-def test_cdist_blocks_bounded_by_construction(monkeypatch):
-    """No torch.cdist call ever sees more than max_block distances."""
-    seen = []
-    real = torch.cdist
+def test_device_blocks_bounded_and_search_free_of_host_syncs():
+    """Every block holds at most max_block distances, and the search reads nothing back."""
+    assert chamfer_module.block_rows(5000, 3000, 100_000) * 3000 <= 100_000
+    assert chamfer_module.block_rows(5000, 300_000, 100_000) == 1      # a row is one block
+    assert chamfer_module.block_rows(7, 3, 1 << 20) == 7
+    from odg_ros.train.census import Census, CensusMode
+    g = torch.Generator().manual_seed(4)
+    q, r = torch.rand(2000, 3, generator=g), torch.rand(1500, 3, generator=g)
+    census = Census()
+    with CensusMode(census, device_type=None):
+        idx, _ = nearest_neighbours(q, r, method="cdist", max_block=100_000)
+    assert census.per_step(census.syncs) == 0
+    assert census.per_step(census.ops) <= 3 * 2000 * 1500 // 100_000 + 10
+    chosen = (q.double() - r.double()[idx]).norm(dim=-1)
+    assert torch.allclose(chosen, torch.cdist(q.double(), r.double()).min(1).values,
+                          rtol=1e-6, atol=1e-7)
 
-    def recording(a, b, *args, **kwargs):
-        seen.append(a.shape[0] * b.shape[0])
-        return real(a, b, *args, **kwargs)
 
-    monkeypatch.setattr(chamfer_module.torch, "cdist", recording)
-    q, r = torch.rand(5000, 3), torch.rand(3000, 3)
-    idx, _ = nearest_neighbours(q, r, method="cdist", max_block=100_000)
-    assert max(seen) <= 100_000 and len(seen) >= 5000 * 3000 // 100_000
-    assert torch.equal(idx, real(q, r).argmin(1))
+@pytest.mark.parametrize("case", ["random", "duplicates", "ties", "one_point", "large"])
+def test_device_search_is_exact_against_a_float64_kdtree(case):
+    """The chosen neighbour is a nearest one to float32 rounding of the coordinates' distances,
+    where the |a|^2 + |b|^2 - 2ab form errs by millimetres at 40 m."""
+    g = torch.Generator().manual_seed(7)
+    q = torch.rand(2000, 3, generator=g) * 80 - 40
+    r = torch.rand(1500, 3, generator=g) * 80 - 40
+    if case == "duplicates":
+        r = torch.cat([r, r[:500], r[:500]])
+        q = torch.cat([q, r[:300]])                                # queries on reference points
+    elif case == "ties":                                           # integer grid: many ties
+        q = torch.randint(-40, 40, (2000, 3), generator=g).float()
+        r = torch.randint(-40, 40, (1500, 3), generator=g).float() + 0.5
+    elif case == "one_point":
+        r = r[:1]
+    elif case == "large":                                          # 200k GT, far from the origin
+        q = torch.rand(150, 3, generator=g) * 2 + 39
+        r = torch.rand(200_000, 3, generator=g) * 2 + 39
+    idx, dist = nearest_neighbours(q, r, method="cdist", max_block=1 << 22)
+    from scipy.spatial import cKDTree
+    d_ref, _ = cKDTree(r.double().numpy()).query(q.double().numpy(), k=1)
+    d_ref = torch.from_numpy(d_ref)
+    chosen = (q.double() - r.double()[idx]).norm(dim=-1)
+    tolerance = 1e-6 * (1 + d_ref)
+    assert (chosen - d_ref).abs().max() <= tolerance.max(), case
+    assert ((dist.double() - d_ref).abs() <= tolerance).all(), case
 
 
 LARGE_CASE = textwrap.dedent("""
