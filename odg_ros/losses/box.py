@@ -54,16 +54,20 @@ def decode_boxes(codes: torch.Tensor) -> torch.Tensor:
 
 
 def check_gt_boxes(boxes: torch.Tensor, labels: torch.Tensor, num_classes: int) -> None:
-    """Raise ValueError on GT that cannot be encoded; NaN/inf velocity is allowed."""
+    """Raise ValueError on GT that cannot be encoded; NaN/inf velocity is allowed. One host
+    read of the values (more only to word an error)."""
     if boxes.dim() != 2 or boxes.shape[1] != 9:
         raise ValueError(f"gt_boxes must be [M, 9], got {tuple(boxes.shape)}")
     if labels.shape != (boxes.shape[0],):
         raise ValueError(f"gt_labels {tuple(labels.shape)} do not match {boxes.shape[0]} boxes")
-    if not torch.isfinite(boxes[:, :7]).all():
+    nonfinite, flat, unknown = torch.stack([
+        ~torch.isfinite(boxes[:, :7]).all(), (boxes[:, 3:6] <= 0).any(),
+        ((labels < 0) | (labels >= num_classes)).any()]).tolist()
+    if nonfinite:
         raise ValueError("gt_boxes has a non-finite centre, size or yaw")
-    if (boxes[:, 3:6] <= 0).any():
+    if flat:
         raise ValueError("gt_boxes has a size <= 0")
-    if labels.numel() and (labels.min() < 0 or labels.max() >= num_classes):
+    if unknown:
         raise ValueError(f"gt_labels outside [0, {num_classes})")
 
 
@@ -78,6 +82,62 @@ def matched_normaliser(num_matched: int, device) -> float | torch.Tensor:
 
 
 @dataclass
+class BoxMatch:
+    """One sample's Hungarian matching (host tensors)."""
+    pred_index: torch.Tensor
+    gt_index: torch.Tensor
+    num_nonfinite_costs: int
+    num_nonfinite_targets: int      # non-finite code entries of the matched GT
+
+
+def match_layers(layers: Sequence[tuple[torch.Tensor, torch.Tensor]],
+                 gt_boxes: Sequence[torch.Tensor], gt_labels: Sequence[torch.Tensor],
+                 code_weights: Sequence[float] = BOX_CODE_WEIGHTS) -> list[list[BoxMatch]]:
+    """Hungarian matches of every layer's (codes [B, D, 10], logits [B, D, C]) to the GT.
+
+    The GT is checked once, and every cost matrix (with the GT codes' finiteness) comes to
+    the host in one copy: the host waits for the device once, not once per layer and sample.
+    """
+    codes0, logits0 = layers[0]
+    num_classes, device = logits0.shape[-1], codes0.device
+    dtype = codes0.dtype if codes0.dtype == torch.float64 else torch.float32
+    gt_codes, labels = [], []
+    for b in range(codes0.shape[0]):
+        boxes = gt_boxes[b].to(device, dtype)
+        labels.append(gt_labels[b].to(device).long())
+        check_gt_boxes(boxes, labels[b], num_classes)
+        gt_codes.append(encode_boxes(boxes))
+    parts, sizes = [], []
+    with torch.no_grad():
+        for b, codes in enumerate(gt_codes):
+            parts.append(torch.isfinite(codes).flatten().double())
+        for codes, logits in layers:
+            for b in range(codes.shape[0]):
+                if gt_codes[b].shape[0] and codes.shape[1]:
+                    cost = box_match_cost(codes[b].to(dtype), logits[b].to(dtype), gt_codes[b],
+                                          labels[b], code_weights)
+                    parts.append(cost.double().flatten())
+        host = torch.cat(parts).cpu() if parts else torch.zeros(0, dtype=torch.float64)
+    sizes = [c.numel() for c in gt_codes]
+    finite = [f.view(-1, 10).bool() for f in host[:sum(sizes)].split(sizes)]
+    offset, matches = sum(sizes), []
+    for codes, _ in layers:
+        layer = []
+        for b in range(codes.shape[0]):
+            d, m = codes.shape[1], gt_codes[b].shape[0]
+            empty = torch.zeros(0, dtype=torch.long)
+            if not (m and d):
+                layer.append(BoxMatch(empty, empty, 0, 0))
+                continue
+            cost = host[offset:offset + d * m].view(d, m)
+            offset += d * m
+            pred_idx, gt_idx, bad = hungarian_match(cost)
+            layer.append(BoxMatch(pred_idx, gt_idx, bad, int((~finite[b][gt_idx]).sum())))
+        matches.append(layer)
+    return matches
+
+
+@dataclass
 class BoxLossResult:
     l1: torch.Tensor            # scalar, includes BOX_L1_WEIGHT
     focal: torch.Tensor         # scalar, includes BOX_FOCAL_WEIGHT
@@ -89,13 +149,17 @@ class BoxLossResult:
 def box_loss(codes: torch.Tensor, logits: torch.Tensor, gt_boxes: Sequence[torch.Tensor],
              gt_labels: Sequence[torch.Tensor], code_weights: Sequence[float] = BOX_CODE_WEIGHTS,
              l1_weight: float = BOX_L1_WEIGHT, focal_weight: float = BOX_FOCAL_WEIGHT,
-             alpha: float = FOCAL_ALPHA, gamma: float = FOCAL_GAMMA) -> BoxLossResult:
-    """codes [B, D, 10], logits [B, D, C]; gt_boxes: B x [M_b, 9]; gt_labels: B x [M_b] int."""
+             alpha: float = FOCAL_ALPHA, gamma: float = FOCAL_GAMMA,
+             matches: Sequence[BoxMatch] | None = None) -> BoxLossResult:
+    """codes [B, D, 10], logits [B, D, C]; gt_boxes: B x [M_b, 9]; gt_labels: B x [M_b] int.
+    ``matches``: this layer's entry of ``match_layers`` (computed here when not given)."""
     if codes.dim() != 3 or codes.shape[-1] != 10 or logits.shape[:2] != codes.shape[:2]:
         raise ValueError(f"box codes {tuple(codes.shape)} / logits {tuple(logits.shape)} "
                          "must be [B, D, 10] / [B, D, C]")
     if not len(gt_boxes) == len(gt_labels) == codes.shape[0]:
         raise ValueError("one gt_boxes and gt_labels entry per sample needed")
+    if matches is None:
+        matches = match_layers([(codes, logits)], gt_boxes, gt_labels, code_weights)[0]
     # half precision is computed in float32, float64 stays (for gradcheck)
     codes = codes if codes.dtype == torch.float64 else codes.float()
     logits = logits.to(codes.dtype)
@@ -103,25 +167,21 @@ def box_loss(codes: torch.Tensor, logits: torch.Tensor, gt_boxes: Sequence[torch
     w = codes.new_tensor(code_weights)
     l1_sum = focal_sum = codes.new_zeros(())
     num_matched = num_bad_cost = num_bad_target = 0
-    for b in range(codes.shape[0]):
-        boxes = gt_boxes[b].to(codes.device, codes.dtype)
-        labels = gt_labels[b].to(codes.device).long()
-        check_gt_boxes(boxes, labels, num_classes)
+    for b, match in enumerate(matches):
         targets = torch.zeros_like(logits[b])
-        if boxes.shape[0] and codes.shape[1]:
-            gt_codes = encode_boxes(boxes)
-            with torch.no_grad():
-                cost = box_match_cost(codes[b], logits[b], gt_codes, labels, code_weights)
-            pred_idx, gt_idx, bad = hungarian_match(cost)
-            pred_idx, gt_idx = pred_idx.to(codes.device), gt_idx.to(codes.device)
-            num_bad_cost += bad
-            matched_gt = gt_codes[gt_idx]
+        if match.pred_index.numel():
+            boxes = gt_boxes[b].to(codes.device, codes.dtype)
+            labels = gt_labels[b].to(codes.device).long()
+            pred_idx = match.pred_index.to(codes.device, non_blocking=True)
+            gt_idx = match.gt_index.to(codes.device, non_blocking=True)
+            matched_gt = encode_boxes(boxes)[gt_idx]
             finite = torch.isfinite(matched_gt)
-            num_bad_target += int((~finite).sum())
             diff = (codes[b, pred_idx] - torch.where(finite, matched_gt, 0)).abs() * w
             l1_sum = l1_sum + torch.where(finite, diff, 0).sum()
             targets[pred_idx] = one_hot_targets(labels[gt_idx], num_classes, logits.dtype)
-            num_matched += int(pred_idx.numel())
+        num_matched += int(match.pred_index.numel())
+        num_bad_cost += match.num_nonfinite_costs
+        num_bad_target += match.num_nonfinite_targets
         focal_sum = focal_sum + sigmoid_focal_loss(logits[b], targets, alpha, gamma).sum()
     norm = matched_normaliser(num_matched, codes.device)
     return BoxLossResult(l1=l1_weight * l1_sum / norm, focal=focal_weight * focal_sum / norm,

@@ -18,7 +18,7 @@ from typing import Callable
 import torch
 
 from ..config import ModelConfig
-from .box import box_loss
+from .box import box_loss, match_layers
 from .chamfer import occupancy_loss, occupancy_target
 from .render_loss import render_layer_weights, render_loss, sample_render_targets
 
@@ -77,24 +77,29 @@ class ODGCriterion:
             cam_from_ego = batch["cam_from_ego"].to(device)
             intrinsics = batch["intrinsics"].to(device)
 
+        _require_finite(network_outputs(output))
+        if self.use_boxes:
+            for l, layer in enumerate(output.layers, start=1):
+                if layer.boxes is None or layer.box_logits is None:
+                    raise ValueError(f"layer {l} has no boxes but cfg.dual_queries is True")
+            matches = match_layers([(layer.boxes, layer.box_logits) for layer in output.layers],
+                                   batch["gt_boxes"], batch["gt_labels"])
+
         losses: dict[str, torch.Tensor] = {}
-        _require_finite("occ_chamfer_l0", init_means=output.init_means)
         init = occupancy_loss(output.init_means.reshape(B, -1, 3), None, targets, cfg.pc_range)
         losses["occ_chamfer_l0"] = init.chamfer
         total = init.chamfer
         for l, layer in enumerate(output.layers, start=1):
             means = layer.means.reshape(B, -1, 3)
             logits = layer.logits.reshape(B, means.shape[1], -1)
-            _require_finite(f"occ_chamfer_l{l}", means=means)
             occ = occupancy_loss(means, logits, targets, cfg.pc_range,
                                  class_weights=cfg.labels.class_weights)
             losses[f"occ_chamfer_l{l}"], losses[f"occ_focal_l{l}"] = occ.chamfer, occ.focal
             total = total + occ.chamfer + occ.focal
 
             if self.use_boxes:
-                if layer.boxes is None or layer.box_logits is None:
-                    raise ValueError(f"layer {l} has no boxes but cfg.dual_queries is True")
-                box = box_loss(layer.boxes, layer.box_logits, batch["gt_boxes"], batch["gt_labels"])
+                box = box_loss(layer.boxes, layer.box_logits, batch["gt_boxes"],
+                               batch["gt_labels"], matches=matches[l - 1])
                 losses[f"box_l1_l{l}"], losses[f"box_focal_l{l}"] = box.l1, box.focal
                 total = total + self.lambda_3d * (box.l1 + box.focal)
                 stats["boxes_matched"] += box.num_matched
@@ -106,8 +111,6 @@ class ODGCriterion:
                     raise ValueError(f"layer {l} has no scales/rotations/opacities (Phi MLPs not "
                                      "run); the rendering loss needs them")
                 G = means.shape[1]
-                _require_finite(f"render_depth_l{l}", scales=layer.scales,
-                                rotations=layer.rotations, opacities=layer.opacities)
                 ren = render_loss(means, layer.scales.reshape(B, G, 3),
                                   layer.rotations.reshape(B, G, 4),
                                   layer.opacities.reshape(B, G), logits, render_targets,
@@ -117,10 +120,10 @@ class ODGCriterion:
                 stats["render_pixels"] += ren.num_pixels
                 stats["render_labelled_pixels"] += ren.num_labelled
 
-        bad = [name for name, value in losses.items() if not torch.isfinite(value).all()]
+        losses["loss"] = total
+        bad = nonfinite_names(losses)          # one host read for every term and the total
         if bad:
             raise FloatingPointError(f"non-finite loss terms: {', '.join(bad)}")
-        losses["loss"] = total
         if stats["nonfinite_match_costs"]:
             log.warning("%d NaN/inf box matching costs replaced this step",
                         stats["nonfinite_match_costs"])
@@ -128,11 +131,38 @@ class ODGCriterion:
         return losses
 
 
-def _require_finite(term: str, **outputs: torch.Tensor) -> None:
+# the loss term each network output enters first, for the error message
+_TERM_OF_OUTPUT = {"means": "occ_chamfer", "logits": "occ_focal", "boxes": "box_l1",
+                   "box_logits": "box_focal", "scales": "render_depth",
+                   "rotations": "render_depth", "opacities": "render_depth"}
+
+
+def network_outputs(output) -> dict[tuple[str, str], torch.Tensor]:
+    """{(loss term, output name): tensor} of every network output the losses read."""
+    named = {("occ_chamfer_l0", "init_means"): output.init_means}
+    for l, layer in enumerate(output.layers, start=1):
+        for name, term in _TERM_OF_OUTPUT.items():
+            t = getattr(layer, name, None)
+            if t is not None:
+                named[(f"{term}_l{l}", name)] = t
+    return named
+
+
+def nonfinite_names(named: dict) -> list:
+    """The keys of the tensors holding a NaN or inf, with one host read for all of them."""
+    if not named:
+        return []
+    flags = torch.stack([torch.isfinite(t.detach()).all() for t in named.values()]).tolist()
+    return [name for name, finite in zip(named, flags) if not finite]
+
+
+def _require_finite(named: dict) -> None:
     """Non-finite network outputs (a diverging step) cannot be searched for neighbours or
-    rendered: raise the criterion's FloatingPointError naming the term (the trainer skips
+    rendered: raise the criterion's FloatingPointError naming the terms (the trainer skips
     and counts the step), not the ValueError those functions keep for bad input."""
-    bad = [name for name, t in outputs.items() if not bool(torch.isfinite(t).all())]
+    bad = nonfinite_names(named)
     if bad:
-        raise FloatingPointError(f"non-finite loss terms: {term} (non-finite network output "
-                                 f"{', '.join(bad)})")
+        terms = dict.fromkeys(term for term, _ in bad)
+        outputs = dict.fromkeys(name for _, name in bad)
+        raise FloatingPointError(f"non-finite loss terms: {', '.join(terms)} (non-finite "
+                                 f"network output {', '.join(outputs)})")

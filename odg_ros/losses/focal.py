@@ -38,7 +38,5 @@ def sigmoid_focal_loss(logits: torch.Tensor, targets: torch.Tensor,
 
 def one_hot_targets(labels: torch.Tensor, num_classes: int, dtype=torch.float32) -> torch.Tensor:
     """labels [N] int, -1 (or any value outside [0, num_classes)) = background -> [N, C] 0/1."""
-    out = torch.zeros(labels.shape[0], num_classes, dtype=dtype, device=labels.device)
-    valid = (labels >= 0) & (labels < num_classes)
-    out[valid.nonzero(as_tuple=True)[0], labels[valid]] = 1
-    return out
+    classes = torch.arange(num_classes, device=labels.device)
+    return (labels[:, None] == classes).to(dtype)    # background matches no class; no host sync
