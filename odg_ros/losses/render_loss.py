@@ -73,7 +73,7 @@ class RenderLossResult:
     depth: torch.Tensor       # scalar, mean |D_hat - D| over supervised pixels (m)
     semantic: torch.Tensor    # scalar, mean CE over labelled pixels
     num_pixels: int
-    num_labelled: int
+    num_labelled: int | torch.Tensor   # a device count (0-dim): reading it would wait for it
 
 
 def render_loss(means: torch.Tensor, scales: torch.Tensor, rotations: torch.Tensor,
@@ -123,11 +123,12 @@ def render_loss(means: torch.Tensor, scales: torch.Tensor, rotations: torch.Tens
         depth_sum = depth_sum + (depth - target[:, 2]).abs().sum()
         num_pixels += target.shape[0]
         labels = target[:, 3].round().long()
-        rows = ((labels >= 0) & (labels < num_classes)).nonzero(as_tuple=True)[0]
-        if rows.numel():
-            mass = features[rows, labels[rows]]
-            sem_sum = sem_sum - torch.log(mass + SEMANTIC_EPS).sum()
-            num_labelled += int(rows.numel())
+        labelled = (labels >= 0) & (labels < num_classes)
+        # every pixel's mass at its (clamped) label, the unlabelled ones weighted 0: the
+        # number of labelled pixels stays on the device
+        mass = features.gather(1, labels.clamp(0, num_classes - 1)[:, None])[:, 0]
+        sem_sum = sem_sum - torch.where(labelled, torch.log(mass + SEMANTIC_EPS), 0).sum()
+        num_labelled = num_labelled + labelled.sum()
     return RenderLossResult(depth=depth_sum / max(num_pixels, 1),
-                            semantic=sem_sum / max(num_labelled, 1),
+                            semantic=sem_sum / torch.as_tensor(num_labelled).clamp(min=1),
                             num_pixels=num_pixels, num_labelled=num_labelled)

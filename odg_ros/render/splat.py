@@ -389,27 +389,30 @@ def _check_inputs(means, scales, rotations, opacities, features, cam_from_ego, i
     if int(tile_size) <= 0:
         raise ValueError(f"tile_size must be positive, got {tile_size}")
     named.update(cam_from_ego=cam_from_ego, intrinsics=intrinsics)
-    for name, tensor in named.items():
-        if not torch.isfinite(tensor).all():
-            raise ValueError(f"{name} contains NaN or inf")
-    rot = cam_from_ego[:, :3, :3].double()
-    eye = torch.eye(3, dtype=torch.float64, device=rot.device)
-    if ((rot @ rot.transpose(1, 2) - eye).abs().gt(1e-3).any()
-            or (torch.linalg.det(rot) - 1).abs().gt(1e-3).any()):
-        raise ValueError("cam_from_ego must be rigid (orthonormal rotation, det +1)")
-    k = intrinsics.double()
-    if (k[:, 0, 0] <= 0).any() or (k[:, 1, 1] <= 0).any():
-        raise ValueError("intrinsics must have positive focal lengths")
-    if (k[:, 0, 1].abs() > 1e-6 * k[:, 0, 0]).any():
-        raise ValueError("intrinsics with skew are not supported")
     for i, p in enumerate(pixels):
         if p.ndim != 2 or p.shape[1] != 2:
             raise ValueError(f"pixels[{i}] must be [P, 2] (u, v), got {tuple(p.shape)}")
         if p.device != means.device:
             raise ValueError(f"pixels[{i}] is on {p.device}, Gaussians on {means.device}")
-        if p.shape[0] and not (torch.isfinite(p).all() and (p[:, 0] >= 0).all()
-                               and (p[:, 0] <= width).all() and (p[:, 1] >= 0).all()
-                               and (p[:, 1] <= height).all()):
-            raise ValueError(f"pixels[{i}] must be finite and inside [0, W={width}] x "
-                             f"[0, H={height}]")
+    # Every value check is a flag on the device, and the host reads them all at once: one
+    # wait for the device per call instead of one per check.
+    checks = [(f"{name} contains NaN or inf", ~torch.isfinite(t).all())
+              for name, t in named.items()]
+    rot = cam_from_ego[:, :3, :3].double()
+    eye = torch.eye(3, dtype=torch.float64, device=rot.device)
+    k = intrinsics.double()
+    checks += [
+        ("cam_from_ego must be rigid (orthonormal rotation, det +1)",
+         (rot @ rot.transpose(1, 2) - eye).abs().gt(1e-3).any()
+         | (torch.linalg.det(rot) - 1).abs().gt(1e-3).any()),
+        ("intrinsics must have positive focal lengths", (k[:, 0, 0] <= 0).any()
+         | (k[:, 1, 1] <= 0).any()),
+        ("intrinsics with skew are not supported", (k[:, 0, 1].abs() > 1e-6 * k[:, 0, 0]).any())]
+    checks += [(f"pixels[{i}] must be finite and inside [0, W={width}] x [0, H={height}]",
+                ~(torch.isfinite(p).all() & (p >= 0).all() & (p[:, 0] <= width).all()
+                  & (p[:, 1] <= height).all())) for i, p in enumerate(pixels) if p.shape[0]]
+    failed = torch.stack([flag.to(means.device) for _, flag in checks]).tolist()
+    for (message, _), bad in zip(checks, failed):
+        if bad:
+            raise ValueError(message)
     return height, width
