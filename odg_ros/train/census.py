@@ -6,7 +6,7 @@ one op is roughly one kernel launch (views, which launch nothing, are not counte
 must wait for: ``.item()`` / ``bool()`` / ``float()`` reads, ``nonzero``, boolean-mask indexing,
 ``unique``, ``bincount``, ``repeat_interleave`` without ``output_size``, a copy to the CPU, and
 ``.numpy()`` / ``.tolist()``. With ``cuda_paths`` the step takes the code paths a CUDA run takes
-(nearest neighbours on the device, foreach AdamW) and every op of the CPU run counts as if its
+(nearest neighbours on the device, fused AdamW) and every op of the CPU run counts as if its
 tensors lived on the GPU, so the census of a GPU run can be taken on a CPU.
 """
 from __future__ import annotations
@@ -153,7 +153,7 @@ def force_cuda_paths(trainer) -> None:
     """The code paths a CUDA run takes, on whatever device ``trainer`` runs."""
     trainer.criterion.nn_method = "cdist"
     for group in trainer.optimizer.param_groups:
-        group["foreach"] = True
+        group["fused"], group["foreach"] = True, False
 
 
 def optimizer_host_tensors(optimizer) -> list[torch.Tensor]:

@@ -19,6 +19,7 @@ import errno
 import functools
 import gc
 import logging
+import math
 import os
 import random
 import shutil
@@ -222,8 +223,10 @@ class Trainer:
             payload = read_checkpoint(opts.init_checkpoint)
             load_weights(self.model, payload["model"])
         self.model.to(self.device)
+        # fused: one kernel per parameter group on CUDA, its step counters on the device
         self.optimizer = torch.optim.AdamW(parameter_groups(self.model, opts), lr=opts.lr,
-                                           weight_decay=opts.weight_decay)
+                                           weight_decay=opts.weight_decay,
+                                           fused=self.device.type == "cuda")
         self.total_steps = self.steps_per_epoch * opts.epochs
         if opts.max_steps:
             self.total_steps = min(self.total_steps, opts.max_steps)
@@ -336,26 +339,37 @@ class Trainer:
 
     # ------------------------------------------------------------------ one step
     def train_step(self, batch: dict) -> tuple[dict[str, float], bool]:
-        """-> (loss terms as floats, applied). Non-finite loss or gradients: not applied."""
+        """-> (loss terms as floats, applied). Non-finite loss or gradients: not applied.
+        The host reads the device once per step (the criterion's checks aside): the loss
+        terms, the total and the gradient norm in one copy, after the backward pass."""
         batch = self._load_batch(batch)
         self.optimizer.zero_grad(set_to_none=True)
+        (self.ddp or self.model).train()
         # BatchNorm statistics change in the forward pass already; a skipped step must leave
         # them as they were (a NaN batch would otherwise poison every later inference).
-        buffers = {name: b.detach().clone() for name, b in self.model.named_buffers()}
-        terms, finite = {}, True
+        buffers = {name: b.detach().clone() for name, b in self._training_statistics()}
+        finite = True
         try:
             output = self._forward(batch)
             losses, loss = self._losses(output, batch)
-            finite = bool(torch.isfinite(loss))
         except FloatingPointError as err:
             log.warning("step %d: %s", self.step, err)
             finite, loss, losses = False, None, {}
-        finite = self._all_ranks(finite)
+        finite = self._all_ranks(finite)      # every rank skips together, before the backward
         if not finite:
             self._restore_buffers(buffers)
             return {k: float("nan") for k in losses}, False
         self._backward(loss)
-        return self._optimizer_step(losses, buffers)
+        return self._optimizer_step(losses, loss, buffers)
+
+    def _training_statistics(self):
+        """(name, buffer) of the BatchNorm layers that update their statistics in this step:
+        none when BatchNorm is frozen (norm_eval), so nothing is copied for a rollback."""
+        for name, module in self.model.named_modules():
+            if (isinstance(module, torch.nn.modules.batchnorm._BatchNorm) and module.training
+                    and module.track_running_stats):
+                for buffer_name, buffer in module.named_buffers(recurse=False):
+                    yield f"{name}.{buffer_name}", buffer
 
     # The phases of a step, each its own method so that a census can tell them apart.
     def _load_batch(self, batch: dict) -> dict:
@@ -365,12 +379,11 @@ class Trainer:
         return batch
 
     def _forward(self, batch: dict):
-        model = self.ddp or self.model
-        model.train()
         with torch.autocast(self.device.type, dtype=self.amp_dtype,
                             enabled=self.amp_dtype is not None):
-            return model(batch["images"], batch["ego2img"], batch["ego_warp"],
-                         batch["time_delta"], history_grad=self.opts.history_grad)
+            return (self.ddp or self.model)(batch["images"], batch["ego2img"], batch["ego_warp"],
+                                            batch["time_delta"],
+                                            history_grad=self.opts.history_grad)
 
     def _losses(self, output, batch: dict):
         losses = self.criterion(output, batch)
@@ -379,18 +392,21 @@ class Trainer:
     def _backward(self, loss: torch.Tensor) -> None:
         self.scaler.scale(loss).backward()
 
-    def _optimizer_step(self, losses: dict, buffers: dict):
+    def _optimizer_step(self, losses: dict, loss: torch.Tensor, buffers: dict):
         self.scaler.unscale_(self.optimizer)
         grad_norm = torch.nn.utils.clip_grad_norm_(self.model.parameters(), self.opts.grad_clip)
-        if not torch.isfinite(grad_norm):  # grads are all-reduced: every rank agrees
+        # one copy to the host: the terms, the loss as back-propagated, the gradient norm
+        values = torch.stack([v.detach().float() for v in losses.values()]
+                             + [loss.detach().float(), grad_norm.float()]).tolist()
+        terms = dict(zip(losses, values[:-2]))
+        if not self._all_ranks(all(math.isfinite(v) for v in values[-2:])):
             self.optimizer.zero_grad(set_to_none=True)
             self.scaler.update()
             self._restore_buffers(buffers)
-            return {k: float(v.detach()) for k, v in losses.items()}, False
+            return terms, False
         self.scaler.step(self.optimizer)
         self.scaler.update()
-        terms = {k: float(v.detach()) for k, v in losses.items()}
-        terms["grad_norm"] = float(grad_norm)
+        terms["grad_norm"] = values[-1]
         return terms, True
 
     @torch.no_grad()
