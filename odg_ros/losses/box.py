@@ -87,7 +87,6 @@ class BoxMatch:
     pred_index: torch.Tensor
     gt_index: torch.Tensor
     num_nonfinite_costs: int
-    num_nonfinite_targets: int      # non-finite code entries of the matched GT
 
 
 def match_layers(layers: Sequence[tuple[torch.Tensor, torch.Tensor]],
@@ -95,8 +94,8 @@ def match_layers(layers: Sequence[tuple[torch.Tensor, torch.Tensor]],
                  code_weights: Sequence[float] = BOX_CODE_WEIGHTS) -> list[list[BoxMatch]]:
     """Hungarian matches of every layer's (codes [B, D, 10], logits [B, D, C]) to the GT.
 
-    The GT is checked once, and every cost matrix (with the GT codes' finiteness) comes to
-    the host in one copy: the host waits for the device once, not once per layer and sample.
+    The GT is checked once, and every cost matrix comes to the host in one copy: the host
+    waits for the device once, not once per layer and sample.
     """
     codes0, logits0 = layers[0]
     num_classes, device = logits0.shape[-1], codes0.device
@@ -107,10 +106,8 @@ def match_layers(layers: Sequence[tuple[torch.Tensor, torch.Tensor]],
         labels.append(gt_labels[b].to(device).long())
         check_gt_boxes(boxes, labels[b], num_classes)
         gt_codes.append(encode_boxes(boxes))
-    parts, sizes = [], []
+    parts = []
     with torch.no_grad():
-        for b, codes in enumerate(gt_codes):
-            parts.append(torch.isfinite(codes).flatten().double())
         for codes, logits in layers:
             for b in range(codes.shape[0]):
                 if gt_codes[b].shape[0] and codes.shape[1]:
@@ -118,21 +115,19 @@ def match_layers(layers: Sequence[tuple[torch.Tensor, torch.Tensor]],
                                           labels[b], code_weights)
                     parts.append(cost.double().flatten())
         host = torch.cat(parts).cpu() if parts else torch.zeros(0, dtype=torch.float64)
-    sizes = [c.numel() for c in gt_codes]
-    finite = [f.view(-1, 10).bool() for f in host[:sum(sizes)].split(sizes)]
-    offset, matches = sum(sizes), []
+    offset, matches = 0, []
     for codes, _ in layers:
         layer = []
         for b in range(codes.shape[0]):
             d, m = codes.shape[1], gt_codes[b].shape[0]
             empty = torch.zeros(0, dtype=torch.long)
             if not (m and d):
-                layer.append(BoxMatch(empty, empty, 0, 0))
+                layer.append(BoxMatch(empty, empty, 0))
                 continue
             cost = host[offset:offset + d * m].view(d, m)
             offset += d * m
             pred_idx, gt_idx, bad = hungarian_match(cost)
-            layer.append(BoxMatch(pred_idx, gt_idx, bad, int((~finite[b][gt_idx]).sum())))
+            layer.append(BoxMatch(pred_idx, gt_idx, bad))
         matches.append(layer)
     return matches
 
@@ -143,7 +138,8 @@ class BoxLossResult:
     focal: torch.Tensor         # scalar, includes BOX_FOCAL_WEIGHT
     num_matched: int
     num_nonfinite_costs: int
-    num_nonfinite_targets: int  # GT code entries left out of the L1 term
+    num_nonfinite_targets: int | torch.Tensor  # GT code entries left out of the L1 term (a
+    #                                             device count: reading it would wait for it)
 
 
 def box_loss(codes: torch.Tensor, logits: torch.Tensor, gt_boxes: Sequence[torch.Tensor],
@@ -176,12 +172,12 @@ def box_loss(codes: torch.Tensor, logits: torch.Tensor, gt_boxes: Sequence[torch
             gt_idx = match.gt_index.to(codes.device, non_blocking=True)
             matched_gt = encode_boxes(boxes)[gt_idx]
             finite = torch.isfinite(matched_gt)
+            num_bad_target = num_bad_target + (~finite).sum()     # stays on the device
             diff = (codes[b, pred_idx] - torch.where(finite, matched_gt, 0)).abs() * w
             l1_sum = l1_sum + torch.where(finite, diff, 0).sum()
             targets[pred_idx] = one_hot_targets(labels[gt_idx], num_classes, logits.dtype)
         num_matched += int(match.pred_index.numel())
         num_bad_cost += match.num_nonfinite_costs
-        num_bad_target += match.num_nonfinite_targets
         focal_sum = focal_sum + sigmoid_focal_loss(logits[b], targets, alpha, gamma).sum()
     norm = matched_normaliser(num_matched, codes.device)
     return BoxLossResult(l1=l1_weight * l1_sum / norm, focal=focal_weight * focal_sum / norm,

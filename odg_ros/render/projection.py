@@ -158,7 +158,8 @@ def project_gaussians(means: torch.Tensor, scales: torch.Tensor, rotations: torc
         lo = mean2d - half_extent
         hi = mean2d + half_extent
         visible = (hi[:, 0] >= 0) & (lo[:, 0] <= width) & (hi[:, 1] >= 0) & (lo[:, 1] <= height)
-        if not torch.isfinite(mean2d[visible]).all() or not torch.isfinite(det[visible]).all():
+        overflow = ~(torch.isfinite(mean2d).all(-1) & torch.isfinite(det)) & visible
+        if overflow.any():                                  # one host read
             raise FloatingPointError("Gaussian projection overflowed (non-finite 2D mean or "
                                      "covariance); scales or positions are out of range")
         keep = visible.nonzero(as_tuple=True)[0]

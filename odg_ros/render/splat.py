@@ -128,7 +128,7 @@ def _render_cameras(means, scales, rotations, opacities, features, cam_from_ego,
         means.new_zeros(0, 2)
     pixel_camera = torch.repeat_interleave(
         torch.arange(num_cameras, device=means.device),
-        torch.tensor(counts, device=means.device, dtype=torch.long))
+        torch.tensor(counts, device=means.device, dtype=torch.long), output_size=sum(counts))
 
     splats = project_gaussians(means, scales, rotations, opacities, cam_from_ego.to(means.dtype),
                                intrinsics.to(means.dtype), (height, width), near)
@@ -204,7 +204,7 @@ def _composite(splats: Splats, pixel_uv: torch.Tensor, pixel_camera: torch.Tenso
             alpha = _pair_alpha(params, pixel_uv, pair_splat, pair_pixel)
             log_one_minus = torch.log1p(-alpha.double())
             running = torch.cumsum(log_one_minus, 0) - log_one_minus       # exclusive
-            pairs_per_pixel = torch.bincount(pair_pixel, minlength=num_pixels)
+            pairs_per_pixel = _counts(pair_pixel, num_pixels)
             segment_first = torch.cumsum(pairs_per_pixel, 0) - pairs_per_pixel
             log_transmittance = (running - running[segment_first[pair_pixel]]
                                  + log_t[pair_pixel])
@@ -256,7 +256,7 @@ class _TileGrid:
         tile = (pixel_camera[ids] * self.tiles_per_camera
                 + self.row(pixel_uv[ids, 1]) * self.tiles_x + self.column(pixel_uv[ids, 0]))
         order = torch.argsort(tile, stable=True)
-        count = torch.bincount(tile, minlength=self.num_tiles)
+        count = _counts(tile, self.num_tiles)
         return ids[order], count, torch.cumsum(count, 0) - count
 
 
@@ -271,9 +271,11 @@ def _splat_tiles(splats: Splats, grid: _TileGrid):
     row0, row1 = grid.row(lo[:, 1]), grid.row(hi[:, 1])
     span = col1 - col0 + 1
     tiles_of_splat = span * (row1 - row0 + 1)
-    st_splat = torch.repeat_interleave(torch.arange(len(splats), device=device), tiles_of_splat)
-    local = torch.arange(st_splat.shape[0], device=device) - torch.repeat_interleave(
-        torch.cumsum(tiles_of_splat, 0) - tiles_of_splat, tiles_of_splat)
+    total = int(tiles_of_splat.sum())           # the one host read: the size of the pair list
+    st_splat = torch.repeat_interleave(torch.arange(len(splats), device=device), tiles_of_splat,
+                                       output_size=total)
+    local = torch.arange(total, device=device) - torch.repeat_interleave(
+        torch.cumsum(tiles_of_splat, 0) - tiles_of_splat, tiles_of_splat, output_size=total)
     st_tile = (splats.camera[st_splat] * grid.tiles_per_camera
                + (row0[st_splat] + local // span[st_splat]) * grid.tiles_x
                + col0[st_splat] + local % span[st_splat])
@@ -344,10 +346,17 @@ class _PairWeightedSum(torch.autograd.Function):
         return grad_weight, grad_values, None, None, None
 
 
+def _counts(index: torch.Tensor, size: int) -> torch.Tensor:
+    """bincount of indices known to lie in [0, size), without the host read of their
+    maximum that bincount makes on CUDA."""
+    return torch.zeros(size, dtype=torch.long, device=index.device).index_add_(
+        0, index, torch.ones_like(index))
+
+
 def _csr(rows, cols, vals, shape):
     """CSR matrix from row-sorted (row, col, value) triples."""
     crow = torch.zeros(shape[0] + 1, dtype=torch.long, device=rows.device)
-    crow[1:] = torch.cumsum(torch.bincount(rows, minlength=shape[0]), 0)
+    crow[1:] = torch.cumsum(_counts(rows, shape[0]), 0)
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta")
         return torch.sparse_csr_tensor(crow, cols, vals, shape, check_invariants=CHECK_CSR)

@@ -105,22 +105,49 @@ class Census:
         return "\n".join(rows)
 
 
+def _storage(t: torch.Tensor) -> int:
+    """Identity of a strided tensor's memory (shared by its views); -1 for sparse ones."""
+    return t.untyped_storage().data_ptr() if t.layout == torch.strided else -1
+
+
 class CensusMode(TorchDispatchMode):
     """Counts ops and host syncs into ``census``; ``device_type`` None counts every tensor as
     a device tensor (the CUDA paths on a CPU), else only tensors of that device type sync.
-    ``host_tensors``: tensors that a CUDA run keeps on the host (the optimizer's step counters);
-    ops on them alone are neither launches nor syncs."""
+    ``host_tensors``: tensors that a CUDA run keeps on the host (the optimizer's step counters).
+    What is computed from host tensors alone, and what ``.cpu()`` returns, is on the host too:
+    its ops are neither launches nor syncs (with the CUDA paths forced, ``.cpu()`` is the sync)."""
 
     def __init__(self, census: Census, device_type: str | None, host_tensors=()):
         super().__init__()
         self.census, self.device_type = census, device_type
-        self._host = {id(t) for t in host_tensors}
-        self._originals = {name: getattr(torch.Tensor, name) for name in _HOST_READS}
+        self._host: set[int] = set()
+        self._kept = []             # host storages stay alive: their addresses are not reused
+        for t in host_tensors:
+            self._mark_host(t)
+        self._originals = {name: getattr(torch.Tensor, name) for name in _HOST_READS + ("cpu",)}
+
+    def _mark_host(self, t: torch.Tensor) -> None:
+        if t.layout != torch.strided:
+            return
+        self._host.add(_storage(t))
+        self._kept.append(t.untyped_storage())
+
+    def _on_host(self, t: torch.Tensor) -> bool:
+        return (self.device_type is not None and t.device.type != self.device_type) or \
+            _storage(t) in self._host
 
     def __torch_dispatch__(self, func, types, args=(), kwargs=None):
         kwargs = kwargs or {}
-        if self._host and self._on_host_only(args):
-            return func(*args, **kwargs)
+        tensors = [t for a in list(args) + list(kwargs.values())
+                   for t in (a if isinstance(a, (list, tuple)) else (a,))
+                   if isinstance(t, torch.Tensor)]
+        if tensors and all(self._on_host(t) for t in tensors):
+            out = func(*args, **kwargs)
+            if self.device_type is None:
+                for t in (out if isinstance(out, (list, tuple)) else (out,)):
+                    if isinstance(t, torch.Tensor):
+                        self._mark_host(t)
+            return out
         sync = _is_sync(func, args, kwargs, self.device_type)
         if sync or not func.is_view:              # a view launches no kernel
             where = _where()
@@ -128,19 +155,22 @@ class CensusMode(TorchDispatchMode):
             self.census.syncs[where] += sync
         return func(*args, **kwargs)
 
-    def _on_host_only(self, args) -> bool:
-        flat = [t for a in args for t in (a if isinstance(a, (list, tuple)) else (a,))
-                if isinstance(t, torch.Tensor)]
-        return bool(flat) and all(id(t) in self._host for t in flat)
-
     def __enter__(self):
-        for name, original in self._originals.items():
-            def counted(tensor, *args, _original=original, **kwargs):
-                if (self.device_type in (None, tensor.device.type)
-                        and id(tensor) not in self._host):
+        for name in _HOST_READS:
+            def counted(tensor, *args, _original=self._originals[name], **kwargs):
+                if not self._on_host(tensor):
                     self.census.syncs[_where()] += 1
                 return _original(tensor, *args, **kwargs)
             setattr(torch.Tensor, name, counted)
+
+        def to_host(tensor, *args, _original=self._originals["cpu"], **kwargs):
+            on_host = self._on_host(tensor)
+            out = _original(tensor, *args, **kwargs)
+            if not on_host and self.device_type is None:     # a no-op on the CPU: count it
+                self.census.syncs[_where()] += 1
+                self._mark_host(out)
+            return out
+        torch.Tensor.cpu = to_host
         return super().__enter__()
 
     def __exit__(self, *exc):

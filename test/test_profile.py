@@ -1,0 +1,55 @@
+"""odg profile train: the census of a training step, and the budget of ODG-T's step with the
+CUDA paths forced (launched ops and host syncs; a host sync stalls the GPU queue)."""
+import json
+
+import pytest
+
+from helpers import tiny_config, write_tiny_split
+from odg_ros.cli import main
+from odg_ros.config import load_preset
+from odg_ros.data.batch import collate
+from odg_ros.train.census import census_of_steps
+from odg_ros.train.trainer import Trainer, TrainOptions
+
+MAX_OPS = 12_000
+MAX_SYNCS_OUTSIDE_RENDERER = 16
+# Our renderer's compositing loop sizes its work on the host (about 22 reads per call, six
+# calls a step): pinned where it is, so that it can only go down.
+MAX_SYNCS = 150
+
+
+@pytest.fixture(scope="module")
+def split(tmp_path_factory):
+    return write_tiny_split(tmp_path_factory.mktemp("profile"), 3)
+
+
+def test_odg_t_training_step_stays_within_its_budget(split, tmp_path):
+    # ODG-T's decoder, Gaussians, losses and renderer; small images and two frames keep the
+    # backbone cheap here (the host syncs do not depend on either)
+    cfg = load_preset("odg_t", image_size=(32, 88), num_frames=2)
+    trainer = Trainer(cfg, split, TrainOptions(out_dir=tmp_path, workers=0, progress=False,
+                                               device="cpu", render_pixels_per_camera=64))
+    lidar_keyframe = collate([trainer.dataset[2]])     # the one keyframe with LiDAR targets
+    census = census_of_steps(trainer, [lidar_keyframe] * 2, cuda_paths=True)
+    report = census.report()
+    assert census.per_step(census.ops, "render") > 100, report        # the renderer ran
+    outside_renderer = sum(n for (phase, line), n in census.syncs.items()
+                           if phase != "render" and not line.startswith("render/"))
+    assert outside_renderer / census.steps <= MAX_SYNCS_OUTSIDE_RENDERER, report
+    assert census.per_step(census.syncs) <= MAX_SYNCS, report
+    assert census.per_step(census.ops) <= MAX_OPS, report
+
+
+def test_profile_command_prints_phases_and_lines(split, tmp_path, capsys):
+    preset = tmp_path / "tiny.yaml"
+    preset.write_text(json.dumps({k: list(v) if isinstance(v, tuple) else v     # JSON is YAML
+                                  for k, v in tiny_config(num_frames=2).to_dict().items()}))
+    out = tmp_path / "census.json"
+    assert main(["profile", "train", "--preset", str(preset), "--data", str(split),
+                 "--cuda-paths", "--top", "3", "--json", str(out)]) == 0
+    text = capsys.readouterr().out
+    for phase in ("forward", "losses", "backward", "optimizer", "total"):
+        assert f"\n{phase}" in text
+    saved = json.loads(out.read_text())
+    assert saved["ops_per_step"] > 0 and len(saved["ops_by_line"]) == 3
+    assert main(["profile", "train", "--data", str(tmp_path / "missing.pkl")]) == 1
