@@ -131,9 +131,9 @@ def to_device(batch: dict, device) -> dict:
         if torch.is_tensor(value):
             out[key] = value.to(device, non_blocking=True)
         elif isinstance(value, list) and value and torch.is_tensor(value[0]):
-            out[key] = [v.to(device) for v in value]
+            out[key] = [v.to(device, non_blocking=True) for v in value]
         elif isinstance(value, list) and value and isinstance(value[0], list):
-            out[key] = [[t.to(device) for t in v] for v in value]
+            out[key] = [[t.to(device, non_blocking=True) for t in v] for v in value]
         else:
             out[key] = value
     return out
@@ -209,7 +209,8 @@ class Trainer:
         self.loader = torch.utils.data.DataLoader(
             self.dataset, batch_size=opts.batch_size, sampler=self.sampler,
             num_workers=opts.workers, collate_fn=collate, drop_last=True,
-            persistent_workers=opts.workers > 0)
+            persistent_workers=opts.workers > 0,
+            pin_memory=self.device.type == "cuda")  # non_blocking copies really are (pinned)
         self.steps_per_epoch = len(self.loader)
         if self.steps_per_epoch == 0:
             raise ValueError(f"{len(self.dataset)} samples cannot fill one batch of "
