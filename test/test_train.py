@@ -65,6 +65,13 @@ def test_render_loss_renderer_is_ours_or_gsplat_on_cuda():
         training_renderer("gsplat", torch.device("cpu"))
     with pytest.raises(ValueError, match="torch or gsplat"):
         training_renderer("inria", torch.device("cpu"))
+    assert training_renderer("auto", torch.device("cpu")) is None
+
+
+def test_auto_renderer_is_gsplat_on_cuda_only_where_installed(monkeypatch):
+    from odg_ros.train import trainer as trainer_module
+    monkeypatch.setattr(trainer_module.importlib.util, "find_spec", lambda name: None)
+    assert training_renderer("auto", torch.device("cuda", 0)) is None
 
 
 def render_loss_log(split, out, **kw):

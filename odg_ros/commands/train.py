@@ -38,8 +38,9 @@ def add_arguments(parser):
                         help="ablation: no Gaussian-splatting rendering supervision")
     parser.add_argument("--render-pixels", type=positive_int, default=512,
                         help="supervised LiDAR pixels per camera and step")
-    parser.add_argument("--renderer", choices=("torch", "gsplat"), default="torch",
-                        help="render loss: our PyTorch renderer (any device), or gsplat's CUDA "
+    parser.add_argument("--renderer", choices=("auto", "torch", "gsplat"), default="auto",
+                        help="render loss (auto: gsplat on CUDA when installed, else ours): our "
+                             "PyTorch renderer (any device), or gsplat's CUDA "
                              "rasteriser (whole images, alpha capped at 0.999 not 0.99)")
     parser.add_argument("--no-history-grad", action="store_true",
                         help="backbone gradients through the current frame only (faster, "

@@ -18,6 +18,7 @@ import csv
 import errno
 import functools
 import gc
+import importlib.util
 import logging
 import math
 import os
@@ -61,7 +62,7 @@ class TrainOptions:
     seed: int = 0
     render: bool = True
     render_pixels_per_camera: int = 512
-    renderer: str = "torch"               # "gsplat": gsplat's CUDA rasteriser for the render loss
+    renderer: str = "auto"                # gsplat's CUDA rasteriser where it can run, else ours
     history_grad: bool = True             # False: no backbone gradient through past frames
     augment: bool = True                  # flip, resize-and-crop, photometric (data/augment.py)
     checkpoint_every: int = 500
@@ -108,11 +109,15 @@ def process_device(name: str, local_rank: int) -> torch.device:
 
 def training_renderer(name: str, device: torch.device):
     """The render loss's renderer: ``torch`` ours (None: the criterion's default), ``gsplat``
-    gsplat's rasteriser, which has CUDA kernels only."""
+    gsplat's rasteriser, which has CUDA kernels only; ``auto`` gsplat on CUDA when it is
+    installed (its kernels size their work on the device; ours reads sizes back), else ours."""
+    if name == "auto":
+        name = "gsplat" if device.type == "cuda" and importlib.util.find_spec("gsplat") \
+            else "torch"
     if name == "torch":
         return None
     if name != "gsplat":
-        raise ValueError(f"renderer must be torch or gsplat, got {name!r}")
+        raise ValueError(f"renderer must be auto, torch or gsplat, got {name!r}")
     if device.type != "cuda":
         raise ValueError(f"--renderer gsplat needs a CUDA device (gsplat's rasteriser has no "
                          f"CPU kernels); this run is on {device}")
