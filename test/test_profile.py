@@ -52,4 +52,4 @@ def test_profile_command_prints_phases_and_lines(split, tmp_path, capsys):
         assert f"\n{phase}" in text
     saved = json.loads(out.read_text())
     assert saved["ops_per_step"] > 0 and len(saved["ops_by_line"]) == 3
-    assert main(["profile", "train", "--data", str(tmp_path / "missing.pkl")]) == 1
+    assert main(["profile", "train", "--data", str(tmp_path / "missing.pkl")]) == 2

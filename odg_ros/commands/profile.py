@@ -37,15 +37,11 @@ def add_arguments(parser):
 def run(args) -> int:
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     overrides = {"image_size": tuple(args.image_size)} if args.image_size else {}
-    try:
-        cfg = load_preset(args.preset, **overrides)
-        trainer = Trainer(cfg, args.data, TrainOptions(
-            out_dir=Path(tempfile.mkdtemp()), epochs=1, workers=0, progress=False,
-            device=args.device, batch_size=args.batch_size,
-            render_pixels_per_camera=args.render_pixels))
-    except (OSError, ValueError) as error:
-        print(f"odg profile: {error}")
-        return 1
+    cfg = load_preset(args.preset, **overrides)
+    trainer = Trainer(cfg, args.data, TrainOptions(
+        out_dir=Path(tempfile.mkdtemp()), epochs=1, workers=0, progress=False,
+        device=args.device, batch_size=args.batch_size,
+        render_pixels_per_camera=args.render_pixels))
     dataset = trainer.dataset
     batches = [collate([dataset[(i * args.batch_size + j) % len(dataset)]
                         for j in range(args.batch_size)]) for i in range(args.steps + 1)]
