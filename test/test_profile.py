@@ -3,11 +3,13 @@ CUDA paths forced (launched ops and host syncs; a host sync stalls the GPU queue
 import json
 
 import pytest
+import torch
 
 from helpers import tiny_config, write_tiny_split
 from odg_ros.cli import main
 from odg_ros.config import load_preset
 from odg_ros.data.batch import collate
+from odg_ros.network.backbone import ResNet
 from odg_ros.train.census import census_of_steps
 from odg_ros.train.trainer import Trainer, TrainOptions
 
@@ -27,8 +29,12 @@ def test_odg_t_training_step_stays_within_its_budget(split, tmp_path):
     # ODG-T's decoder, Gaussians, losses and renderer; small images and two frames keep the
     # backbone cheap here (the host syncs do not depend on either)
     cfg = load_preset("odg_t", image_size=(32, 88), num_frames=2)
+    weights = tmp_path / "resnet50.pth"        # random stand-ins for the pretrained weights
+    torch.save(ResNet(cfg.backbone).state_dict(), weights)
     trainer = Trainer(cfg, split, TrainOptions(out_dir=tmp_path, workers=0, progress=False,
-                                               device="cpu", render_pixels_per_camera=64))
+                                               device="cpu", render_pixels_per_camera=64,
+                                               backbone_weights=str(weights),
+                                               augment=False))   # the step, not augmentation
     lidar_keyframe = collate([trainer.dataset[2]])     # the one keyframe with LiDAR targets
     census = census_of_steps(trainer, [lidar_keyframe] * 2, cuda_paths=True)
     report = census.report()

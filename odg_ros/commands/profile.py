@@ -29,6 +29,9 @@ def add_arguments(parser):
                         help="network input size (the counts do not depend on it)")
     parser.add_argument("--batch-size", type=int, default=1)
     parser.add_argument("--render-pixels", type=int, default=512)
+    parser.add_argument("--backbone-weights", help="backbone checkpoint, as for odg train")
+    parser.add_argument("--backbone-from-scratch", action="store_true",
+                        help="as for odg train: unfreeze a preset's frozen backbone")
     parser.add_argument("--steps", type=int, default=1, help="counted steps (after a warm-up)")
     parser.add_argument("--top", type=int, default=12, help="source lines to list")
     parser.add_argument("--json", help="also write the census here")
@@ -41,7 +44,8 @@ def run(args) -> int:
     trainer = Trainer(cfg, args.data, TrainOptions(
         out_dir=Path(tempfile.mkdtemp()), epochs=1, workers=0, progress=False,
         device=args.device, batch_size=args.batch_size,
-        render_pixels_per_camera=args.render_pixels))
+        render_pixels_per_camera=args.render_pixels, backbone_weights=args.backbone_weights,
+        backbone_from_scratch=args.backbone_from_scratch))
     dataset = trainer.dataset
     batches = [collate([dataset[(i * args.batch_size + j) % len(dataset)]
                         for j in range(args.batch_size)]) for i in range(args.steps + 1)]
