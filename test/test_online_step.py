@@ -165,7 +165,8 @@ def random_output(seed, classes, batch=2, queries=40, points=8, dynamic=10):
 def test_static_postprocess_equals_the_loop_postprocess(classes):
     """15 classes: Occ3D-Waymo's label set, free = 15."""
     model, cfg = make_model()
-    cfg = cfg.replace(score_threshold=0.5, box_score_threshold=0.3, num_classes=classes)
+    cfg = cfg.replace(score_threshold=0.5, box_score_threshold=0.3, num_classes=classes,
+                      dataset="waymo" if classes == 15 else "nuscenes")
     for seed in range(3):
         output = random_output(seed, classes)
         labels, confidence = occupancy_grid(output, cfg)

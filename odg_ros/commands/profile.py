@@ -11,30 +11,37 @@ from pathlib import Path
 
 import torch
 
-from ..config import load_preset
+from ..config import PRESET_NAMES, load_preset
 from ..data.batch import collate
 from ..train.census import census_of_steps
 from ..train.trainer import Trainer, TrainOptions
+from .common import device, existing_file, infos_file, positive_int, preset
 
 
 def add_arguments(parser):
     parser.add_argument("what", choices=("train",), help="what to profile: a training step")
-    parser.add_argument("--preset", default="odg_cpu")
-    parser.add_argument("--data", required=True, help="training infos (odg prepare)")
-    parser.add_argument("--device", default="cpu", help="cpu | cuda | cuda:N")
+    parser.add_argument("--preset", type=preset, default="odg_cpu",
+                        help=f"model preset ({', '.join(PRESET_NAMES)}) or a preset YAML file")
+    parser.add_argument("--data", required=True, type=infos_file,
+                        help="training infos (odg prepare)")
+    parser.add_argument("--device", type=device, default="cpu", help="cpu, cuda or cuda:N")
     parser.add_argument("--cuda-paths", action="store_true",
                         help="take the code paths of a CUDA run and count every op as a GPU op "
                              "(the census of a GPU step, taken on the CPU)")
-    parser.add_argument("--image-size", type=int, nargs=2, metavar=("H", "W"),
-                        help="network input size (the counts do not depend on it)")
-    parser.add_argument("--batch-size", type=int, default=1)
-    parser.add_argument("--render-pixels", type=int, default=512)
-    parser.add_argument("--backbone-weights", help="backbone checkpoint, as for odg train")
+    parser.add_argument("--image-size", type=positive_int, nargs=2, metavar=("H", "W"),
+                        help="network input size (the counts do not depend on it; default: "
+                             "the preset's)")
+    parser.add_argument("--batch-size", type=positive_int, default=1, help="samples per step")
+    parser.add_argument("--render-pixels", type=positive_int, default=512,
+                        help="LiDAR pixels rendered per camera, as for odg train")
+    parser.add_argument("--backbone-weights", type=existing_file,
+                        help="backbone checkpoint, as for odg train (default: none)")
     parser.add_argument("--backbone-from-scratch", action="store_true",
                         help="as for odg train: unfreeze a preset's frozen backbone")
-    parser.add_argument("--steps", type=int, default=1, help="counted steps (after a warm-up)")
-    parser.add_argument("--top", type=int, default=12, help="source lines to list")
-    parser.add_argument("--json", help="also write the census here")
+    parser.add_argument("--steps", type=positive_int, default=1,
+                        help="counted steps (after a warm-up)")
+    parser.add_argument("--top", type=positive_int, default=12, help="source lines to list")
+    parser.add_argument("--json", help="also write the census here (default: not written)")
 
 
 def run(args) -> int:
