@@ -23,6 +23,8 @@ tiles are ever formed, never a dense Gaussians x pixels tensor. Splats go front 
 depth batches of ~1M candidate pairs; candidates are tested without autograd, survivors get
 T from a float64 segmented cumulative sum of log(1 - alpha), and pixels that reached the
 early stop leave the later batches. The weighted sums are CSR sparse x dense products.
+The host waits for the device three times per depth batch (the batch's bounds and size in
+one read, and two compactions), never for the bookkeeping of which pixels are still active.
 Memory is O(contributing pairs) plus one batch of candidates.
 
 The code is device-agnostic PyTorch but has only been run on CPU; on CUDA, gsplat_backend.py
@@ -176,25 +178,32 @@ def _composite(splats: Splats, pixel_uv: torch.Tensor, pixel_camera: torch.Tenso
         log_t = torch.zeros(num_pixels, dtype=torch.float64, device=device)  # running log T
         active = torch.ones(num_pixels, dtype=torch.bool, device=device)
         pixels_by_tile, tile_count, tile_first = grid.bin_pixels(pixel_uv, pixel_camera, active)
+        # Candidates before each (splat, tile) pair, counted over the still-active pixels;
+        # a leading 0 so that before[a] is the count before pair a.
+        before = None
+        splat_of_pair = torch.cat([st_splat, st_splat.new_full((1,), len(splats))])
         first = 0                                       # first splat of the batch
-        cumulative = None         # candidates of the (splat, tile) pairs from cumulative_start on
         while first < len(splats):
             with torch.no_grad():
-                a = int(splat_first_st[first])
-                if cumulative is None:                  # (re)counted when pixels drop out
-                    cumulative_start = a
-                    cumulative = torch.cumsum(tile_count[st_tile[a:]], 0)
-                before = int(cumulative[a - cumulative_start - 1]) if a > cumulative_start else 0
-                cut = cumulative_start + int(torch.searchsorted(
-                    cumulative, before + CANDIDATE_CHUNK, right=True))
-                last = int(st_splat[cut]) if cut < st_splat.shape[0] else len(splats)
-                last = max(last, first + 1)
-                b = int(splat_first_st[last])
+                if before is None:                      # (re)counted when pixels drop out
+                    before = torch.cat([st_tile.new_zeros(1),
+                                        torch.cumsum(tile_count[st_tile], 0)])
+                # The batch's bounds and candidate count on the device, read in one copy.
+                # (one-element tensors: indexing with a 0-d tensor would read it on the host)
+                a = splat_first_st[first:first + 1]
+                before_a = before.index_select(0, a)
+                cut = torch.searchsorted(before[1:], before_a + CANDIDATE_CHUNK, right=True)
+                last = torch.clamp_min(splat_of_pair.index_select(0, cut), first + 1)
+                b = splat_first_st.index_select(0, last)
+                a, b, last, num_candidates = torch.cat(
+                    [a, b, last, before.index_select(0, b) - before_a]).tolist()
                 pair_splat, pair_pixel = _candidate_pairs(
-                    st_splat[a:b], st_tile[a:b], pixels_by_tile, tile_count, tile_first)
+                    st_splat[a:b], st_tile[a:b], pixels_by_tile, tile_count, tile_first,
+                    num_candidates)
                 alpha = _pair_alpha(params.detach(), pixel_uv, pair_splat, pair_pixel)
-                contributes = alpha >= ALPHA_MIN
-                pair_splat, pair_pixel = pair_splat[contributes], pair_pixel[contributes]
+                contributes = (alpha >= ALPHA_MIN).nonzero(as_tuple=True)[0]
+                pair_splat = pair_splat.index_select(0, contributes)
+                pair_pixel = pair_pixel.index_select(0, contributes)
                 # Splats are depth-sorted, so the splat index is the depth rank.
                 order = torch.argsort(pair_pixel * len(splats) + pair_splat)
                 pair_splat, pair_pixel = pair_splat[order], pair_pixel[order]
@@ -211,19 +220,20 @@ def _composite(splats: Splats, pixel_uv: torch.Tensor, pixel_camera: torch.Tenso
             with torch.no_grad():
                 include = ((log_transmittance + log_one_minus)
                            > math.log(TRANSMITTANCE_MIN) + STOP_LOG_MARGIN)
-                stopped = pair_pixel[~include]
+                kept = include.nonzero(as_tuple=True)[0]
+                stops = _counts(pair_pixel, num_pixels, ~include)
             weight = alpha * torch.exp(log_transmittance).to(alpha.dtype)
-            weights.append(weight[include])
-            pair_pixels.append(pair_pixel[include])
-            pair_splats.append(pair_splat[include])
-            log_t = log_t.index_add(0, pair_pixel[include], log_one_minus[include])
-            if stopped.shape[0]:
-                active[stopped] = False
-                if not active.any():
-                    break
+            weights.append(weight.index_select(0, kept))
+            pair_pixels.append(pair_pixel.index_select(0, kept))
+            pair_splats.append(pair_splat.index_select(0, kept))
+            log_t = log_t.index_add(0, pair_pixels[-1], log_one_minus.index_select(0, kept))
+            if kept.shape[0] < include.shape[0]:        # some pixels stopped: size known here
+                active &= stops == 0
+                # Once every pixel has stopped, the next batch has no candidates and takes
+                # all remaining splats: one more read, instead of one per batch to ask.
                 pixels_by_tile, tile_count, tile_first = grid.bin_pixels(
                     pixel_uv, pixel_camera, active)
-                cumulative = None
+                before = None
     if not weights:
         empty = torch.zeros(0, dtype=torch.long, device=device)
         return params[:0, 0] * 0, empty, empty
@@ -250,14 +260,16 @@ class _TileGrid:
 
     @torch.no_grad()
     def bin_pixels(self, pixel_uv, pixel_camera, active):
-        """Active pixels grouped by tile: (pixel ids sorted by tile [P_active],
-        pixels per tile [num_tiles], first position of each tile in that list [num_tiles])."""
-        ids = active.nonzero(as_tuple=True)[0]
-        tile = (pixel_camera[ids] * self.tiles_per_camera
-                + self.row(pixel_uv[ids, 1]) * self.tiles_x + self.column(pixel_uv[ids, 0]))
+        """Active pixels grouped by tile: (pixel ids sorted by tile [P], pixels per tile
+        [num_tiles], first position of each tile in that list [num_tiles]). Inactive pixels
+        sort last under a tile id past the end and are counted nowhere, so the shapes do not
+        depend on how many are active (nothing waits for that count)."""
+        tile = (pixel_camera * self.tiles_per_camera
+                + self.row(pixel_uv[:, 1]) * self.tiles_x + self.column(pixel_uv[:, 0]))
+        tile = torch.where(active, tile, self.num_tiles)
         order = torch.argsort(tile, stable=True)
-        count = _counts(tile, self.num_tiles)
-        return ids[order], count, torch.cumsum(count, 0) - count
+        count = _counts(tile, self.num_tiles + 1)[:-1]
+        return order, count, torch.cumsum(count, 0) - count
 
 
 @torch.no_grad()
@@ -282,13 +294,15 @@ def _splat_tiles(splats: Splats, grid: _TileGrid):
     return st_splat, st_tile
 
 
-def _candidate_pairs(st_splat, st_tile, pixels_by_tile, tile_count, tile_first):
-    """(splat, tile) pairs -> (splat, pixel) pairs for every binned pixel of each tile."""
+def _candidate_pairs(st_splat, st_tile, pixels_by_tile, tile_count, tile_first, total):
+    """(splat, tile) pairs -> (splat, pixel) pairs for every binned pixel of each tile;
+    total = the number of those pairs (known to the caller, so nothing here waits for it)."""
     count = tile_count[st_tile]
-    pair_splat = torch.repeat_interleave(st_splat, count)
-    offset = torch.arange(pair_splat.shape[0], device=st_splat.device) - \
-        torch.repeat_interleave(torch.cumsum(count, 0) - count, count)
-    pair_pixel = pixels_by_tile[torch.repeat_interleave(tile_first[st_tile], count) + offset]
+    pair_splat = torch.repeat_interleave(st_splat, count, output_size=total)
+    offset = torch.arange(total, device=st_splat.device) - torch.repeat_interleave(
+        torch.cumsum(count, 0) - count, count, output_size=total)
+    pair_pixel = pixels_by_tile[torch.repeat_interleave(tile_first[st_tile], count,
+                                                        output_size=total) + offset]
     return pair_splat, pair_pixel
 
 
@@ -346,11 +360,11 @@ class _PairWeightedSum(torch.autograd.Function):
         return grad_weight, grad_values, None, None, None
 
 
-def _counts(index: torch.Tensor, size: int) -> torch.Tensor:
-    """bincount of indices known to lie in [0, size), without the host read of their
-    maximum that bincount makes on CUDA."""
-    return torch.zeros(size, dtype=torch.long, device=index.device).index_add_(
-        0, index, torch.ones_like(index))
+def _counts(index: torch.Tensor, size: int, where: torch.Tensor | None = None) -> torch.Tensor:
+    """bincount of indices known to lie in [0, size) (only those with ``where`` true, if
+    given), without the host read of their maximum that bincount makes on CUDA."""
+    ones = torch.ones_like(index) if where is None else where.long()
+    return torch.zeros(size, dtype=torch.long, device=index.device).index_add_(0, index, ones)
 
 
 def _csr(rows, cols, vals, shape):
