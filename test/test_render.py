@@ -365,6 +365,15 @@ def test_extreme_and_degenerate_scales(dtype):
         assert torch.isfinite(grad).all(), name
 
 
+def test_projection_overflow_raises_one_clear_error():
+    # float32: a 1e30 m covariance overflows to inf in the image plane
+    scene, cam, k = simple_scene([[0.0, 0.0, 10.0], [0.5, 0.0, 8.0]],
+                                 [[1e30, 1e30, 1e30], [0.5, 0.5, 0.5]])
+    scene = {n: t.float() for n, t in scene.items()}
+    with pytest.raises(FloatingPointError, match="projection overflowed"):
+        render(scene, cam.float(), k.float(), grid_pixels(4).float())
+
+
 def test_zero_and_full_opacity():
     scene, cam, k = simple_scene([[0.0, 0.0, 5.0], [0.0, 0.0, 10.0]], [[0.2, 0.2, 0.2]] * 2,
                                  opacities=[0.0, 1.0])

@@ -71,6 +71,8 @@ class Splats:
     depth [S]: camera-space z of the mean (metres). opacity [S].
     half_extent [S, 2] (no gradient): half-size (u, v) of the box outside of which the splat's
         alpha is below 1/255, i.e. exactly where it can contribute (<= 3.33 sigma).
+    overflow [] bool (no gradient): some visible splat has a non-finite 2D mean or covariance
+        (scales or positions out of range); the renderer raises when it reads its sizes.
     """
 
     camera: torch.Tensor
@@ -83,6 +85,7 @@ class Splats:
     depth: torch.Tensor
     opacity: torch.Tensor
     half_extent: torch.Tensor
+    overflow: torch.Tensor
 
     def __len__(self) -> int:
         return int(self.camera.shape[0])
@@ -158,13 +161,12 @@ def project_gaussians(means: torch.Tensor, scales: torch.Tensor, rotations: torc
         lo = mean2d - half_extent
         hi = mean2d + half_extent
         visible = (hi[:, 0] >= 0) & (lo[:, 0] <= width) & (hi[:, 1] >= 0) & (lo[:, 1] <= height)
-        overflow = ~(torch.isfinite(mean2d).all(-1) & torch.isfinite(det)) & visible
-        if overflow.any():                                  # one host read
-            raise FloatingPointError("Gaussian projection overflowed (non-finite 2D mean or "
-                                     "covariance); scales or positions are out of range")
+        # read together with the renderer's first size, not on its own
+        overflow = (~(torch.isfinite(mean2d).all(-1) & torch.isfinite(det)) & visible).any()
         keep = visible.nonzero(as_tuple=True)[0]
         keep = keep[torch.argsort(z[keep], stable=True)]
     return Splats(camera=camera[keep], gaussian=gaussian[keep], mean2d=mean2d[keep],
                   cov_xx=cov_xx[keep], cov_xy=cov_xy[keep], cov_yy=cov_yy[keep], det=det[keep],
-                  depth=z[keep], opacity=opacity[keep], half_extent=half_extent[keep])
+                  depth=z[keep], opacity=opacity[keep], half_extent=half_extent[keep],
+                  overflow=overflow)
 

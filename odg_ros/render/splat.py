@@ -283,7 +283,11 @@ def _splat_tiles(splats: Splats, grid: _TileGrid):
     row0, row1 = grid.row(lo[:, 1]), grid.row(hi[:, 1])
     span = col1 - col0 + 1
     tiles_of_splat = span * (row1 - row0 + 1)
-    total = int(tiles_of_splat.sum())           # the one host read: the size of the pair list
+    # the one host read: the size of the pair list, and whether the projection overflowed
+    total, overflow = torch.stack([tiles_of_splat.sum(), splats.overflow.long()]).tolist()
+    if overflow:
+        raise FloatingPointError("Gaussian projection overflowed (non-finite 2D mean or "
+                                 "covariance); scales or positions are out of range")
     st_splat = torch.repeat_interleave(torch.arange(len(splats), device=device), tiles_of_splat,
                                        output_size=total)
     local = torch.arange(total, device=device) - torch.repeat_interleave(
