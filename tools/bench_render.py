@@ -1,0 +1,96 @@
+"""Host syncs and CPU time of one renderer call (forward + backward), this code against an
+earlier revision of odg_ros/render/splat.py, in one process, interleaved, medians.
+
+    python tools/bench_render.py [--against main] [--gaussians 3000] [--pixels 400]
+        [--chunk 1000000] [--repeats 12]
+
+Scene: six cameras around the ego, random Gaussians in a 20 x 20 x 4 m box, random pixels.
+Host syncs are counted with the CUDA paths forced (odg_ros.train.census); a smaller --chunk
+makes more depth batches.
+"""
+import argparse
+import importlib.util
+import math
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+from odg_ros.render import splat  # noqa: E402
+from odg_ros.train.census import Census, CensusMode  # noqa: E402
+
+HEIGHT, WIDTH = 64, 176
+
+
+def splat_at(rev: str):
+    source = subprocess.run(["git", "-C", str(ROOT), "show", f"{rev}:odg_ros/render/splat.py"],
+                            check=True, capture_output=True, text=True).stdout
+    path = Path(tempfile.mkdtemp()) / "splat_before.py"
+    path.write_text(source)
+    # a name inside the package, so that its relative imports resolve
+    spec = importlib.util.spec_from_file_location("odg_ros.render.splat_before", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def scene(num_gaussians: int, num_pixels: int, num_cameras: int = 6):
+    g = torch.Generator().manual_seed(1)
+    means = (torch.rand(num_gaussians, 3, generator=g) - 0.5) * torch.tensor([20.0, 20.0, 4.0])
+    scales = torch.rand(num_gaussians, 3, generator=g) * 0.8 + 0.05
+    rotations = torch.randn(num_gaussians, 4, generator=g)
+    opacities = torch.rand(num_gaussians, generator=g)
+    features = torch.rand(num_gaussians, 5, generator=g)
+    cams = []
+    for n in range(num_cameras):
+        s, c = math.sin(2 * math.pi * n / num_cameras), math.cos(2 * math.pi * n / num_cameras)
+        cam = torch.eye(4)
+        cam[:3, :3] = torch.tensor([[s, -c, 0.0], [0.0, 0.0, -1.0], [c, s, 0.0]])
+        cams.append(cam)
+    k = torch.tensor([[80.0, 0, WIDTH / 2], [0, 80.0, HEIGHT / 2], [0, 0, 1]])
+    pixels = [torch.rand(num_pixels, 2, generator=g) * torch.tensor([WIDTH, HEIGHT])
+              for _ in range(num_cameras)]
+    gaussians = [t.requires_grad_() for t in (means, scales, rotations, opacities, features)]
+    return gaussians, torch.stack(cams), k.expand(num_cameras, 3, 3).contiguous(), pixels
+
+
+def call(module, args) -> float:
+    module.CANDIDATE_CHUNK = args.chunk
+    gaussians, cams, k, pixels = scene(args.gaussians, args.pixels)
+    start = time.perf_counter()
+    results = module.render_cameras(*gaussians, cams, k, pixels, (HEIGHT, WIDTH))
+    sum(r.depth.sum() + r.features.sum() + r.alpha.sum() for r in results).backward()
+    return time.perf_counter() - start
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--against", default="main")
+    parser.add_argument("--gaussians", type=int, default=3000)
+    parser.add_argument("--pixels", type=int, default=400, help="per camera")
+    parser.add_argument("--chunk", type=int, default=splat.CANDIDATE_CHUNK)
+    parser.add_argument("--repeats", type=int, default=12)
+    args = parser.parse_args()
+    versions = {"before": splat_at(args.against), "this": splat}
+    seconds = {name: [] for name in versions}
+    for name, module in versions.items():
+        census = Census(steps=1)
+        with CensusMode(census, None):
+            call(module, args)
+        print(f"{name:7s} host syncs per call: {sum(census.syncs.values())}")
+    for i in range(args.repeats):
+        for name in (list(versions) if i % 2 else list(versions)[::-1]):
+            seconds[name].append(call(versions[name], args))
+    median = {name: statistics.median(t[2:]) for name, t in seconds.items()}   # 2 warm-ups
+    print(f"median seconds per call: before {median['before']:.3f}, this {median['this']:.3f}, "
+          f"this / before {median['this'] / median['before']:.2f}")
+
+
+if __name__ == "__main__":
+    main()
