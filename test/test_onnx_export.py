@@ -5,23 +5,28 @@ import pytest
 import torch
 
 from odg_ros.online.predictor import OnlinePredictor
-from odg_ros.network import ODG
-from helpers import tiny_config
+from odg_ros.cli import main
+from odg_ros.network.checkpoint import load_model
+from helpers import write_tiny_checkpoint
 from test_online_predictor import make_sets
 
 ort = pytest.importorskip("onnxruntime", reason="onnxruntime is not installed")
 pytest.importorskip("onnxscript", reason="onnxscript (torch.onnx's exporter) is not installed")
 
 
-def test_onnx_step_equals_pytorch_over_a_full_ring(tmp_path):
-    from odg_ros.online.onnx_export import OUTPUT_NAMES, export_onnx
-    # two decoder layers and two frames keep the export to seconds; thresholds 0 keep every
+def test_onnx_step_equals_pytorch_over_a_full_ring(tmp_path, capsys):
+    from odg_ros.online.onnx_export import OUTPUT_NAMES, StatelessStep
+    from odg_ros.online.step import OnlineStep
+    # two decoder layers and two frames keep the export short; thresholds 0 keep every
     # point and box, so the grids compared are not all free
-    cfg = tiny_config(num_layers=2, points_per_layer=(2, 4), num_frames=2, score_threshold=0.0,
-                      box_score_threshold=0.0)
-    torch.manual_seed(0)
-    model = ODG(cfg).eval()
-    stateless, _, path = export_onnx(model, cfg, tmp_path / "step.onnx")
+    checkpoint = write_tiny_checkpoint(tmp_path / "tiny.pt", num_layers=2,
+                                       points_per_layer=(2, 4), num_frames=2,
+                                       score_threshold=0.0, box_score_threshold=0.0)
+    path = tmp_path / "step.onnx"
+    assert main(["export", "--checkpoint", str(checkpoint), "--onnx", str(path)]) == 0
+    assert '"onnx"' in capsys.readouterr().out
+    model, cfg = load_model(checkpoint)
+    stateless = StatelessStep(OnlineStep(model, cfg, cfg.num_frames, "cpu").eval()).eval()
     session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
     # real geometry and a real ring: a node that has seen k + 1 sets (wrapped once)
     predictor = OnlinePredictor(model, cfg, "cpu", max_gap=1.0)
@@ -49,3 +54,11 @@ def test_onnx_step_equals_pytorch_over_a_full_ring(tmp_path):
     np.testing.assert_allclose(got["boxes"], expected["boxes"], atol=1e-3, rtol=1e-3)
     for i, m in enumerate(predictor.ring._memory):          # the ring the node holds now
         np.testing.assert_allclose(got[f"ring_{i}_out"], m.numpy(), atol=1e-4, rtol=1e-4)
+
+
+def test_export_needs_one_output(tmp_path, capsys):
+    checkpoint = write_tiny_checkpoint(tmp_path / "tiny.pt")
+    assert main(["export", "--checkpoint", str(checkpoint)]) == 2
+    assert main(["export", "--checkpoint", str(checkpoint), "--out", str(tmp_path / "a.pt"),
+                 "--onnx", str(tmp_path / "a.onnx")]) == 2
+    assert "one of --out" in capsys.readouterr().out

@@ -1,5 +1,7 @@
 """``odg export --checkpoint CKPT --out FILE [--compress int8] [--calibrate INFOS]``:
-turn a training checkpoint into a shipped one (weights only, compressed, threshold chosen)."""
+turn a training checkpoint into a shipped one (weights only, compressed, threshold chosen).
+``odg export --checkpoint CKPT --onnx FILE``: the node's online step over a full ring as
+ONNX (for onnxruntime or a TensorRT engine; docs/compiled_node.md)."""
 from __future__ import annotations
 
 import json
@@ -13,7 +15,10 @@ from .common import existing_file, infos_file, positive_int
 def add_arguments(parser):
     parser.add_argument("--checkpoint", required=True, type=existing_file,
                         help="training checkpoint (odg train)")
-    parser.add_argument("--out", required=True, help="the shipped checkpoint to write")
+    parser.add_argument("--out", default=None, help="the shipped checkpoint to write")
+    parser.add_argument("--onnx", default=None, metavar="FILE",
+                        help="write the online step (backbone, ring, decoder, post-processing) "
+                             "over a full ring as ONNX instead")
     parser.add_argument("--compress", choices=("none", "fp16", "int8"), default="int8",
                         help="weight storage (int8: per-output-channel scales, ~4x smaller)")
     parser.add_argument("--calibrate", default=None, metavar="INFOS", type=infos_file,
@@ -26,6 +31,11 @@ def add_arguments(parser):
 
 
 def run(args) -> int:
+    if (args.out is None) == (args.onnx is None):
+        print("odg export: give one of --out (a shipped checkpoint) or --onnx (the online step)")
+        return 2
+    if args.onnx:
+        return export_step(args)
     compress = None if args.compress == "none" else args.compress
     model, cfg = load_model(args.checkpoint)
     report = {"source": str(args.checkpoint), "compression": compress}
@@ -44,5 +54,22 @@ def run(args) -> int:
     report["box_score_threshold"] = cfg.box_score_threshold
     save_checkpoint(args.out, model, extra={"export": report}, compress=compress)
     report["bytes"] = Path(args.out).stat().st_size
+    print(json.dumps(report, indent=2))
+    return 0
+
+
+def export_step(args) -> int:
+    try:
+        import onnxscript  # noqa: F401  (torch.onnx's exporter)
+    except ImportError:
+        print("odg export --onnx needs onnx and onnxscript: pip install onnx onnxscript")
+        return 2
+    from ..online.onnx_export import export_onnx
+    model, cfg = load_model(args.checkpoint)
+    _, inputs, path = export_onnx(model, cfg, args.onnx)
+    report = {"source": str(args.checkpoint), "onnx": str(path), "bytes": path.stat().st_size,
+              "inputs": {name: list(t.shape) for name, t in
+                         zip(["images", "packed"] + [f"ring_{i}" for i in
+                                                     range(len(inputs) - 2)], inputs)}}
     print(json.dumps(report, indent=2))
     return 0
