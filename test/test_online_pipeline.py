@@ -110,7 +110,9 @@ def test_pipeline_output_equals_the_predictor_on_the_same_arrays(model_and_cfg):
         assert result.num_frames == k + 1
         assert (result.grid != 17).sum() > 50
         assert np.array_equal(result.grid, expected.grid)
-        assert set(result.timings) == {"decode_images", "upload", "model", "download"}
+        assert set(result.timings) == {"lookup", "decode_images", "upload", "model",
+                                       "download"}
+        assert 0.0 <= result.timings["lookup"] < result.timings["model"]
     assert sum(pipeline.bad_inputs.values()) == 0
 
 

@@ -15,8 +15,9 @@ import numpy as np
 
 OK, WARN, ERROR, STALE = 0, 1, 2, 3
 
-# Processing stages timed per set (seconds in, milliseconds out).
-STAGES = ("decode_images", "upload", "model", "download", "publish")
+# Processing stages timed per set (seconds in, milliseconds out); lookup: the set's camera
+# infos, poses and extrinsics.
+STAGES = ("lookup", "decode_images", "upload", "model", "download", "publish")
 
 # Counters that are normal under load and do not raise the level on their own.
 LOAD_COUNTERS = ("stale_sets_dropped", "tf_ignored", "tf_received", "tf_frames_forgotten")

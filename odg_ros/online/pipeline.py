@@ -169,6 +169,7 @@ class OnlinePipeline:
 
     def _process(self, camera_set: CameraSet) -> OnlineResult:
         names = self.camera_names
+        t_lookup = time.perf_counter()
         with self._input_lock:
             infos = {c: self._camera_info.get(c) for c in names}
         missing = [c for c in names if infos[c] is None]
@@ -187,6 +188,7 @@ class OnlinePipeline:
             sensor2ego.append(T)
 
         t0 = time.perf_counter()
+        lookup_seconds = t0 - t_lookup
 
         def prepare(camera):
             image, _ = camera_set.payloads[camera]
@@ -209,6 +211,7 @@ class OnlinePipeline:
         prediction = self.predictor.step(images, ego2img, reference_pose, reference)
         timings = dict(prediction.timings)
         timings["decode_images"] = timings.get("decode_images", 0.0) + decode_seconds
+        timings["lookup"] = lookup_seconds     # camera infos, poses and extrinsics
         return OnlineResult(stamp=reference,
                             header=camera_set.payloads[camera_set.reference_camera][1],
                             grid=prediction.grid, confidence=prediction.confidence,
