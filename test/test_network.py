@@ -2,6 +2,7 @@
 post-processing."""
 import pytest
 import torch
+from torch import nn
 
 from odg_ros.benchmark import online_inputs
 from odg_ros.classes import FREE_LABEL
@@ -69,6 +70,24 @@ def test_das_attention_mixes_dynamic_and_static_queries_both_ways():
     base_sep = separate(query, centroids, D)
     torch.testing.assert_close(separate(q2, centroids, D)[0, :D], base_sep[0, :D])
     torch.testing.assert_close(separate(q3, centroids, D)[0, D:], base_sep[0, D:])
+
+
+@pytest.mark.parametrize("mix_sets", [True, False])
+def test_flex_attention_bias_equals_the_materialised_bias(monkeypatch, mix_sets):
+    """The score_mod path (compiled, on CUDA in the node) against the SDPA path with the
+    [B, H, Q, Q] bias, in float64; here FlexAttention runs eagerly on the CPU."""
+    from odg_ros.network import das_attention
+    torch.manual_seed(0)
+    attn = DaSAttention(32, 4, dropout=0.0, mix_sets=mix_sets).double().eval()
+    nn.init.normal_(attn.gen_tau.weight, std=0.3)         # tau differs per query and head
+    query = torch.randn(2, 11, 32, dtype=torch.float64)
+    centroids = torch.randn(2, 11, 3, dtype=torch.float64) * 5
+    assert not das_attention.use_flex_attention(query, training=False)   # CPU, eager
+    with torch.no_grad():                 # eager CPU FlexAttention has no backward
+        expected = attn(query, centroids, 4)
+        monkeypatch.setattr(das_attention, "use_flex_attention", lambda query, training: True)
+        got = attn(query, centroids, 4)
+    torch.testing.assert_close(got, expected, atol=1e-10, rtol=1e-10)
 
 
 def test_online_step_over_cached_features_equals_recomputing_all_frames():

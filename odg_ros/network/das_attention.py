@@ -11,6 +11,33 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 from torch import nn
+from torch.nn.attention.flex_attention import flex_attention
+
+
+def use_flex_attention(query: torch.Tensor, training: bool) -> bool:
+    """FlexAttention adds the distance bias inside its kernel, never writing [B, H, Q, Q];
+    it is fast only compiled (the node's compiled / graphs step on CUDA). Eagerly, on the
+    CPU, or in training the SDPA path with a materialised bias runs."""
+    return query.is_cuda and not training and torch.compiler.is_compiling()
+
+
+def flex_das_attention(q, k, v, centroids, tau, num_dynamic: int | None):
+    """softmax(q k^T / sqrt(d) - tau_h(i) * |c_i - c_j|) v with the bias computed per score.
+    q, k, v [B, H, Q, d]; centroids [B, Q, 3]; tau [B, H, Q]; num_dynamic: queries below
+    it attend only among themselves, the others likewise (None: all attend to all)."""
+    dtype = torch.promote_types(q.dtype, torch.float32)    # the bias in at least float32
+    centroids, tau = centroids.to(dtype), tau.to(dtype)
+
+    def distance_bias(score, b, h, i, j):
+        dx = centroids[b, i, 0] - centroids[b, j, 0]
+        dy = centroids[b, i, 1] - centroids[b, j, 1]
+        dz = centroids[b, i, 2] - centroids[b, j, 2]
+        score = score - tau[b, h, i] * torch.sqrt(dx * dx + dy * dy + dz * dz)
+        if num_dynamic is None:
+            return score
+        return torch.where((i < num_dynamic) != (j < num_dynamic), -float("inf"), score)
+
+    return flex_attention(q, k, v, score_mod=distance_bias)
 
 
 class DaSAttention(nn.Module):
@@ -31,13 +58,18 @@ class DaSAttention(nn.Module):
         B, Q, E = query.shape
         H = self.num_heads
         q, k, v = self.qkv(query).view(B, Q, 3, H, E // H).permute(2, 0, 3, 1, 4)
+        split = not self.mix_sets and 0 < num_dynamic < Q
+        if use_flex_attention(query, self.training):
+            tau = self.gen_tau(query).permute(0, 2, 1)                  # [B, H, Q]
+            out = flex_das_attention(q, k, v, centroids, tau, num_dynamic if split else None)
+            return self.proj(out.transpose(1, 2).reshape(B, Q, E))
         # the [B, H, Q, Q] bias is made directly in the attention's dtype: under bf16 / fp16
         # autocast no float32 copy of it (4 bytes x heads x Q^2, ~740 MB per layer at 4,800
         # queries and 8 heads) is written and read back before the cast
         dist = torch.cdist(centroids, centroids).to(q.dtype)           # [B, Q, Q]
         tau = self.gen_tau(query).permute(0, 2, 1).to(q.dtype)         # [B, H, Q]
         bias = dist.unsqueeze(1) * -tau.unsqueeze(-1)                  # [B, H, Q, Q]
-        if not self.mix_sets and 0 < num_dynamic < Q:
+        if split:
             is_dyn = torch.arange(Q, device=query.device) < num_dynamic
             cross = is_dyn[:, None] != is_dyn[None, :]
             bias = bias.masked_fill(cross, float("-inf"))
