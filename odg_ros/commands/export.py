@@ -15,10 +15,12 @@ from .common import existing_file, infos_file, positive_int
 def add_arguments(parser):
     parser.add_argument("--checkpoint", required=True, type=existing_file,
                         help="training checkpoint (odg train)")
-    parser.add_argument("--out", default=None, help="the shipped checkpoint to write")
-    parser.add_argument("--onnx", default=None, metavar="FILE",
-                        help="write the online step (backbone, ring, decoder, post-processing) "
-                             "over a full ring as ONNX instead")
+    what = parser.add_mutually_exclusive_group(required=True)
+    what.add_argument("--out", default=None,
+                      help="the shipped checkpoint to write (no default: this or --onnx)")
+    what.add_argument("--onnx", default=None, metavar="FILE",
+                      help="write the online step (backbone, ring, decoder, post-processing) "
+                           "over a full ring as ONNX instead (no default: this or --out)")
     parser.add_argument("--compress", choices=("none", "fp16", "int8"), default="int8",
                         help="weight storage (int8: per-output-channel scales, ~4x smaller)")
     parser.add_argument("--calibrate", default=None, metavar="INFOS", type=infos_file,
@@ -31,9 +33,6 @@ def add_arguments(parser):
 
 
 def run(args) -> int:
-    if (args.out is None) == (args.onnx is None):
-        print("odg export: give one of --out (a shipped checkpoint) or --onnx (the online step)")
-        return 2
     if args.onnx:
         return export_step(args)
     compress = None if args.compress == "none" else args.compress
