@@ -382,20 +382,9 @@ def test_latest_wins_under_a_slow_model_with_tf_sources(
                                     extrinsics_source="tf")
     h = Harness(rclpy_module, ros_context)
     h.wait_for_node(child, log)
-    from geometry_msgs.msg import TransformStamped
-
-    from odg_ros.geometry import matrix_to_quaternion
 
     def transform(parent, child_frame, t, T):
-        msg = TransformStamped()
-        msg.header.stamp = h.stamp(t)
-        msg.header.frame_id, msg.child_frame_id = parent, child_frame
-        w, x, y, z = matrix_to_quaternion(T[:3, :3])
-        msg.transform.translation.x, msg.transform.translation.y, \
-            msg.transform.translation.z = T[:3, 3]
-        r = msg.transform.rotation
-        r.w, r.x, r.y, r.z = w, x, y, z
-        return msg
+        return tf_transform(h, parent, child_frame, t, T)
 
     t0 = time.time() - 10.0
     h.tf_static.publish(h.classes["TFMessage"](transforms=[
