@@ -321,13 +321,13 @@ def test_nonfinite_step_is_skipped_counted_and_not_applied(split, tmp_path, monk
         return losses
     monkeypatch.setattr(ODGCriterion, "__call__", poisoned)
     before = {k: v.clone() for k, v in trainer.model.state_dict().items()}
-    terms, applied = trainer.train_step(next(iter(trainer.loader)))
+    terms, applied = trainer.train_step(next(iter(trainer.loader))).read()
     assert not applied
     for k, v in trainer.model.state_dict().items():
         assert torch.equal(v, before[k]), k
     summary = trainer.fit()
     assert summary["skipped_steps"] == 0  # fit() counts its own steps: the poison was used
-    terms, applied = trainer.train_step(next(iter(trainer.loader)))
+    terms, applied = trainer.train_step(next(iter(trainer.loader))).read()
     assert applied and terms["loss"] == terms["loss"]
 
 

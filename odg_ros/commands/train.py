@@ -62,6 +62,10 @@ def add_arguments(parser):
                         help="start from this checkpoint's weights (default: fresh weights)")
     parser.add_argument("--checkpoint-every", type=positive_int, default=500,
                         help="steps between OUT/latest.pt saves")
+    parser.add_argument("--log-every", type=positive_int, default=10,
+                        help="steps between reads of the losses from the device (default: 10; "
+                             "each read waits for the GPU, so rarely is faster; every step "
+                             "still gets its log row, and checkpoints read first)")
     parser.add_argument("--resume", action="store_true", help="continue OUT/latest.pt")
 
 
@@ -74,7 +78,8 @@ def run(args) -> int:
                         workers=args.workers, seed=args.seed, render=not args.no_render,
                         render_pixels_per_camera=args.render_pixels, renderer=args.renderer,
                         history_grad=not args.no_history_grad, augment=not args.no_augment,
-                        checkpoint_every=args.checkpoint_every, device=args.device,
+                        checkpoint_every=args.checkpoint_every, log_every=args.log_every,
+                        device=args.device,
                         backbone_weights=args.backbone_weights,
                         backbone_from_scratch=args.backbone_from_scratch,
                         init_checkpoint=args.init,

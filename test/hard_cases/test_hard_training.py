@@ -47,7 +47,7 @@ def test_steps_under_detect_anomaly(split, tmp_path):
     batches = list(trainer.loader)
     with torch.autograd.detect_anomaly(check_nan=True):
         for step in range(2):
-            terms, applied = trainer.train_step(batches[step % len(batches)])
+            terms, applied = trainer.train_step(batches[step % len(batches)]).read()
             assert applied, terms
             assert all(math.isfinite(v) for v in terms.values()), terms
     assert trainer.skipped_steps == 0
@@ -88,7 +88,7 @@ def test_corrupt_geometry_in_a_batch_is_skipped_then_training_goes_on(split, tmp
             bad["ego2img"] = clean["ego2img"].clone()
             bad["ego2img"][:, 1, 0] = math.nan
         before = snapshot(trainer.model)
-        terms, applied = trainer.train_step(bad)
+        terms, applied = trainer.train_step(bad).read()
         assert not applied and unchanged(trainer.model, before), corruption
-    terms, applied = trainer.train_step(clean)
+    terms, applied = trainer.train_step(clean).read()
     assert applied and math.isfinite(terms["loss"]) and math.isfinite(terms["grad_norm"])
