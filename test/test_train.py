@@ -21,9 +21,10 @@ from odg_ros.losses.criterion import ODGCriterion
 from odg_ros.network import ODG
 from odg_ros.network.checkpoint import load_model, save_checkpoint
 from odg_ros.train import trainer as trainer_module
+from odg_ros.train.census import Census, CensusMode, force_cuda_paths
 from odg_ros.train.schedule import warmup_cosine
-from odg_ros.train.trainer import (Trainer, TrainOptions, process_device, training_dataset,
-                                  training_renderer)
+from odg_ros.train.trainer import (StepLog, Trainer, TrainOptions, process_device,
+                                  training_dataset, training_renderer)
 
 from helpers import tiny_config, write_tiny_split
 
@@ -331,6 +332,84 @@ def test_nonfinite_step_is_skipped_counted_and_not_applied(split, tmp_path, monk
     assert applied and terms["loss"] == terms["loss"]
 
 
+def _optimizer_and_model_state(trainer):
+    moments = [t.clone() for state in trainer.optimizer.state.values() for t in state.values()]
+    return moments, {k: v.clone() for k, v in trainer.model.state_dict().items()}
+
+
+def test_a_nan_step_is_skipped_on_the_device_and_reported_at_the_next_read(
+        split, tmp_path, monkeypatch, caplog):
+    """Step 3 of 6 has a NaN loss (so NaN gradients) and losses are read every 4 steps: its
+    update leaves weights, BatchNorm statistics, AdamW moments and step counts as they were,
+    the host learns of it at the read after step 4 (done when step 5 is queued), the learning
+    rate schedule goes on, and the log says which values were not finite."""
+    trainer = Trainer(tiny_config(num_frames=2), split, options(tmp_path, epochs=3,
+                                                                 log_every=4))
+    real_criterion, real_step = ODGCriterion.__call__, trainer.train_step
+    skipped_known, around_step_3 = [], []
+
+    def poisoned(criterion, output, batch):
+        losses = real_criterion(criterion, output, batch)
+        if trainer.step == 2:
+            losses["loss"] = losses["loss"] * float("nan")
+        return losses
+
+    def watched(batch):
+        skipped_known.append(trainer.skipped_steps)
+        if trainer.step == 2:
+            around_step_3.append(_optimizer_and_model_state(trainer))
+        values = real_step(batch)
+        if trainer.step == 2:
+            around_step_3.append(_optimizer_and_model_state(trainer))
+        return values
+    monkeypatch.setattr(ODGCriterion, "__call__", poisoned)
+    trainer.train_step = watched
+    with caplog.at_level("WARNING", logger="odg_ros.train.trainer"):
+        summary = trainer.fit()
+    (moments, weights), (moments_after, weights_after) = around_step_3
+    assert moments and len(moments) == len(moments_after)
+    assert [i for i, (a, b) in enumerate(zip(moments, moments_after)) if not torch.equal(a, b)] \
+        == []
+    assert any("running_mean" in k for k in weights)       # BatchNorm trains in this model
+    assert [k for k, v in weights_after.items() if not torch.equal(weights[k], v)] == []
+    assert skipped_known == [0, 0, 0, 0, 0, 1]             # counted at the read, not before
+    assert summary["steps"] == 6 and summary["skipped_steps"] == 1
+    assert "step 3 skipped (non-finite loss or gradient); 1 so far; non-finite: loss, " \
+           "grad_norm" in caplog.text
+    rows = read_log(tmp_path / "train_log.csv")
+    assert [int(r["applied"]) for r in rows] == [1, 1, 0, 1, 1, 1]
+    assert [int(r["skipped_total"]) for r in rows] == [0, 0, 1, 1, 1, 1]
+    assert rows[2]["loss"] == "nan" and float(rows[3]["loss"]) > 0
+    assert [float(r["lr"]) for r in rows] == pytest.approx(
+        [1e-3 * warmup_cosine(step, 6, 1) for step in range(6)])     # skipped or not
+    assert trainer.optimizer.state_dict()["state"][0]["step"] == 5   # updates applied
+
+
+def test_the_trainer_reads_the_device_only_at_its_log_reads(split, tmp_path, monkeypatch):
+    """Four steps read every 2, the CUDA paths forced: the trainer's own code makes no host
+    sync within a step, and one per read of the log (after step 2, when step 3 is queued;
+    at the end)."""
+    trainer = Trainer(tiny_config(num_frames=2), split, options(
+        tmp_path, epochs=2, log_every=2, checkpoint_every=1000, augment=False))
+    force_cuda_paths(trainer)
+    syncs = {"train_step": [], "add": [], "flush": []}
+
+    def counted(function):
+        def run(*args, **kwargs):
+            census = Census()
+            with CensusMode(census, device_type=None):
+                out = function(*args, **kwargs)
+            syncs[function.__name__].append(sum(n for (_, line), n in census.syncs.items()
+                                                if line.startswith("train/trainer.py")))
+            return out
+        return run
+    trainer.train_step = counted(trainer.train_step)
+    monkeypatch.setattr(StepLog, "add", counted(StepLog.add))
+    monkeypatch.setattr(StepLog, "flush", counted(StepLog.flush))
+    assert trainer.fit()["steps"] == 4
+    assert syncs == {"train_step": [0] * 4, "add": [0, 0, 1, 0], "flush": [1, 0]}
+
+
 KILLED_AT_STEP_3 = """
 import sys
 from odg_ros.cli import main
@@ -362,7 +441,8 @@ def test_ddp_two_cpu_processes_with_torchrun(split, tmp_path):
         cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone",
                "--nproc_per_node", "2", *program, "train", "--preset", "odg_cpu",
                "--data", str(split), "--out", str(out), "--steps", "4",
-               "--checkpoint-every", "2", "--workers", "0", "--render-pixels", "32",
+               "--checkpoint-every", "2", "--log-every", "3", "--workers", "0",
+               "--render-pixels", "32",
                "--device", "cpu", "--set", "backbone=resnet18", "--set", "image_size=[64,176]",
                "--set", "num_frames=2", "--set", "embed_dims=64", "--set", "fpn_channels=64",
                "--set", "num_static=20", "--set", "num_dynamic=6", "--set", "ffn_dims=128",
