@@ -343,8 +343,8 @@ def test_a_nan_step_is_skipped_on_the_device_and_reported_at_the_next_read(
     update leaves weights, BatchNorm statistics, AdamW moments and step counts as they were,
     the host learns of it at the read after step 4 (done when step 5 is queued), the learning
     rate schedule goes on, and the log says which values were not finite."""
-    trainer = Trainer(tiny_config(num_frames=2), split, options(tmp_path, epochs=3,
-                                                                 log_every=4))
+    trainer = Trainer(tiny_config(num_frames=2, image_size=(32, 88)), split,
+                      options(tmp_path, epochs=3, log_every=4))
     real_criterion, real_step = ODGCriterion.__call__, trainer.train_step
     skipped_known, around_step_3 = [], []
 
@@ -389,7 +389,7 @@ def test_the_trainer_reads_the_device_only_at_its_log_reads(split, tmp_path, mon
     """Four steps read every 2, the CUDA paths forced: the trainer's own code makes no host
     sync within a step, and one per read of the log (after step 2, when step 3 is queued;
     at the end)."""
-    trainer = Trainer(tiny_config(num_frames=2), split, options(
+    trainer = Trainer(tiny_config(num_frames=2, image_size=(32, 88)), split, options(
         tmp_path, epochs=2, log_every=2, checkpoint_every=1000, augment=False))
     force_cuda_paths(trainer)
     syncs = {"train_step": [], "add": [], "flush": []}
