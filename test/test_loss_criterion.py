@@ -1,4 +1,10 @@
 """ODGCriterion: term names, the weighted total, ablation switches, empty batches, NaN."""
+import os
+import socket
+import subprocess
+import sys
+from pathlib import Path
+
 import pytest
 import torch
 
@@ -195,3 +201,47 @@ def test_waymo_label_set_free_15_and_15_class_weights():
     batch["occ_semantics"][:] = 15                     # nothing occupied in either sample
     crit(make_output(cfg), batch)
     assert crit.last_stats["samples_without_occ_gt"] == B
+
+
+ONE_RANK_DIVERGES = """
+import sys, datetime
+import torch, torch.distributed as dist
+sys.path.insert(0, {testdir!r})
+from test_loss_criterion import CFG, ODGCriterion, make_batch, make_output
+dist.init_process_group("gloo", timeout=datetime.timedelta(seconds=20))
+out = make_output()
+if dist.get_rank() == 1:
+    with torch.no_grad():
+        out.layers[2].logits[0, 0, 0, 0] = float("nan")
+try:
+    ODGCriterion(CFG, render=False)(out, make_batch())
+    print("finite")
+except FloatingPointError:
+    print("raised")
+dist.destroy_process_group()
+"""
+
+
+def test_a_rank_with_a_nan_output_still_joins_the_box_all_reduces(tmp_path):
+    """Under DDP, the process whose network output is non-finite raises before its box
+    losses; it must still join the other processes' all-reduces of the matched count, or
+    they wait in a collective it never enters (gloo then fails the run)."""
+    script = tmp_path / "one_rank_diverges.py"
+    script.write_text(ONE_RANK_DIVERGES.format(testdir=str(Path(__file__).parent)))
+    port = free_port()
+    ranks = [subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE,
+                              stderr=subprocess.PIPE, text=True,
+                              env=dict(os.environ, GLOO_SOCKET_IFNAME="lo", OMP_NUM_THREADS="1",
+                                       MASTER_ADDR="127.0.0.1", MASTER_PORT=str(port),
+                                       RANK=str(rank), WORLD_SIZE="2"))
+             for rank in range(2)]
+    results = [rank.communicate(timeout=180) for rank in ranks]
+    for rank, (stdout, stderr) in zip(ranks, results):
+        assert rank.returncode == 0, stderr[-2000:]
+    assert [stdout.split()[-1] for stdout, _ in results] == ["finite", "raised"]
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]

@@ -18,7 +18,7 @@ from typing import Callable
 import torch
 
 from ..config import ModelConfig
-from .box import box_loss, match_layers
+from .box import box_loss, match_layers, matched_normaliser
 from .chamfer import occupancy_loss, occupancy_target
 from .render_loss import render_layer_weights, render_loss, sample_render_targets
 
@@ -77,7 +77,15 @@ class ODGCriterion:
             cam_from_ego = batch["cam_from_ego"].to(device)
             intrinsics = batch["intrinsics"].to(device)
 
-        _require_finite(network_outputs(output))
+        try:
+            _require_finite(network_outputs(output))
+        except FloatingPointError:
+            if self.use_boxes:
+                # under DDP the other processes go on into the box losses' all-reduces; this
+                # one joins them (with no matches) so that no process waits forever
+                for _ in output.layers:
+                    matched_normaliser(0, device)
+            raise
         if self.use_boxes:
             for l, layer in enumerate(output.layers, start=1):
                 if layer.boxes is None or layer.box_logits is None:
