@@ -186,3 +186,178 @@ def test_reduced_decode_falls_back_when_the_scale_is_not_exact():
     with pytest.raises(BadInput) as error:
         decode_for_input(EncodedImage(True, "jpeg", data[:3000]), (128, 352))
     assert error.value.kind == "corrupt_image"
+
+
+# ------------------------------------------------------------ JPEG sets decoded on the GPU
+def photo_like(h=180, w=320, seed=0):
+    """Smooth shading and edges (a JPEG of noise would be all artefacts)."""
+    rng = np.random.default_rng(seed)
+    y, x = np.mgrid[0:h, 0:w]
+    image = np.stack([100 + 60 * np.sin(x / (9 + 5 * c) + y / (13 + c)) for c in range(3)], -1)
+    for _ in range(12):
+        y0, x0 = rng.integers(0, h - 20), rng.integers(0, w - 20)
+        image[y0:y0 + 30, x0:x0 + 50] += rng.uniform(-50, 50, 3)
+    return np.clip(image, 0, 255).astype(np.uint8)
+
+
+class PillowTorchvisionIO:
+    """torchvision.io's decode_jpeg contract (list of CPU byte tensors in, [3, H, W] uint8
+    out, RuntimeError on a bad JPEG) done with Pillow, always on the CPU: the device
+    path's logic runs on the CPU (and asked for CUDA, it lands on the wrong device)."""
+
+    class ImageReadMode:
+        RGB = "RGB"
+
+    def __init__(self):
+        self.calls = 0
+
+    def decode_jpeg(self, data, mode, device):
+        import torch
+        self.calls += 1
+        out = []
+        for tensor in data:
+            try:
+                image = Image.open(io.BytesIO(tensor.numpy().tobytes()), formats=("JPEG",))
+                array = np.asarray(image.convert(mode))
+            except OSError as error:
+                raise RuntimeError(f"decode failed: {error}") from None
+            out.append(torch.from_numpy(array.copy()).permute(2, 0, 1))
+        return out
+
+
+def test_resize_crop_tensor_matches_the_pillow_resize():
+    import torch
+    from odg_ros.online.images import resize_crop_tensor
+    image = photo_like(900 // 5, 1600 // 5)
+    for hw in ((64, 176), (128, 352), (180, 320), (200, 320)):     # shrink, same, pad
+        expected = resize_crop(image, hw)
+        got = resize_crop_tensor(torch.from_numpy(image).permute(2, 0, 1), hw)
+        assert got.dtype == torch.uint8 and tuple(got.shape) == (*hw, 3)
+        assert np.abs(got.numpy().astype(int) - expected).max() <= 1, hw
+
+
+def test_jpeg_decoder_selection():
+    import torch
+    from odg_ros.online.images import device_jpeg_decoder, select_jpeg_decoder
+    decoder, why = select_jpeg_decoder("cpu")
+    assert decoder is None and "CPU (Pillow)" in why and "runs on cpu" in why
+
+    def missing():
+        raise ImportError("No module named 'torchvision'")
+
+    decoder, why = select_jpeg_decoder("cuda", missing)
+    assert decoder is None and "not available" in why and "torchvision" in why
+
+    class NoNvjpeg(PillowTorchvisionIO):
+        def decode_jpeg(self, data, mode, device):
+            raise RuntimeError("torchvision was built without nvjpeg")
+
+    decoder, why = select_jpeg_decoder("cuda", NoNvjpeg)
+    assert decoder is None and "built without nvjpeg" in why
+    # a decode that lands on the wrong device is refused too
+    decoder, why = select_jpeg_decoder("cuda", PillowTorchvisionIO)
+    assert decoder is None and "on cpu" in why
+    decoder, why = device_jpeg_decoder(torch.device("cpu"), PillowTorchvisionIO)
+    assert decoder is not None and "torchvision.io.decode_jpeg" in why
+
+
+def device_decoder():
+    import torch
+    from odg_ros.online.images import DeviceJpegDecoder
+    fake = PillowTorchvisionIO()
+    return DeviceJpegDecoder(torch.device("cpu"), fake.decode_jpeg, "RGB"), fake
+
+
+def test_device_decoder_gives_the_cpu_path_input_and_the_same_bad_inputs():
+    decoder, fake = device_decoder()
+    hw, input_hw = (180, 320), (64, 176)
+    arrays = [photo_like(*hw, seed=k) for k in range(3)]
+    images = [EncodedImage(True, "jpeg", encode(a, "JPEG")) for a in arrays]
+    cams = ("A", "B", "C")
+    out, ready = decoder.decode_set(images, cams, [hw] * 3, input_hw)
+    assert ready is None and fake.calls == 1                      # one batched call
+    assert tuple(out.shape) == (3, *input_hw, 3)
+    for image, got in zip(images, out.numpy()):
+        rgb, original_hw = decode_for_input(image, input_hw, hw)
+        expected = to_network_input(rgb, hw, np.eye(3), input_hw, original_hw)[0]
+        difference = np.abs(got.astype(int) - expected)
+        assert difference.mean() < 1.0 and difference.max() <= 16   # the CPU path decodes
+        # JPEGs reduced by DCT scaling (preprocess.draft_jpeg); here the full image
+
+    # not all JPEG: the CPU path takes the set
+    mixed = images[:2] + [EncodedImage(True, "png", encode(arrays[2], "PNG"))]
+    assert decoder.decode_set(mixed, cams, [hw] * 3, input_hw) is None
+    # a truncated JPEG, a wrong size, a huge header: BadInput naming the camera
+    truncated = images[:2] + [EncodedImage(True, "jpeg", images[2].data[:400])]
+    with pytest.raises(BadInput) as error:
+        decoder.decode_set(truncated, cams, [hw] * 3, input_hw)
+    assert error.value.kind == "corrupt_image" and error.value.message.startswith("C: ")
+    with pytest.raises(BadInput) as error:
+        decoder.decode_set(images, cams, [hw, (90, 160), hw], input_hw)
+    assert error.value.kind == "wrong_image_size" and error.value.message.startswith("B: ")
+    with pytest.raises(BadInput) as error:
+        decoder.decode_set(images, cams, [hw] * 3, input_hw, max_pixels=100)
+    assert error.value.kind == "image_too_large"
+
+
+def test_pipeline_feeds_device_decoded_images_to_the_model():
+    """The pipeline with a device decoder: the predictor takes the decoded tensor."""
+    import torch
+    from helpers import tiny_config
+    from odg_ros.network import ODG
+    from odg_ros.online.pipeline import OnlinePipeline, PipelineSettings
+    from odg_ros.online.predictor import OnlinePredictor
+    cfg = tiny_config(score_threshold=0.0, box_score_threshold=0.0)
+    torch.manual_seed(0)
+    model = ODG(cfg).eval()
+    rig = load_rig(resource_path("config/rig_nuscenes.yaml"))
+    cams, hw = tuple(rig.cameras), (180, 320)
+    pipelines = []
+    for on_device in (True, False):
+        pipeline = OnlinePipeline(OnlinePredictor(model, cfg, "cpu"), PipelineSettings(cams),
+                                  lambda c, f, t: rig.cameras[c].sensor2ego)
+        if on_device:
+            pipeline.jpeg_decoder = device_decoder()[0]
+        for c in cams:
+            pipeline.on_camera_info(c, adjust_intrinsics(rig.cameras[c].intrinsics,
+                                                         (900, 1600), hw), *hw, frame_id=c)
+        for t in np.arange(9.9, 10.3, 0.02):
+            pipeline.on_pose(float(t), np.eye(4))
+        for k, c in enumerate(cams):
+            pipeline.on_image(c, 10.0 + 0.008 * k, EncodedImage(
+                True, "jpeg", encode(photo_like(*hw, seed=k), "JPEG")), now=10.1)
+        pipelines.append(pipeline)
+    prepared = [p.prepare(p.next_set(timeout=1.0)) for p in pipelines]
+    assert isinstance(prepared[0].images, torch.Tensor)
+    assert isinstance(prepared[1].images, np.ndarray)
+    results = [p.infer(s) for p, s in zip(pipelines, prepared)]
+    reference = pipelines[1].predictor
+    reference.reset()
+    expected = reference.step(prepared[0].images.numpy(), prepared[0].ego2img,
+                              prepared[0].reference_pose, 10.0)
+    assert np.array_equal(results[0].grid, expected.grid)
+    assert np.array_equal(results[0].confidence, expected.confidence)
+    reference.reset()     # and the images matter: blank ones give another confidence
+    blank = reference.step(np.zeros_like(prepared[1].images), prepared[0].ego2img,
+                           prepared[0].reference_pose, 10.0)
+    assert not np.array_equal(blank.confidence, expected.confidence)
+
+
+@pytest.mark.skipif(not __import__("torch").cuda.is_available(),
+                    reason="nvJPEG decoding needs a CUDA device (none here)")
+def test_jpeg_sets_decode_on_the_gpu_like_the_cpu_path():
+    pytest.importorskip("torchvision", reason="torchvision is not installed (its CUDA "
+                        "JPEG decoder is the device path)")
+    from odg_ros.online.images import select_jpeg_decoder
+    decoder, why = select_jpeg_decoder("cuda")
+    assert decoder is not None, why
+    hw, input_hw = (900, 1600), (256, 704)
+    images = [EncodedImage(True, "jpeg", encode(photo_like(*hw, seed=k), "JPEG"))
+              for k in range(6)]
+    out, ready = decoder.decode_set(images, [str(k) for k in range(6)], [hw] * 6, input_hw)
+    decoder.hand_over(out, ready)
+    assert out.is_cuda and tuple(out.shape) == (6, *input_hw, 3)
+    for image, got in zip(images, out.cpu().numpy()):
+        rgb, original_hw = decode_for_input(image, input_hw, hw)
+        expected = to_network_input(rgb, hw, np.eye(3), input_hw, original_hw)[0]
+        assert np.abs(got.astype(int) - expected).mean() < 1.5     # nvJPEG's IDCT differs

@@ -1,6 +1,9 @@
 """The whole ROS-free online pipeline: messages in, prediction out; every bad input is
 counted, skipped, and the pipeline goes on with the next set."""
 import io
+import threading
+import time
+import traceback
 
 import numpy as np
 import pytest
@@ -218,3 +221,110 @@ def test_slow_worker_drops_stale_sets(model_and_cfg):
     assert result.stamp == pytest.approx(10.2 + 4 / 12)
     assert pipeline.counters()["stale_sets_dropped"] == 4
     assert pipeline.next_set(timeout=0.01) is None
+
+
+def jpeg(array):
+    buffer = io.BytesIO()
+    Image.fromarray(array).save(buffer, format="JPEG", quality=90)
+    return buffer.getvalue()
+
+
+def decoding_ahead(model_and_cfg):
+    """A pipeline decoding in its own thread; its model blocks on ``release`` in its first
+    step, and ``prepared`` records the stamp of every set decoded (an event each)."""
+    pipeline = make_pipeline(model_and_cfg)
+    feed_calibration_and_poses(pipeline)
+    prepared, bad, errors = {}, [], []
+    prepare = pipeline.prepare
+
+    def recording_prepare(camera_set):
+        result = prepare(camera_set)
+        prepared.setdefault(camera_set.reference_stamp, threading.Event()).set()
+        return result
+
+    pipeline.prepare = recording_prepare
+    pipeline.start_decoding(bad.append, lambda: errors.append(traceback.format_exc()))
+    return pipeline, prepared, bad, errors
+
+
+def wait_prepared(prepared, stamp, timeout=10.0):
+    deadline = time.monotonic() + timeout
+    while stamp not in prepared and time.monotonic() < deadline:
+        time.sleep(0.005)
+    return prepared.setdefault(stamp, threading.Event()).wait(max(0.0, deadline
+                                                                 - time.monotonic()))
+
+
+def infer_in_thread(pipeline, prepared_set):
+    out = {}
+    thread = threading.Thread(target=lambda: out.setdefault("result",
+                                                            pipeline.infer(prepared_set)))
+    thread.start()
+    return thread, out
+
+
+def test_the_next_set_decodes_while_the_model_runs(model_and_cfg):
+    pipeline, prepared, bad, errors = decoding_ahead(model_and_cfg)
+    a, b = 10.5, 10.5 + 1 / 12
+    step = pipeline.predictor.step
+    seen = {}
+
+    def slow_step(*args):      # the model of set a lasts until set b is decoded (or 10 s)
+        if not seen:
+            seen["b decoded during the model of a"] = wait_prepared(prepared, b)
+        return step(*args)
+
+    pipeline.predictor.step = slow_step
+    try:
+        feed_set(pipeline, a, set_images(0), encode=jpeg)
+        set_a = pipeline.next_prepared(timeout=10.0)
+        assert set_a is not None and set_a.camera_set.reference_stamp == a
+        thread, out = infer_in_thread(pipeline, set_a)
+        feed_set(pipeline, b, set_images(1), encode=jpeg)
+        thread.join(30.0)
+        assert seen == {"b decoded during the model of a": True}
+        assert out["result"].stamp == a
+        set_b = pipeline.next_prepared(timeout=10.0)
+        assert pipeline.infer(set_b).stamp == b
+        assert set(out["result"].timings) == {"lookup", "decode_images", "upload", "model",
+                                              "download"}
+        assert not bad and not errors
+    finally:
+        pipeline.close()
+    assert not pipeline._decoding.is_alive()
+
+
+def test_decoding_ahead_keeps_the_newest_set_in_order_and_skips_bad_sets(model_and_cfg):
+    pipeline, prepared, bad, errors = decoding_ahead(model_and_cfg)
+    release = threading.Event()
+    step = pipeline.predictor.step
+    pipeline.predictor.step = lambda *args: (release.wait(10.0), step(*args))[1]
+    stamps = [10.5 + k / 12 for k in range(4)]           # a, b (corrupt), c, d
+    try:
+        feed_set(pipeline, stamps[0], set_images(0), encode=jpeg)
+        thread, out = infer_in_thread(pipeline, pipeline.next_prepared(timeout=10.0))
+        # while the model runs on a: a corrupt set is a counted skip, reported at once
+        feed_set(pipeline, stamps[1], set_images(1),
+                 encode=lambda image: jpeg(image)[:300])
+        deadline = time.monotonic() + 10.0
+        while not bad and time.monotonic() < deadline:
+            time.sleep(0.005)
+        assert [error.kind for error in bad] == ["corrupt_image"]
+        assert pipeline.counters()["corrupt_image"] == 1
+        # c is decoded, then d replaces it: the model's next set is the newest
+        feed_set(pipeline, stamps[2], set_images(2), encode=jpeg)
+        assert wait_prepared(prepared, stamps[2])
+        feed_set(pipeline, stamps[3], set_images(3), encode=jpeg)
+        assert wait_prepared(prepared, stamps[3])
+        release.set()
+        thread.join(30.0)
+        assert out["result"].stamp == stamps[0]
+        following = pipeline.next_prepared(timeout=1.0)
+        assert following.camera_set.reference_stamp == stamps[3]
+        assert pipeline.next_prepared(timeout=0.05) is None
+        assert pipeline.infer(following).num_frames == 2
+        assert pipeline.counters()["stale_sets_dropped"] == 1
+        assert not errors
+    finally:
+        release.set()
+        pipeline.close()

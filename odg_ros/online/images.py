@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 from PIL import Image, UnidentifiedImageError
 
-from ..preprocess import adjust_intrinsics, draft_jpeg, resize_crop
+from ..preprocess import adjust_intrinsics, draft_jpeg, resize_crop, resize_crop_params
 from .errors import BadInput
 
 # Decoded images larger than this are refused unread (16 MP: a 4K camera fits twice).
@@ -174,3 +174,138 @@ def to_network_input(rgb: np.ndarray, expected_hw, intrinsics, input_hw, origina
         return resize_crop(rgb, input_hw), adjust_intrinsics(intrinsics, expected_hw, input_hw)
     except ValueError as err:
         raise BadInput("wrong_image_size", str(err)) from None
+
+
+# ------------------------------------------------------------------ JPEG sets on the GPU
+def resize_crop_tensor(image: "torch.Tensor", dst_hw) -> "torch.Tensor":
+    """uint8 [3, H, W] (any device) -> uint8 [H', W', 3]: preprocess.resize_crop's
+    geometry, with PyTorch's antialiased bilinear resize (made to match Pillow's;
+    within a grey level or two of it)."""
+    import torch
+    scale, crop_top, (rh, rw) = resize_crop_params(tuple(image.shape[1:]), dst_hw)
+    x = image
+    if (rh, rw) != tuple(image.shape[1:]):
+        x = torch.nn.functional.interpolate(image[None].float(), size=(rh, rw),
+                                            mode="bilinear", antialias=True,
+                                            align_corners=False)[0]
+        x = x.round_().clamp_(0, 255).to(torch.uint8)
+    x = x[:, crop_top:crop_top + dst_hw[0]].permute(1, 2, 0)
+    if x.shape[0] < dst_hw[0]:
+        x = torch.nn.functional.pad(x, (0, 0, 0, 0, 0, dst_hw[0] - x.shape[0]))
+    return x.contiguous()
+
+
+class DeviceJpegDecoder:
+    """A set of JPEGs decoded on the model's device by ``torchvision.io.decode_jpeg``
+    (nvJPEG on CUDA, one batched call) and resized/cropped there: no decoded image
+    crosses the PCIe bus. Sizes are checked on the JPEG headers first, as on the CPU path.
+    ``decode_set`` returns None for a set that is not all JPEG (the CPU path takes it)."""
+
+    def __init__(self, device, decode_jpeg, rgb_mode):
+        import torch
+        self.device = torch.device(device)
+        self._decode_jpeg, self._rgb = decode_jpeg, rgb_mode
+        # decoding runs on a stream of its own, so it overlaps the model's kernels
+        self.stream = torch.cuda.Stream(self.device) if self.device.type == "cuda" else None
+
+    def decode_set(self, images, cameras, expected_hws, input_hw,
+                   max_pixels: int = DEFAULT_MAX_PIXELS):
+        """-> (uint8 [N, H', W', 3] on the device, a CUDA event recorded when it is ready
+        (None off CUDA): pass both to ``hand_over`` in the thread that uses them), or None.
+        Raises BadInput naming the camera, as the CPU path does."""
+        import torch
+        if not all(i.compressed and _is_jpeg(i.data) for i in images):
+            return None
+        for image, camera, expected_hw in zip(images, cameras, expected_hws):
+            try:
+                with Image.open(io.BytesIO(image.data), formats=("JPEG",)) as header:
+                    _check_size(header.height, header.width, expected_hw, max_pixels)
+            except BadInput as error:
+                raise BadInput(error.kind, f"{camera}: {error.message}") from None
+            except (OSError, SyntaxError, ValueError, UnidentifiedImageError) as error:
+                raise BadInput("corrupt_image", f"{camera}: corrupt JPEG header "
+                               f"({len(image.data)} bytes): {error}") from None
+        data = [torch.frombuffer(bytearray(i.data), dtype=torch.uint8) for i in images]
+        context = torch.cuda.stream(self.stream) if self.stream is not None else _nothing()
+        with context:
+            try:
+                decoded = self._decode_jpeg(data, mode=self._rgb, device=self.device)
+            except RuntimeError:          # name the camera whose image failed
+                decoded = [self._decode_one(d, camera) for d, camera in zip(data, cameras)]
+            out = torch.stack([resize_crop_tensor(d, input_hw) for d in decoded])
+            ready = torch.cuda.Event() if self.stream is not None else None
+            if ready is not None:
+                ready.record(self.stream)
+        return out, ready
+
+    @staticmethod
+    def hand_over(images, ready) -> None:
+        """In the thread that uses ``decode_set``'s images: its stream waits for them (and
+        the allocator keeps them until that stream is done with them)."""
+        if ready is not None:
+            import torch
+            current = torch.cuda.current_stream(images.device)
+            current.wait_event(ready)
+            images.record_stream(current)
+
+    def _decode_one(self, data, camera: str):
+        try:
+            return self._decode_jpeg([data], mode=self._rgb, device=self.device)[0]
+        except RuntimeError as error:
+            raise BadInput("corrupt_image", f"{camera}: corrupt or truncated JPEG "
+                           f"({len(data)} bytes): {error}") from None
+
+
+class _nothing:
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return False
+
+
+def _is_jpeg(data: bytes) -> bool:
+    return data[:3] == b"\xff\xd8\xff"
+
+
+def _probe_jpeg() -> bytes:
+    buffer = io.BytesIO()
+    Image.fromarray(np.full((16, 16, 3), 128, np.uint8)).save(buffer, format="JPEG")
+    return buffer.getvalue()
+
+
+def select_jpeg_decoder(device, import_io=None) -> tuple[DeviceJpegDecoder | None, str]:
+    """(decoder, why) for a model on ``device``: a DeviceJpegDecoder where the device is
+    CUDA and torchvision decodes a probe JPEG there, else (None, why not): Pillow on the
+    CPU. ``import_io`` returns ``torchvision.io`` (tests pass their own)."""
+    import torch
+    device = torch.device(device)
+    if device.type != "cuda":
+        return None, f"JPEG decoding on the CPU (Pillow): the model runs on {device}"
+    return device_jpeg_decoder(device, import_io or _import_torchvision_io)
+
+
+def device_jpeg_decoder(device, import_io) -> tuple[DeviceJpegDecoder | None, str]:
+    """select_jpeg_decoder past the device check (any device: tests run it on the CPU)."""
+    import torch
+    try:
+        tv_io = import_io()
+        decode_jpeg, rgb = tv_io.decode_jpeg, tv_io.ImageReadMode.RGB
+    except (ImportError, AttributeError) as error:
+        return None, (f"JPEG decoding on the CPU (Pillow): torchvision.io.decode_jpeg is "
+                      f"not available ({error})")
+    try:
+        probe = torch.frombuffer(bytearray(_probe_jpeg()), dtype=torch.uint8)
+        decoded = decode_jpeg([probe], mode=rgb, device=device)[0]
+        if tuple(decoded.shape) != (3, 16, 16) or decoded.device != device:
+            raise RuntimeError(f"probe decoded to {tuple(decoded.shape)} on {decoded.device}")
+    except Exception as error:       # no nvJPEG, an old torchvision without lists, ...
+        return None, (f"JPEG decoding on the CPU (Pillow): torchvision could not decode on "
+                      f"{device} ({type(error).__name__}: {error})")
+    return (DeviceJpegDecoder(device, decode_jpeg, rgb),
+            f"JPEG decoding on {device} (torchvision.io.decode_jpeg)")
+
+
+def _import_torchvision_io():
+    import torchvision.io
+    return torchvision.io

@@ -3,10 +3,13 @@
 The node (odg_ros/ros/node.py) only converts messages and publishes; everything it decides
 lives here so it is unit-tested without rclpy::
 
-    on_image ─> CameraSetSync ─> LatestMailbox ─> (worker) process(): CameraInfo check,
-    on_camera_info (K, size)                        poses at every camera stamp, extrinsics,
-    on_pose ─> PoseBuffer                           decode + resize, ego2img,
-                                                    OnlinePredictor.step ─> OnlineResult
+    on_image ─> CameraSetSync ─> LatestMailbox ─> prepare(): CameraInfo check, poses at
+    on_camera_info (K, size)        every camera stamp, extrinsics, ego2img, decode + resize
+    on_pose ─> PoseBuffer             ─> LatestMailbox ─> infer(): OnlinePredictor.step
+                                                                   ─> OnlineResult
+
+``process`` runs both in the caller's thread; ``start_decoding`` runs ``prepare`` in a
+thread of its own, so the next set decodes while the model runs (``next_prepared``).
 
 Every unusable input raises ``BadInput`` after it has been counted; the caller logs it
 (throttled) and carries on with the next message or set.
@@ -25,7 +28,9 @@ import numpy as np
 from ..geometry import is_rigid
 from .diagnostics import PipelineStats
 from .errors import BAD_INPUT_KINDS, BadInput
-from .images import DEFAULT_MAX_PIXELS, EncodedImage, decode_for_input, to_network_input
+from ..preprocess import adjust_intrinsics
+from .images import (DEFAULT_MAX_PIXELS, DeviceJpegDecoder, EncodedImage, decode_for_input,
+                     select_jpeg_decoder, to_network_input)
 from .mailbox import LatestMailbox
 from .poses import PoseBuffer
 from .predictor import OnlinePredictor
@@ -50,6 +55,20 @@ class PipelineSettings:
     max_speed: float = 70.0
     max_acceleration: float = 30.0
     max_image_pixels: int = DEFAULT_MAX_PIXELS
+
+
+@dataclass
+class PreparedSet:
+    """A set ready for the model: images uint8 [N, H, W, 3] (NumPy, or a tensor on the
+    model's device when decoded there), ego2img [N, 4, 4], the reference pose, the
+    seconds of the stages so far."""
+
+    camera_set: CameraSet
+    images: Any
+    ego2img: np.ndarray
+    reference_pose: np.ndarray
+    timings: dict[str, float]
+    ready: Any = None          # CUDA event of images decoded on the device
 
 
 @dataclass
@@ -97,7 +116,11 @@ class OnlinePipeline:
         predictor.history.max_speed = settings.max_speed    # a teleport restarts the history
         self.pose_lookup = pose_lookup if pose_lookup is not None else self._buffer_lookup
         self.sync = CameraSetSync(self.camera_names, settings.slop, time_jump=settings.time_jump)
-        self.mailbox = LatestMailbox()
+        self.mailbox = LatestMailbox()           # complete sets, not decoded yet
+        self.prepared = LatestMailbox()          # decoded sets (start_decoding)
+        self._decoding: threading.Thread | None = None
+        # JPEG sets decoded on the GPU where torchvision can (None: Pillow on the CPU)
+        self.jpeg_decoder, self.jpeg_decoder_reason = select_jpeg_decoder(predictor.device)
         self.stats = stats if stats is not None else PipelineStats()
         self.bad_inputs = {kind: 0 for kind in BAD_INPUT_KINDS}
         self._camera_info: dict[str, CameraCalibration] = {}
@@ -162,12 +185,61 @@ class OnlinePipeline:
 
     def process(self, camera_set: CameraSet) -> OnlineResult:
         """Run one complete set through the model. Raises (counted) BadInput to skip it."""
+        return self.infer(self.prepare(camera_set))
+
+    def prepare(self, camera_set: CameraSet) -> PreparedSet:
+        """Everything before the model: look-ups and decoding. Raises (counted) BadInput."""
         try:
-            return self._process(camera_set)
+            return self._prepare(camera_set)
         except BadInput as error:
             raise self.count_bad_input(error) from None
 
-    def _process(self, camera_set: CameraSet) -> OnlineResult:
+    def infer(self, prepared: PreparedSet) -> OnlineResult:
+        """The model on a prepared set."""
+        camera_set = prepared.camera_set
+        if prepared.ready is not None:
+            DeviceJpegDecoder.hand_over(prepared.images, prepared.ready)
+        prediction = self.predictor.step(prepared.images, prepared.ego2img,
+                                         prepared.reference_pose,
+                                         camera_set.reference_stamp)
+        timings = dict(prediction.timings)
+        timings.update(prepared.timings)
+        return OnlineResult(stamp=camera_set.reference_stamp,
+                            header=camera_set.payloads[camera_set.reference_camera][1],
+                            grid=prediction.grid, confidence=prediction.confidence,
+                            boxes=prediction.boxes, timings=timings,
+                            num_frames=prediction.num_frames)
+
+    # ---------------------------------------------------------------- decoding ahead
+    def start_decoding(self, on_bad_input: Callable[[BadInput], None],
+                       on_error: Callable[[], None]) -> None:
+        """Prepare (decode) sets in a thread of their own, ahead of the model: while the
+        model runs on set n, set n+1 is decoded. Take the results with ``next_prepared``.
+
+        One prepared set waits at most; a newer one replaces it (counted in
+        stale_sets_dropped), so the model always starts on the newest set decoded, in
+        stamp order. A bad set is counted and ``on_bad_input(error)`` called; any other
+        exception calls ``on_error()`` inside its ``except`` block (for the traceback)."""
+        def run():
+            while not self.mailbox.closed:
+                camera_set = self.mailbox.get(timeout=0.2)
+                if camera_set is None:
+                    continue
+                try:
+                    self.prepared.put(self.prepare(camera_set))
+                except BadInput as error:
+                    on_bad_input(error)
+                except Exception:     # never let the thread die silently
+                    on_error()
+
+        self._decoding = threading.Thread(target=run, name="odg_decode", daemon=True)
+        self._decoding.start()
+
+    def next_prepared(self, timeout: float | None = None) -> PreparedSet | None:
+        """The newest set prepared by ``start_decoding``'s thread (None on timeout)."""
+        return self.prepared.get(timeout)
+
+    def _prepare(self, camera_set: CameraSet) -> PreparedSet:
         names = self.camera_names
         t_lookup = time.perf_counter()
         with self._input_lock:
@@ -186,37 +258,36 @@ class OnlinePipeline:
             if not is_rigid(T):
                 raise BadInput("missing_extrinsics", f"extrinsics of {c} are not rigid")
             sensor2ego.append(T)
-
-        t0 = time.perf_counter()
-        lookup_seconds = t0 - t_lookup
-
-        def prepare(camera):
-            image, _ = camera_set.payloads[camera]
-            try:
-                rgb, original_hw = decode_for_input(image, self.input_hw,
-                                                    infos[camera].image_hw,
-                                                    self.settings.max_image_pixels)
-                return to_network_input(rgb, infos[camera].image_hw, infos[camera].intrinsics,
-                                        self.input_hw, original_hw)
-            except BadInput as error:
-                raise BadInput(error.kind, f"{camera}: {error.message}") from None
-
-        prepared = list(self._decoder_pool.map(prepare, names))
-        images = np.stack([p[0] for p in prepared])
-        intrinsics = np.stack([p[1] for p in prepared])
+        try:
+            intrinsics = np.stack([adjust_intrinsics(infos[c].intrinsics, infos[c].image_hw,
+                                                     self.input_hw) for c in names])
+        except ValueError as error:      # a CameraInfo size no network input is made of
+            raise BadInput("wrong_image_size", str(error)) from None
         ego2img = set_ego2img(intrinsics, np.stack(sensor2ego), np.stack(camera_poses),
                               reference_pose)
-        decode_seconds = time.perf_counter() - t0
 
-        prediction = self.predictor.step(images, ego2img, reference_pose, reference)
-        timings = dict(prediction.timings)
-        timings["decode_images"] = timings.get("decode_images", 0.0) + decode_seconds
-        timings["lookup"] = lookup_seconds     # camera infos, poses and extrinsics
-        return OnlineResult(stamp=reference,
-                            header=camera_set.payloads[camera_set.reference_camera][1],
-                            grid=prediction.grid, confidence=prediction.confidence,
-                            boxes=prediction.boxes, timings=timings,
-                            num_frames=prediction.num_frames)
+        t0 = time.perf_counter()
+        on_device = None
+        if self.jpeg_decoder is not None:      # all-JPEG sets on the GPU; None: not all JPEG
+            on_device = self.jpeg_decoder.decode_set(
+                [camera_set.payloads[c][0] for c in names], names,
+                [infos[c].image_hw for c in names], self.input_hw,
+                self.settings.max_image_pixels)
+        images, ready = on_device if on_device is not None else (np.stack(list(
+            self._decoder_pool.map(lambda c: self._decode(c, camera_set.payloads[c][0],
+                                                          infos[c]), names))), None)
+        return PreparedSet(camera_set, images, ego2img, reference_pose,
+                           {"lookup": t0 - t_lookup,
+                            "decode_images": time.perf_counter() - t0}, ready)
+
+    def _decode(self, camera: str, image: EncodedImage, info: CameraCalibration) -> np.ndarray:
+        try:
+            rgb, original_hw = decode_for_input(image, self.input_hw, info.image_hw,
+                                                self.settings.max_image_pixels)
+            return to_network_input(rgb, info.image_hw, info.intrinsics, self.input_hw,
+                                    original_hw)[0]
+        except BadInput as error:
+            raise BadInput(error.kind, f"{camera}: {error.message}") from None
 
     def _checked_pose(self, stamp: float) -> np.ndarray:
         T = self.pose_lookup(stamp)
@@ -237,7 +308,7 @@ class OnlinePipeline:
         out["input_time_jumps"] = sync["time_jumps"]
         out["sets_completed"] = sync["sets_emitted"]
         out["pose_teleports"] = self.poses.teleports
-        out["stale_sets_dropped"] = self.mailbox.dropped
+        out["stale_sets_dropped"] = self.mailbox.dropped + self.prepared.dropped
         history_resets = self.predictor.history.resets
         out["history_resets_time_backwards"] = history_resets["time_backwards"]
         out["history_resets_gap"] = history_resets["gap"]
@@ -246,4 +317,7 @@ class OnlinePipeline:
 
     def close(self) -> None:
         self.mailbox.close()
+        self.prepared.close()
+        if self._decoding is not None:
+            self._decoding.join(timeout=5.0)
         self._decoder_pool.shutdown(wait=False, cancel_futures=True)

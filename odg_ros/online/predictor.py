@@ -168,7 +168,8 @@ class OnlinePredictor:
     @torch.inference_mode()
     def step(self, images: np.ndarray, ego2img: np.ndarray, pose: np.ndarray,
              stamp: float) -> Prediction:
-        """images uint8 [N, H, W, 3] network-input RGB; ego2img [N, 4, 4] of this set;
+        """images uint8 [N, H, W, 3] network-input RGB (NumPy, or a tensor on the device);
+        ego2img [N, 4, 4] of this set;
         pose [4, 4] T_global_from_ego at ``stamp`` (the set's reference stamp, seconds)."""
         N = len(images)
         if images.shape[1:] != (*self.cfg.image_size, 3) or N != self.cfg.num_cams:
@@ -188,8 +189,11 @@ class OnlinePredictor:
         frames = self.history.frames()
         assert len(frames) == len(self.ring)
         self._pack_geometry(frames, self.ring.slots())
-        self._images_host.numpy()[...] = images
-        self._images.copy_(self._images_host, non_blocking=True)
+        if isinstance(images, torch.Tensor):       # decoded on the device already
+            self._images.copy_(images, non_blocking=True)
+        else:
+            self._images_host.numpy()[...] = images
+            self._images.copy_(self._images_host, non_blocking=True)
         self._packed.copy_(self._packed_host, non_blocking=True)
         t1 = time.perf_counter()
 

@@ -1,8 +1,9 @@
 """odg_node: the ODG occupancy network as a ROS 2 node (wiring only).
 
 Everything that decides anything lives in the ROS-free pipeline (odg_ros/online/); this
-module declares the parameters, converts messages to and from plain values, runs inference
-in a worker thread fed by the latest-wins mailbox, and publishes.
+module declares the parameters, converts messages to and from plain values, decodes each
+set in one thread and runs the model in another (the next set decodes while the model runs;
+latest-wins mailboxes between them), and publishes.
 
 Inputs (all remappable): one image topic per camera (CompressedImage or Image, best-effort
 sensor QoS), one CameraInfo per camera, the ego pose from /tf (+ /tf_static) or an Odometry
@@ -206,6 +207,7 @@ class OdgNode(Node):
         self.stats = PipelineStats(stale_after_s=float(p["no_output_timeout"]),
                                    max_tf_rate=float(p["max_tf_rate"]))
         self.internal_errors = 0
+        self._error_lock = threading.Lock()
         self.pipeline = OnlinePipeline(
             predictor,
             PipelineSettings(cameras, slop=float(p["slop"]),
@@ -253,6 +255,9 @@ class OdgNode(Node):
                 TFMessage, "/tf_static", lambda m: self.on_tf(m, True), TF_STATIC_QOS))
 
         self.create_timer(float(p["diagnostics_period"]), self.publish_diagnostics)
+        # decoding runs ahead of the model: set n+1 decodes while the model runs on set n
+        self.get_logger().info(self.pipeline.jpeg_decoder_reason)
+        self.pipeline.start_decoding(self.warn_bad_input, self._internal_error)
         self._worker = threading.Thread(target=self._work, name="odg_inference", daemon=True)
         self._worker.start()
         self.get_logger().info(
@@ -338,18 +343,22 @@ class OdgNode(Node):
     # ------------------------------------------------------------------------ inference
     def _work(self) -> None:
         while not self._stop.is_set():
-            camera_set = self.pipeline.next_set(timeout=0.2)
-            if camera_set is None:
+            prepared = self.pipeline.next_prepared(timeout=0.2)
+            if prepared is None:
                 continue
             try:
-                result = self.pipeline.process(camera_set)
-                self.publish(result)
+                self.publish(self.pipeline.infer(prepared))
             except BadInput as error:
                 self.warn_bad_input(error)
             except Exception:     # never let the worker die silently: log, count, go on
-                self.internal_errors += 1
-                self.get_logger().error(f"inference failed:\n{traceback.format_exc()}",
-                                        throttle_duration_sec=5.0)
+                self._internal_error()
+
+    def _internal_error(self) -> None:
+        """Inside an ``except`` block of the decoding or the inference thread."""
+        with self._error_lock:
+            self.internal_errors += 1
+        self.get_logger().error(f"inference failed:\n{traceback.format_exc()}",
+                                throttle_duration_sec=5.0)
 
     def publish(self, result) -> None:
         start = time.perf_counter()
