@@ -16,7 +16,7 @@ import numpy as np
 OK, WARN, ERROR, STALE = 0, 1, 2, 3
 
 # Processing stages timed per set (seconds in, milliseconds out); lookup: the set's camera
-# infos, poses and extrinsics.
+# infos, poses and extrinsics, and its ego->image matrices.
 STAGES = ("lookup", "decode_images", "upload", "model", "download", "publish")
 
 # Counters that are normal under load and do not raise the level on their own.
