@@ -16,6 +16,7 @@ import sys
 import time
 from contextlib import contextmanager, nullcontext
 
+import numpy as np
 import torch
 from tqdm import tqdm
 
@@ -308,43 +309,117 @@ def node_inputs(cfg: ModelConfig, num_sets: int, seed: int = 0):
     return sets
 
 
+def data_camera_sets(infos_path, cfg: ModelConfig, num_sets: int):
+    """The first ``num_sets`` keyframes of the first scene of an infos file as the node feeds
+    its predictor (network-input uint8 images, ego2img, pose, stamp), 0.5 s apart."""
+    from .data.dataset import OccDataset
+    dataset = OccDataset(infos_path, cfg)
+    scene = dataset.infos[0]["scene_token"]
+    infos = [info for info in dataset.infos if info["scene_token"] == scene][:num_sets]
+    if len(infos) < num_sets:
+        raise ValueError(f"{infos_path}: its first scene has {len(infos)} keyframes, "
+                         f"{num_sets} asked for")
+    sets = []
+    for info in infos:
+        pose = np.asarray(info["ego_pose"], dtype=np.float64)
+        images = np.stack([dataset.load_image(info["cams"][name])
+                           for name in dataset.camera_names])
+        ego2img = dataset.frame_geometry(info["cams"], pose)[0]
+        sets.append((images, ego2img, pose, info["timestamp"] / 1e6))
+    return sets
+
+
+def output_differences(output, reference, cfg: ModelConfig) -> dict:
+    """The last decoder layer of ``output`` against ``reference``'s: max |logit difference|,
+    and for the boxes valid in either, whether the valid sets agree and the largest centre
+    (m), size (m) and score differences among the boxes valid in both (matched by query)."""
+    from .network.postprocess import decode_box_code
+    a, b = output.last, reference.last
+    result = {"logits": float((a.logits.float() - b.logits.float()).abs().max())}
+    if a.boxes is None:
+        return result
+    score_a = a.box_logits.float().sigmoid().amax(-1)
+    score_b = b.box_logits.float().sigmoid().amax(-1)
+    valid_a = score_a > cfg.box_score_threshold
+    valid_b = score_b > cfg.box_score_threshold
+    both = valid_a & valid_b
+    box_a, box_b = decode_box_code(a.boxes.float()), decode_box_code(b.boxes.float())
+    gap = (box_a - box_b).abs()
+
+    def largest(t):
+        return float(t[both].max()) if both.any() else 0.0
+    result.update(boxes_valid=int(valid_b.sum()), boxes_valid_mismatch=int((valid_a ^ valid_b)
+                                                                         .sum()),
+                  box_centre_m=largest(gap[..., :3].amax(-1)),
+                  box_size_m=largest(gap[..., 3:6].amax(-1)),
+                  box_score=largest((score_a - score_b).abs()))
+    return result
+
+
 def bench_node_step(cfg: ModelConfig, device="cpu", modes=("eager", "compiled"),
-                    iters: int = 5, warmup: int = 1, precision: str = "fp32",
-                    model: ODG | None = None, progress: bool = True) -> dict:
+                    iters: int = 5, warmup: int = 1, precisions=("fp32",),
+                    model: ODG | None = None, progress: bool = True, sets=None) -> dict:
     """``OnlinePredictor.step`` (what the node runs per camera set: upload, the device step,
-    download) in each execution mode, interleaved set by set over one stream of sets; the
-    history fills as in the node. Grids compared with the first mode's."""
+    download) for each execution mode and precision, interleaved set by set over one stream of
+    sets (``sets``: the node's inputs, default ``node_inputs``, random); the history fills as
+    in the node. Everything is compared with the first variant's: the grid (all voxels, and
+    the voxels occupied in either), and the last layer's logits and boxes
+    (``output_differences``). A variant is named by its mode, plus its precision where
+    several are asked for."""
     from .online.predictor import OnlinePredictor
     model = (model or ODG(cfg)).to(device).eval()
-    predictors = {}
-    for mode in modes:
-        predictors[mode] = OnlinePredictor(model, cfg, device, max_gap=1.0,
-                                           precision=precision, compile=mode)
-    sets = node_inputs(cfg, warmup + iters)
-    times = {mode: {"step": [], "upload": [], "model": [], "download": []} for mode in modes}
-    agreement = {mode: [] for mode in modes}
+    variants = {(mode if len(precisions) == 1 else f"{mode}-{precision}"): (mode, precision)
+                for precision in precisions for mode in modes}
+    predictors = {name: OnlinePredictor(model, cfg, device, max_gap=1.0, precision=precision,
+                                        compile=mode)
+                  for name, (mode, precision) in variants.items()}
+    sets = sets if sets is not None else node_inputs(cfg, warmup + iters)
+    times = {name: {"step": [], "upload": [], "model": [], "download": []} for name in variants}
+    agreement = {name: [] for name in variants}
+    occupied_agreement = {name: [] for name in variants}
+    differences = {name: [] for name in variants}
     for i, camera_set in enumerate(tqdm(sets, desc=f"node step {cfg.name}",
                                         disable=not progress)):
-        results = {}
-        for mode in modes:
+        results, outputs = {}, {}
+        for name in variants:
             start = time.perf_counter()
-            results[mode] = predictors[mode].step(*camera_set)
+            results[name] = predictors[name].step(*camera_set)
             if i >= warmup:
-                times[mode]["step"].append((time.perf_counter() - start) * 1e3)
-                for stage, seconds in results[mode].timings.items():
-                    times[mode][stage].append(seconds * 1e3)
-        first = results[modes[0]].grid
-        for mode in modes:
-            agreement[mode].append(float((results[mode].grid == first).mean()))
-    reference = statistics.median(times[modes[0]]["step"])
-    return {"preset": cfg.name, "device": str(device), "iters": iters,
-            "threads": torch.get_num_threads(), "torch": torch.__version__,
-            "precision": precision, "input": [cfg.num_cams, 3, *cfg.image_size],
-            "frames": cfg.num_frames, "reference": modes[0],
-            "modes": {mode: {
-                "latency_ms": {k: round(statistics.median(v), 3) for k, v in
-                               times[mode].items()},
-                "fps": round(1e3 / statistics.median(times[mode]["step"]), 2),
-                "speedup": round(reference / statistics.median(times[mode]["step"]), 3),
-                "startup_s": round(predictors[mode].startup_seconds, 2),
-                "grid_agreement_min": min(agreement[mode])} for mode in modes}}
+                times[name]["step"].append((time.perf_counter() - start) * 1e3)
+                for stage, seconds in results[name].timings.items():
+                    times[name][stage].append(seconds * 1e3)
+            if len(precisions) > 1:          # untimed: the decoder again, for its raw output
+                with torch.inference_mode():
+                    outputs[name] = predictors[name]._raw_output()
+        first_name = next(iter(variants))
+        first = results[first_name].grid
+        for name in variants:
+            grid = results[name].grid
+            agreement[name].append(float((grid == first).mean()))
+            occupied = (grid != cfg.num_classes) | (first != cfg.num_classes)
+            occupied_agreement[name].append(float((grid[occupied] == first[occupied]).mean())
+                                            if occupied.any() else 1.0)
+            if outputs:
+                differences[name].append(output_differences(outputs[name],
+                                                             outputs[first_name], cfg))
+    step_times = {name: statistics.median(t["step"]) for name, t in times.items()}
+    reference = step_times[first_name]
+    result = {"preset": cfg.name, "device": str(device), "iters": iters,
+              "threads": torch.get_num_threads(), "torch": torch.__version__,
+              "precisions": list(precisions), "input": [cfg.num_cams, 3, *cfg.image_size],
+              "frames": cfg.num_frames, "sets": len(sets), "reference": first_name,
+              "modes": {}}
+    for name, (mode, precision) in variants.items():
+        entry = {"mode": mode, "precision": precision,
+                 "latency_ms": {k: round(statistics.median(v), 3) for k, v in
+                                times[name].items()},
+                 "fps": round(1e3 / step_times[name], 2),
+                 "speedup": round(reference / step_times[name], 3),
+                 "startup_s": round(predictors[name].startup_seconds, 2),
+                 "grid_agreement_min": min(agreement[name]),
+                 "occupied_agreement_min": min(occupied_agreement[name])}
+        if differences[name]:
+            entry["max_difference"] = {key: max(d[key] for d in differences[name])
+                                       for key in differences[name][0]}
+        result["modes"][name] = entry
+    return result

@@ -191,3 +191,67 @@ def test_bench_times_the_predictor_step_per_mode():
     assert set(eager["latency_ms"]) == {"step", "upload", "model", "download"}
     assert eager["latency_ms"]["step"] >= eager["latency_ms"]["model"] > 0
     assert eager["grid_agreement_min"] == 1.0 and eager["startup_s"] > 0
+
+
+def test_bench_compares_precisions_on_the_keyframes_of_a_split(tmp_path, capsys):
+    """``odg bench --compile eager --precision fp32,bf16 --data INFOS``: both variants step
+    over the split's keyframes; bf16 is compared with fp32 (grid, logits, boxes)."""
+    import json
+    from helpers import write_tiny_checkpoint, write_tiny_split
+    from odg_ros.cli import main
+    checkpoint = write_tiny_checkpoint(tmp_path / "tiny.pt", score_threshold=0.0,
+                                       box_score_threshold=0.0)
+    infos = write_tiny_split(tmp_path / "world", num_keyframes=3)
+    assert main(["bench", "--compile", "eager", "--precision", "fp32,bf16", "--checkpoint",
+                 str(checkpoint), "--data", str(infos), "--iters", "2", "--json"]) == 0
+    result = json.loads(capsys.readouterr().out)
+    assert result["sets"] == 3 and result["reference"] == "eager-fp32"
+    fp32, bf16 = result["modes"]["eager-fp32"], result["modes"]["eager-bf16"]
+    assert fp32["max_difference"]["logits"] == 0 and fp32["occupied_agreement_min"] == 1
+    assert 0 < bf16["max_difference"]["logits"] < 1                    # bf16 rounding only
+    assert bf16["max_difference"]["boxes_valid"] > 0
+    assert 0.5 < bf16["occupied_agreement_min"] <= 1
+    assert main(["bench", "--precision", "fp32,bf16"]) == 2            # a list needs --compile
+    assert "--precision" in capsys.readouterr().err
+
+
+class WeightCastCounter(TorchDispatchMode):
+    """Counts dtype casts whose source is one of ``weights`` (by storage)."""
+
+    def __init__(self, weights):
+        super().__init__()
+        self.storages = {w.untyped_storage().data_ptr() for w in weights}
+        self.casts = 0
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        if func.overloadpacket.__name__ in ("to", "_to_copy") and \
+                args[0].untyped_storage().data_ptr() in self.storages:
+            self.casts += 1
+        return func(*args, **(kwargs or {}))
+
+
+def test_bf16_step_stores_its_matrix_weights_in_bf16_and_casts_none():
+    """Autocast over float32 weights casts every Linear / convolution weight at every step;
+    the bf16 step keeps them in bf16 (a copy: the shared model stays float32) and casts none,
+    with the same outputs as autocast over float32 weights to the bit (measured on odg_cpu)."""
+    model, cfg = make_model()
+    sets = make_sets(cfg, 2)
+    predictor = OnlinePredictor(model, cfg, "cpu", max_gap=1.0, precision="bf16")
+    step = predictor.online_step
+    running = [m for part in (step.backbone, step.neck, step.model.decoder)
+               for m in part.modules()]
+    matrices = [m for m in running if isinstance(m, (torch.nn.Linear, torch.nn.Conv2d))]
+    assert len(matrices) > 50 and all(m.weight.dtype == torch.bfloat16 for m in matrices)
+    assert all(p.dtype == torch.float32 for p in model.parameters())       # not mutated
+    norms = [m for m in running if isinstance(m, torch.nn.LayerNorm)]
+    assert norms and all(m.weight.dtype == torch.float32 for m in norms)
+    predictor.step(*sets[0])
+    weights = [p for p in step.parameters()] + list(model.parameters())
+    with torch.inference_mode(), WeightCastCounter(weights) as counter:
+        predictor.online_step(predictor._images, predictor._packed)
+    assert counter.casts == 0
+    # the counter sees weight casts: autocast over the float32 model casts each weight
+    with torch.inference_mode(), WeightCastCounter(model.parameters()) as counter, \
+            torch.autocast("cpu", dtype=torch.bfloat16):
+        model.extract_features(torch.zeros(1, cfg.num_cams, 3, *cfg.image_size))
+    assert counter.casts > 20

@@ -36,8 +36,10 @@ def add_arguments(parser):
     parser.add_argument("--json", action="store_true", help="print JSON only")
     parser.add_argument("--checkpoint", default=None, type=existing_file,
                         help="weights (default: random weights of --preset)")
-    parser.add_argument("--precision", default="fp32", choices=PRECISIONS,
-                        help="autocast precision (fp16 only on CUDA)")
+    parser.add_argument("--precision", default="fp32",
+                        help=f"one of {', '.join(PRECISIONS)} (fp16 only on CUDA); with "
+                             "--compile a comma-separated list, each against the first "
+                             "(the node's step stores bf16 / fp16 weights, the others autocast)")
     parser.add_argument("--prune", type=float, default=None, metavar="T",
                         help="adaptive inference: PruneRule threshold (default: no pruning)")
     parser.add_argument("--prune-after", type=nonnegative_int, default=2,
@@ -53,7 +55,9 @@ def add_arguments(parser):
     parser.add_argument("--sweep", action="store_true",
                         help="speed vs error over configurations on a split (see sweep.py)")
     parser.add_argument("--data", default=None, type=infos_file,
-                        help="--sweep: infos of the split (required there; default: none)")
+                        help="--sweep: infos of the split (required there); --compile: feed "
+                             "the first scene's keyframes instead of random images "
+                             "(default: none)")
     parser.add_argument("--occ-root", default=None,
                         help="--sweep: GT root (default: the infos' occ_root)")
     parser.add_argument("--out", default="docs/results",
@@ -79,6 +83,12 @@ def run(args) -> int:
         torch.set_num_threads(args.threads)
     if args.iters is None:
         args.iters = 3 if args.sweep else 5
+    precisions = tuple(p.strip() for p in args.precision.split(",") if p.strip())
+    unknown = [p for p in precisions if p not in PRECISIONS]
+    if unknown or not precisions or (len(precisions) > 1 and not args.compile):
+        raise UserError(f"--precision {args.precision!r}: expected one of {PRECISIONS} "
+                        f"(a comma-separated list with --compile)")
+    args.precisions = precisions
     if args.sweep:
         return run_sweep_command(args)
     if args.compile:
@@ -106,9 +116,9 @@ def run(args) -> int:
     prune = PruneRule(args.prune, args.prune_after) if args.prune is not None else None
     result = bench_online_step(cfg, args.device, args.frames, args.iters, args.warmup,
                                progress=not args.json, model=model, ring=not args.no_ring,
-                               prune=prune, precision=args.precision)
+                               prune=prune, precision=args.precisions[0])
     result["weights"] = args.checkpoint or "random"
-    slow = slow_precision_warning(args.precision, args.device)
+    slow = slow_precision_warning(args.precisions[0], args.device)
     if slow:
         result["warning"] = slow
         print(f"odg bench: {slow}", file=sys.stderr)
@@ -150,24 +160,37 @@ def run_compile_command(args) -> int:
                          f"comma-separated list of {MODES}")
     if "graphs" in modes and args.device != "cuda":
         raise SystemExit("odg bench --compile graphs: CUDA graphs need --device cuda")
+    from ..benchmark import data_camera_sets
     model, cfg = load_model(args.checkpoint, preset=args.preset, device=args.device)
+    sets = None
+    if args.data:
+        try:
+            sets = data_camera_sets(args.data, cfg, args.warmup + args.iters)
+        except (ValueError, OSError) as error:
+            raise UserError(f"--data {args.data}: {error}") from error
     result = bench_node_step(cfg, args.device, modes, args.iters, args.warmup,
-                             args.precision, model, progress=not args.json)
+                             args.precisions, model, progress=not args.json, sets=sets)
     result["weights"] = args.checkpoint or "random"
+    result["inputs"] = str(args.data) if args.data else "random"
     if args.json:
         print(json.dumps(result, indent=2))
         return 0
     print(f"{result['preset']} on {result['device']} ({result['threads']} threads), "
-          f"{result['frames']} frames, input {result['input']}, {result['precision']}, "
-          f"weights {result['weights']}: the node's step, median of {result['iters']} "
-          f"interleaved sets")
-    print(f"  {'mode':<10}{'step ms':>9}{'model':>9}{'upload':>8}{'download':>9}{'FPS':>8}"
-          f"{'speedup':>8}{'start-up s':>11}{'grid =':>8}")
-    for mode, r in result["modes"].items():
+          f"{result['frames']} frames, input {result['input']}, weights {result['weights']}, "
+          f"images {result['inputs']}: the node's step, median of {result['iters']} "
+          f"interleaved sets; agreement and differences against '{result['reference']}' "
+          f"over all {result['sets']} sets")
+    print(f"  {'variant':<16}{'step ms':>9}{'model':>9}{'upload':>8}{'download':>9}{'FPS':>8}"
+          f"{'speedup':>8}{'start-up s':>11}{'grid =':>8}{'occ. =':>8}")
+    for name, r in result["modes"].items():
         lat = r["latency_ms"]
-        print(f"  {mode:<10}{lat['step']:9.1f}{lat['model']:9.1f}{lat['upload']:8.1f}"
+        print(f"  {name:<16}{lat['step']:9.1f}{lat['model']:9.1f}{lat['upload']:8.1f}"
               f"{lat['download']:9.1f}{r['fps']:8.2f}{r['speedup']:8.2f}{r['startup_s']:11.1f}"
-              f"{r['grid_agreement_min']:8.4f}")
+              f"{r['grid_agreement_min']:8.4f}{r['occupied_agreement_min']:8.4f}")
+    for name, r in result["modes"].items():
+        if "max_difference" in r:
+            print(f"  {name:<16}max |difference|: " + ", ".join(
+                f"{key} {value:.3g}" for key, value in r["max_difference"].items()))
     return 0
 
 

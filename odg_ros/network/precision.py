@@ -2,9 +2,11 @@
 sampling.full_precision). Shared by the benchmark, the sweep and the online predictor."""
 from __future__ import annotations
 
+import copy
 from contextlib import nullcontext
 
 import torch
+from torch import nn
 
 PRECISIONS = ("fp32", "bf16", "fp16")
 
@@ -20,6 +22,23 @@ def precision_context(precision: str, device):
         raise ValueError("fp16 autocast is for CUDA; use bf16 on CPU")
     dtype = torch.bfloat16 if precision == "bf16" else torch.float16
     return torch.autocast(device_type=device_type, dtype=dtype)
+
+
+def half_dtype(precision: str) -> torch.dtype | None:
+    """bf16 / fp16 -> the torch dtype; fp32 -> None."""
+    return {"bf16": torch.bfloat16, "fp16": torch.float16}.get(precision)
+
+
+def with_half_matrix_weights(module: nn.Module, dtype: torch.dtype) -> nn.Module:
+    """A copy of ``module`` whose Linear and convolution weights and biases are stored in
+    ``dtype``; norms and other parameters stay float32. Under autocast this computes what
+    float32 weights compute (autocast casts exactly these to ``dtype`` before each matrix
+    product) without the per-call weight casts."""
+    half = copy.deepcopy(module)
+    for m in half.modules():
+        if isinstance(m, (nn.Linear, nn.Conv1d, nn.Conv2d, nn.Conv3d)):
+            m.to(dtype)
+    return half
 
 
 def cpu_has_native_bf16() -> bool:

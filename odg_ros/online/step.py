@@ -18,6 +18,8 @@ Execution modes (``OnlinePredictor(compile=...)``):
 """
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 import torch
 from torch import nn
@@ -27,7 +29,7 @@ from ..network.backbone import folded_for_inference
 from ..network.feature_ring import FeatureRing
 from ..network.padding import pad_occupancy
 from ..network.postprocess import ranked_boxes, voxelise
-from ..network.precision import precision_context
+from ..network.precision import half_dtype, precision_context, with_half_matrix_weights
 from ..preprocess import IMAGENET_MEAN, IMAGENET_STD
 
 MODES = ("eager", "compiled", "graphs")
@@ -77,29 +79,39 @@ class OnlineStep(nn.Module):
                              persistent=False)
         self.register_buffer("std", torch.tensor(IMAGENET_STD, device=device),
                              persistent=False)
-        self.backbone = folded_for_inference(model.backbone)
+        self.backbone, self.neck = folded_for_inference(model.backbone), model.neck
+        self.half = half_dtype(precision)
+        if self.half is not None:
+            # weights stored in the compute dtype: autocast would cast every weight again at
+            # every step (one kernel each); the geometry stays float32 (sampling.full_precision)
+            self.backbone = self.backbone.to(self.half)
+            self.neck = with_half_matrix_weights(model.neck, self.half)
+            self.model = copy.copy(model)                # shares all but the decoder
+            self.model._modules = dict(model._modules)
+            self.model.decoder = with_half_matrix_weights(model.decoder, self.half)
         if self.device.type == "cuda":   # fixed shapes: cuDNN's measured fastest algorithms
             torch.backends.cudnn.benchmark = True
         self.ring = FeatureRing(capacity, cfg.num_groups)
-        with torch.no_grad(), precision_context(precision, self.device):   # shapes only
+        with torch.no_grad():                                               # shapes only
             H, W = cfg.image_size
             self.ring.check(self.features(torch.zeros(cfg.num_cams, 3, H, W,
                                                       device=self.device)))
 
     def features(self, images: torch.Tensor) -> list[torch.Tensor]:
-        """images [N, 3, H, W] normalised -> L levels [1, N, C, h, w]: ``ODG.extract_features``
-        with the folded channels-last backbone."""
+        """images [N, 3, H, W] normalised float32 -> L levels [1, N, C, h, w]:
+        ``ODG.extract_features`` with the folded channels-last backbone (in bf16 / fp16
+        weights and activations where the precision asks for it)."""
         x = images.contiguous(memory_format=torch.channels_last)
-        return [f.unsqueeze(0) for f in self.model.neck(self.backbone(x))]
+        if self.half is not None:
+            x = x.to(self.half)
+        return [f.unsqueeze(0) for f in self.neck(self.backbone(x))]
 
     def forward(self, images: torch.Tensor, packed: torch.Tensor):
         """images uint8 [N, H, W, 3]; packed float32 [layout.size] -> labels, confidence
         uint8 [X*Y*Z]; boxes [D, 9], score [D], label [D], valid [D] (by score)."""
         ego2img, ego_warp, time_delta, frame_index, slot = self.layout.unpack(packed)
         x = ((images.float() / 255.0 - self.mean) / self.std).movedim(-1, -3)
-        with precision_context(self.precision, self.device):
-            features = self.features(x)
-        self.ring.write_slot(features, slot)
+        self.ring.write_slot(self.features(x), slot)
         with precision_context(self.precision, self.device):
             output = self.model._decode_stored(self.ring.all_levels(), ego2img, ego_warp,
                                                time_delta, frame_index, False, None)
