@@ -358,20 +358,23 @@ def output_differences(output, reference, cfg: ModelConfig) -> dict:
 
 def bench_node_step(cfg: ModelConfig, device="cpu", modes=("eager", "compiled"),
                     iters: int = 5, warmup: int = 1, precisions=("fp32",),
-                    model: ODG | None = None, progress: bool = True, sets=None) -> dict:
+                    model: ODG | None = None, progress: bool = True, sets=None,
+                    compiled_step=None) -> dict:
     """``OnlinePredictor.step`` (what the node runs per camera set: upload, the device step,
     download) for each execution mode and precision, interleaved set by set over one stream of
     sets (``sets``: the node's inputs, default ``node_inputs``, random); the history fills as
     in the node. Everything is compared with the first variant's: the grid (all voxels, and
     the voxels occupied in either), and the last layer's logits and boxes
     (``output_differences``). A variant is named by its mode, plus its precision where
-    several are asked for."""
+    several are asked for. ``compiled_step``: a .pt2 of ``odg export --aoti`` that the
+    compiled and graphs variants run instead of compiling."""
     from .online.predictor import OnlinePredictor
     model = (model or ODG(cfg)).to(device).eval()
     variants = {(mode if len(precisions) == 1 else f"{mode}-{precision}"): (mode, precision)
                 for precision in precisions for mode in modes}
     predictors = {name: OnlinePredictor(model, cfg, device, max_gap=1.0, precision=precision,
-                                        compile=mode)
+                                        compile=mode,
+                                        compiled_step=None if mode == "eager" else compiled_step)
                   for name, (mode, precision) in variants.items()}
     sets = sets if sets is not None else node_inputs(cfg, warmup + iters)
     times = {name: {"step": [], "upload": [], "model": [], "download": []} for name in variants}

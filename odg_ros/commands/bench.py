@@ -2,7 +2,8 @@
 
     odg bench --preset NAME [--device cpu|cuda] [--frames K] [--iters N] [--json]
               [--checkpoint CKPT] [--precision fp32|bf16|fp16] [--prune T] [--no-ring]
-    odg bench --compile eager,compiled[,graphs] --preset NAME
+    odg bench --compile eager,compiled[,graphs] --preset NAME [--precision fp32,bf16]
+              [--data INFOS] [--compiled-step FILE.pt2]
                                                 the node's step in each execution mode
     odg bench --fast-paths --preset NAME        each fast path against the plain path
     odg bench --sweep --data INFOS [--checkpoint CKPT] --out DIR [--limit N] [--configs ...]
@@ -50,6 +51,9 @@ def add_arguments(parser):
                         help="time the node's own step (OnlinePredictor.step) in these "
                              "comma-separated execution modes (eager, compiled, graphs), "
                              "interleaved; the first is the reference (default: not timed by mode)")
+    parser.add_argument("--compiled-step", default=None, type=existing_file, metavar="FILE",
+                        help="--compile: the compiled and graphs modes run this .pt2 of odg "
+                             "export --aoti instead of compiling (default: compile)")
     parser.add_argument("--fast-paths", action="store_true",
                         help="compare each fast path with the plain path (random weights)")
     parser.add_argument("--sweep", action="store_true",
@@ -169,7 +173,8 @@ def run_compile_command(args) -> int:
         except (ValueError, OSError) as error:
             raise UserError(f"--data {args.data}: {error}") from error
     result = bench_node_step(cfg, args.device, modes, args.iters, args.warmup,
-                             args.precisions, model, progress=not args.json, sets=sets)
+                             args.precisions, model, progress=not args.json, sets=sets,
+                             compiled_step=args.compiled_step)
     result["weights"] = args.checkpoint or "random"
     result["inputs"] = str(args.data) if args.data else "random"
     if args.json:

@@ -1,7 +1,9 @@
 """``odg export --checkpoint CKPT --out FILE [--compress int8] [--calibrate INFOS]``:
 turn a training checkpoint into a shipped one (weights only, compressed, threshold chosen).
 ``odg export --checkpoint CKPT --onnx FILE``: the node's online step over a full ring as
-ONNX (for onnxruntime or a TensorRT engine; docs/compiled_node.md)."""
+ONNX (for onnxruntime or a TensorRT engine; docs/compiled_node.md).
+``odg export --checkpoint CKPT --aoti FILE.pt2 [--device D] [--precision P] [--frames K]``:
+the online step compiled ahead of time (AOTInductor) for the node's ``compiled_step``."""
 from __future__ import annotations
 
 import json
@@ -9,7 +11,8 @@ from pathlib import Path
 
 from ..network.checkpoint import compress_state, load_model, load_weights, save_checkpoint
 from ..train.calibrate import DEFAULT_THRESHOLDS, calibrate_thresholds
-from .common import existing_file, infos_file, positive_int
+from ..network.precision import PRECISIONS
+from .common import UserError, device, existing_file, infos_file, positive_int, resolve_device
 
 
 def add_arguments(parser):
@@ -21,6 +24,16 @@ def add_arguments(parser):
     what.add_argument("--onnx", default=None, metavar="FILE",
                       help="write the online step (backbone, ring, decoder, post-processing) "
                            "over a full ring as ONNX instead (no default: this or --out)")
+    what.add_argument("--aoti", default=None, metavar="FILE.pt2",
+                      help="compile the online step ahead of time (AOTInductor) into this "
+                           "file, for the node's compiled_step: a restart then skips the "
+                           "compile (no default: this, --out or --onnx)")
+    parser.add_argument("--device", type=device, default="cpu",
+                        help="--aoti: the device it runs on (cpu, cuda, cuda:N or auto)")
+    parser.add_argument("--precision", choices=PRECISIONS, default="fp32",
+                        help="--aoti: the node's precision parameter")
+    parser.add_argument("--frames", type=positive_int, default=None,
+                        help="--aoti: the node's history_frames (default: the model's)")
     parser.add_argument("--compress", choices=("none", "fp16", "int8"), default="int8",
                         help="weight storage (int8: per-output-channel scales, ~4x smaller)")
     parser.add_argument("--calibrate", default=None, metavar="INFOS", type=infos_file,
@@ -35,6 +48,8 @@ def add_arguments(parser):
 def run(args) -> int:
     if args.onnx:
         return export_step(args)
+    if args.aoti:
+        return export_compiled_step(args)
     compress = None if args.compress == "none" else args.compress
     model, cfg = load_model(args.checkpoint)
     report = {"source": str(args.checkpoint), "compression": compress}
@@ -70,5 +85,24 @@ def export_step(args) -> int:
               "inputs": {name: list(t.shape) for name, t in
                          zip(["images", "packed"] + [f"ring_{i}" for i in
                                                      range(len(inputs) - 2)], inputs)}}
+    print(json.dumps(report, indent=2))
+    return 0
+
+
+def export_compiled_step(args) -> int:
+    import time
+
+    from ..online.artifact import export_artifact
+    model, cfg = load_model(args.checkpoint)
+    frames = args.frames or cfg.num_frames
+    if not args.aoti.endswith(".pt2") or frames > cfg.num_frames:
+        raise UserError(f"--aoti {args.aoti} --frames {frames}: a .pt2 file and at most the "
+                        f"model's {cfg.num_frames} frames")
+    start = time.perf_counter()
+    path, signature = export_artifact(model, cfg, args.aoti, frames,
+                                      resolve_device(args.device), args.precision)
+    report = {"source": str(args.checkpoint), "aoti": str(path),
+              "bytes": path.stat().st_size, "compile_s": round(time.perf_counter() - start, 1),
+              **{k: v for k, v in signature.items() if k != "config"}}
     print(json.dumps(report, indent=2))
     return 0

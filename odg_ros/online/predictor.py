@@ -51,13 +51,19 @@ class Prediction:
     output: ODGOutput | None = field(default=None, repr=False)
 
 
-def resolve_mode(mode: str, device) -> str:
-    """compile parameter -> eager | compiled | graphs ("auto": graphs on CUDA)."""
+def resolve_mode(mode: str, device, compiled_step: bool = False) -> str:
+    """compile parameter -> eager | compiled | graphs ("auto": graphs on CUDA; with a
+    compiled step file, compiled on the CPU: that file is what runs)."""
     device = torch.device(device)
     if mode == "auto":
-        return "graphs" if device.type == "cuda" else CPU_DEFAULT_MODE
+        if device.type == "cuda":
+            return "graphs"
+        return "compiled" if compiled_step else CPU_DEFAULT_MODE
     if mode not in MODES:
         raise ValueError(f"compile {mode!r}: expected auto or one of {MODES}")
+    if mode == "eager" and compiled_step:
+        raise ValueError("compile eager runs no compiled step: leave compiled_step empty, "
+                         "or use compile auto, compiled or graphs")
     if mode == "graphs" and device.type != "cuda":
         raise ValueError("compile=graphs replays CUDA graphs: it needs a CUDA device "
                          "(use compiled or eager on the CPU)")
@@ -70,7 +76,7 @@ class OnlinePredictor:
     def __init__(self, model: torch.nn.Module, cfg: ModelConfig, device: str | torch.device,
                  max_gap: float = 1.0, num_frames: int | None = None,
                  keep_output: bool = False, min_interval: float = 0.0,
-                 precision: str = "fp32", compile: str = "eager"):
+                 precision: str = "fp32", compile: str = "eager", compiled_step=None):
         """num_frames: history length k (current set included), at most cfg.num_frames
         (None = cfg.num_frames); max_gap: seconds between sets that restart the history;
         min_interval: seconds between the history frames kept, so the decoder sees the
@@ -81,8 +87,10 @@ class OnlinePredictor:
         (training draws 0.33-0.67 s). precision: fp32, or bf16 / fp16 autocast for the
         backbone and decoder (network.precision; fp16 on CUDA only). compile: eager,
         compiled, graphs (CUDA) or auto (``resolve_mode``); the compile and the graph
-        capture happen here, at start-up (``startup_seconds``). The grid's free label is
-        the model's class count (cfg.num_classes)."""
+        capture happen here, at start-up (``startup_seconds``); compiled_step: a .pt2 file
+        of ``odg export --aoti`` run instead of compiling (artifact.py; refused with a
+        StaleArtifact if built for another model, configuration, precision, history length,
+        device or torch). The grid's free label is the model's class count (cfg.num_classes)."""
         k = cfg.num_frames if num_frames is None else int(num_frames)
         if not 1 <= k <= cfg.num_frames:
             raise ValueError(f"history of {k} frames; the model takes 1..{cfg.num_frames}")
@@ -94,7 +102,8 @@ class OnlinePredictor:
         self.min_interval = float(min_interval)
         precision_context(precision, self.device)      # an unknown / unusable one fails here
         self.precision = precision
-        self.mode = resolve_mode(compile, self.device)
+        self.mode = resolve_mode(compile, self.device, compiled_step is not None)
+        start = time.perf_counter()
         self.online_step = OnlineStep(model, cfg, k, self.device, precision).eval()
         self.ring = self.online_step.ring              # same capacity: slots follow history
         self.layout = self.online_step.layout
@@ -107,15 +116,28 @@ class OnlinePredictor:
         self._images = self._images_host.to(self.device)
         self._packed = self._packed_host.to(self.device)
         self._function = self.online_step
-        if self.mode != "eager":
+        if compiled_step is not None:
+            self._function = self._load_compiled_step(compiled_step, model, k, precision)
+        elif self.mode != "eager":
             self._function = torch.compile(self.online_step, fullgraph=True, dynamic=False)
         self._graph = None
         self._outputs = self._host_outputs = None
-        start = time.perf_counter()
         self._warm_up()
         self.startup_seconds = time.perf_counter() - start
-        LOG.info("online step: %s mode, start-up (compile / capture) %.1f s", self.mode,
+        LOG.info("online step: %s mode%s, start-up (compile / load, capture) %.1f s", self.mode,
+                 f" from {compiled_step}" if compiled_step is not None else "",
                  self.startup_seconds)
+
+    def _load_compiled_step(self, path, model, capacity: int, precision: str):
+        """The .pt2 step, checked against this predictor -> f(images, packed) on the ring."""
+        from .artifact import load_artifact, step_signature
+        compiled = load_artifact(path, step_signature(model, self.cfg, capacity, self.device,
+                                                      precision))
+        ring = self.ring
+
+        def run(images, packed):
+            return compiled(images, packed, *ring._memory)
+        return run
 
     def reset(self) -> None:
         self.history.clear()

@@ -175,7 +175,8 @@ class OdgNode(Node):
         predictor = OnlinePredictor(model, cfg, device, max_gap=float(p["history_max_gap"]),
                                     num_frames=history,
                                     min_interval=float(p["history_interval"]),
-                                    precision=p["precision"], compile=p["compile"])
+                                    precision=p["precision"], compile=p["compile"],
+                                    compiled_step=p["compiled_step"].strip() or None)
         self.get_logger().info(f"online step: {predictor.mode} mode, start-up (compile, "
                                f"capture) {predictor.startup_seconds:.1f} s")
 
