@@ -124,12 +124,16 @@ def check_signature(found: dict, expected: dict, path) -> None:
                             f"compiled_step empty to compile at start-up")
 
 
-def load_artifact(path, expected: dict):
+def load_artifact(path, expected: dict, for_cuda_graph: bool = False):
     """The compiled step at ``path`` after its signature matched ``expected`` -> a callable
-    (images, packed, *ring) -> the step's outputs (the ring written in place)."""
+    (images, packed, *ring) -> the step's outputs (the ring written in place).
+    for_cuda_graph: loaded single-threaded, without the runner's thread synchronisation,
+    which conflicts with a CUDA graph capture (torch's note on ``run_single_threaded``); its
+    kernels run on the current stream, as the capture needs."""
     check_signature(read_signature(path), expected, path)
     try:
-        return torch._inductor.aoti_load_package(str(path))
+        return torch._inductor.aoti_load_package(str(path),
+                                                 run_single_threaded=for_cuda_graph)
     except RuntimeError as error:
         raise StaleArtifact(f"compiled step {path} does not load: "
                             f"{' '.join(str(error).split())[:200]}") from error

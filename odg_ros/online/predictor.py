@@ -132,7 +132,8 @@ class OnlinePredictor:
         """The .pt2 step, checked against this predictor -> f(images, packed) on the ring."""
         from .artifact import load_artifact, step_signature
         compiled = load_artifact(path, step_signature(model, self.cfg, capacity, self.device,
-                                                      precision))
+                                                      precision),
+                                 for_cuda_graph=self.mode == "graphs")
         ring = self.ring
 
         def run(images, packed):
