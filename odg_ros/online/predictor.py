@@ -84,8 +84,8 @@ class OnlinePredictor:
         current set is always frame 0; it stays in the history only if it is at least
         ``min_interval`` after the last set kept, else the next set takes its place. So kept
         frames are >= min_interval apart, and frame 1 is 0..~2 x min_interval before frame 0
-        (training draws 0.33-0.67 s). precision: fp32, or bf16 / fp16 autocast for the
-        backbone and decoder (network.precision; fp16 on CUDA only). compile: eager,
+        (training draws 0.33-0.67 s). precision: fp32, or bf16 / fp16 weights and
+        autocast for the backbone and decoder (step.OnlineStep; fp16 on CUDA only). compile: eager,
         compiled, graphs (CUDA) or auto (``resolve_mode``); the compile and the graph
         capture happen here, at start-up (``startup_seconds``); compiled_step: a .pt2 file
         of ``odg export --aoti`` run instead of compiling (artifact.py; refused with a
