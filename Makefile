@@ -4,7 +4,7 @@ PY := $(VENV)/bin/python
 PIP := $(PY) -m pip
 export PATH := $(CURDIR)/$(VENV)/bin:$(PATH)
 
-PY_DEPS := "numpy<2" scipy pyyaml tqdm pillow matplotlib \
+PY_DEPS := "numpy<2" scipy pyyaml tqdm pillow simplejpeg matplotlib \
 	pytest pytest-timeout hypothesis \
 	rosbags mcap mcap-ros2-support nuscenes-devkit \
 	onnx onnxruntime onnxscript

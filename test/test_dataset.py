@@ -435,7 +435,7 @@ def test_dataloader_workers(world, tmp_path):
 
 def test_jpeg_draft_decode_keeps_geometry(tmp_path):
     """Reduced-scale JPEG decoding lands edges where the full-decode path puts them."""
-    from odg_ros.data.dataset import decode_resized
+    from odg_ros.data.decode import decode_resized
     img = np.full((360, 640, 3), 40, np.uint8)
     img[:, 201:205] = 250           # vertical line, centre x = 203 (corner convention)
     img[250:254, :] = 250           # horizontal line, centre y = 252

@@ -49,12 +49,12 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from PIL import Image
 
 from .. import geometry, preprocess
 from ..config import ModelConfig
 from . import lidar, occ_io
 from .batch import CAMERA_NAMES
+from .decode import read_image
 from .lidarseg import lidarseg_to_occ
 from .prepare import load_infos
 
@@ -97,13 +97,6 @@ def check_infos(infos, source: str = "infos") -> dict:
     if not infos["infos"]:
         raise ValueError(f"{source}: no keyframes")
     return infos
-
-
-def decode_resized(im: Image.Image, dst_hw) -> np.ndarray:
-    """An opened image -> network input uint8 [H, W, 3] (reduced JPEG decode where exact,
-    see preprocess.draft_jpeg, then preprocess.resize_crop)."""
-    preprocess.draft_jpeg(im, dst_hw)
-    return preprocess.resize_crop(np.asarray(im.convert("RGB")), dst_hw)
 
 
 def _pose(matrix, what: str) -> np.ndarray:
@@ -218,15 +211,8 @@ class OccDataset(torch.utils.data.Dataset):
 
     # ---------------------------------------------------------------- images
     def load_image(self, cam) -> np.ndarray:
-        """One camera image -> network input uint8 [H, W, 3] (preprocess.resize_crop)."""
-        path = self.dataroot / cam["data_path"]
-        if not path.is_file():
-            raise FileNotFoundError(f"image not found: {path}")
-        with Image.open(path) as im:
-            if (im.height, im.width) != tuple(cam["image_hw"]):
-                raise ValueError(f"{path}: image is {im.height}x{im.width}, infos say "
-                                 f"{tuple(cam['image_hw'])}")
-            return decode_resized(im, self.image_size)
+        """One camera image -> network input uint8 [H, W, 3] (data/decode.py)."""
+        return read_image(self.dataroot / cam["data_path"], self.image_size, cam["image_hw"])
 
     # ---------------------------------------------------------------- labels
     def load_occupancy(self, info):
