@@ -315,10 +315,9 @@ def measure_interleaved(configs: list[SweepConfig], job: dict) -> list[dict]:
     """Time and score every configuration in one process, interleaved: for each sample and
     repeat the configurations take turns (in a random order), so a machine that gets
     busier or quieter during the sweep slows every configuration alike."""
-    from .data.batch import collate
+    from .data.batch import collate, to_device
     from .data.dataset import OccDataset
     from .metrics.rayiou import LidarOrigins
-    from .train.trainer import to_device
 
     device = job["device"]
     members = {"all": set(job["indices"]), "quiet": set(job["quiet"]),
@@ -384,9 +383,8 @@ def failure(config: SweepConfig, error: Exception) -> dict:
 def probe_memory(job: dict) -> dict:
     """Peak memory of one configuration: model, the first sample, its cached history,
     ``warmup`` + 1 steps -- run in a fresh process (``isolate``) so the figure is its own."""
-    from .data.batch import collate
+    from .data.batch import collate, to_device
     from .data.dataset import OccDataset
-    from .train.trainer import to_device
 
     if job.get("threads"):
         torch.set_num_threads(job["threads"])

@@ -167,7 +167,7 @@ def test_shapes_and_dtypes(world):
     assert len(ds) == 3
     s = ds[2]
     T, N, (H, W) = 3, 6, INPUT_HW
-    expect = {"images": ((T, N, 3, H, W), torch.float32), "ego2img": ((T, N, 4, 4), torch.float32),
+    expect = {"images": ((T, N, H, W, 3), torch.uint8), "ego2img": ((T, N, 4, 4), torch.float32),
               "ego_warp": ((T, 4, 4), torch.float32), "time_delta": ((T,), torch.float32),
               "intrinsics": ((N, 3, 3), torch.float32), "cam_from_ego": ((N, 4, 4), torch.float32),
               "occ_semantics": ((200, 200, 16), torch.uint8),
@@ -193,12 +193,10 @@ def test_shapes_and_dtypes(world):
 def test_images_are_the_chosen_sets(world):
     s = OccDataset(world, cfg())[2]
     # keyframe 2 = set 12; eval interval 6 -> sets 6 and 0 (the previous keyframes)
-    mean = torch.tensor(preprocess.IMAGENET_MEAN).view(3, 1, 1)
-    std = torch.tensor(preprocess.IMAGENET_STD).view(3, 1, 1)
+    assert s["images"].dtype == torch.uint8      # normalised on the device (batch.to_device)
     for t, set_index in enumerate((12, 6, 0)):
         for n in range(6):
-            rgb = (s["images"][t, n] * std + mean) * 255
-            got = rgb.mean(dim=(1, 2))
+            got = s["images"][t, n].float().mean(dim=(0, 1))
             torch.testing.assert_close(got, torch.tensor(colour(set_index, n), dtype=torch.float32),
                                        rtol=0, atol=3.0)
 
@@ -428,7 +426,7 @@ def test_dataloader_workers(world, tmp_path):
     batches = list(loader)
     assert [len(b["token"]) for b in batches] == [2, 1]
     b = batches[0]
-    assert b["images"].shape == (2, 3, 6, 3, *INPUT_HW) and b["ego2img"].shape == (2, 3, 6, 4, 4)
+    assert b["images"].shape == (2, 3, 6, *INPUT_HW, 3) and b["ego2img"].shape == (2, 3, 6, 4, 4)
     assert isinstance(b["render_targets"], list) and len(b["render_targets"]) == 2
     torch.testing.assert_close(b["ego2img"][1], ds[1]["ego2img"])
 
@@ -486,14 +484,12 @@ def test_waymo_layout(tmp_path):
     world["infos"][2]["occ_path"] = "000/002_04.npz"
     waymo_cfg = cfg().replace(num_cams=5, dataset="waymo", num_classes=15)
     s = OccDataset(world, waymo_cfg)[2]
-    assert s["images"].shape == (3, 5, 3, *INPUT_HW) and s["ego2img"].shape == (3, 5, 4, 4)
+    assert s["images"].shape == (3, 5, *INPUT_HW, 3) and s["ego2img"].shape == (3, 5, 4, 4)
     assert s["has_occ"] and s["occ_semantics"][100, 100, 3] == 13
     assert (s["occ_semantics"] == 15).sum() == 200 * 200 * 16 - 1
     assert s["occ_mask_camera"].all() and len(s["render_targets"]) == 5
     # camera 1 is CAM_FRONT_LEFT's images (colour encodes the camera index 2)
-    mean = torch.tensor(preprocess.IMAGENET_MEAN).view(3, 1, 1)
-    std = torch.tensor(preprocess.IMAGENET_STD).view(3, 1, 1)
-    rgb = ((s["images"][0, 1] * std + mean) * 255).mean(dim=(1, 2))
+    rgb = s["images"][0, 1].float().mean(dim=(0, 1))
     torch.testing.assert_close(rgb, torch.tensor(colour(12, 2), dtype=torch.float32), rtol=0, atol=3.0)
     assert OccDataset(world, waymo_cfg)[0]["occ_semantics"].unique().tolist() == [15]
     with pytest.raises(ValueError, match="the data is waymo.*dataset='nuscenes'"):

@@ -39,8 +39,8 @@ def samples(dataset):
 def test_samples_follow_the_contract(dataset, samples):
     assert len(samples) == 2
     for s in samples:
-        assert s["images"].shape == (3, 6, 3, *INPUT_HW) and s["has_occ"]
-        assert torch.isfinite(s["images"]).all() and torch.isfinite(s["ego2img"]).all()
+        assert s["images"].shape == (3, 6, *INPUT_HW, 3) and s["has_occ"]
+        assert s["images"].dtype == torch.uint8 and torch.isfinite(s["ego2img"]).all()
         assert (s["occ_semantics"] != FREE_LABEL).any() and s["occ_mask_camera"].any()
         assert len(s["gt_boxes"]) == len(s["gt_labels"]) > 0
         assert all(len(t) > 100 for t in s["render_targets"])

@@ -162,7 +162,7 @@ def test_dataset_reads_the_infos(infos):
     from odg_ros.data.dataset import OccDataset
     ds = OccDataset(infos, load_preset("odg_cpu"))
     sample = ds[2]
-    assert sample["images"].shape[1:] == (6, 3, 128, 352)
+    assert sample["images"].shape[1:] == (6, 128, 352, 3)
     assert sample["occ_mask_camera"].any() and (sample["occ_semantics"] != 17).any()
     assert sum(len(t) for t in sample["render_targets"]) > 100
 

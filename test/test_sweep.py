@@ -14,7 +14,7 @@ from odg_ros.benchmark import LAYER_PARTS, bench_online_step
 from odg_ros.network import ODG
 from odg_ros.network.checkpoint import load_model
 from odg_ros.network.decoder import PruneRule
-from odg_ros.data.batch import collate
+from odg_ros.data.batch import collate, to_device
 from odg_ros.data.dataset import OccDataset
 from odg_ros.sweep import (ConfigRun, SweepConfig, adaptive_tradeoff, pareto_front,
                            prepare_model, query_budget, quiet_and_busy, run_sweep,
@@ -295,7 +295,7 @@ def test_a_compiled_step_keeps_its_output_while_other_configurations_run(tiny_sp
     runs = [ConfigRun(SweepConfig(f"graphs-h{k}", frames=k, compile=True), job) for k in (2, 1)]
     for run in [reference] + runs:
         dataset = OccDataset(str(data), run.cfg.replace(num_frames=run.frames))
-        run.begin_sample(collate([dataset[2]]))
+        run.begin_sample(to_device(collate([dataset[2]]), "cpu"))
         run.run_step()
     ours, expected = runs[0].output.last, reference.output.last
     overwritten = GraphReplayStandIn.pool[(len(runs[0].output.layers) - 1, "means",

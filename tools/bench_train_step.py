@@ -23,6 +23,7 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 from odg_ros.config import load_preset  # noqa: E402
+from odg_ros.preprocess import normalize  # noqa: E402
 from odg_ros.train import trainer as current  # noqa: E402
 
 
@@ -56,15 +57,19 @@ def main() -> int:
     with tempfile.TemporaryDirectory() as tmp:
         trainers = {"before": build(before, Path(tmp) / "before"),
                     "this code": build(current, Path(tmp) / "now")}
-        batches = list(itertools.islice(itertools.cycle(trainers["before"].loader),
+        batches = list(itertools.islice(itertools.cycle(trainers["this code"].loader),
                                         args.repeats + 1))
-        read = {"before": lambda out: out[0], "this code": lambda out: out.read()[0]}
+        # normalised on the host, as trainers before the uint8 loader expect; this code's
+        # upload leaves float images as they are
+        batches = [dict(b, images=normalize(b["images"])) for b in batches]
+        def read(out):   # a step's values on the device, or (older trainers) read already
+            return out.read()[0] if hasattr(out, "read") else out[0]
         seconds = {name: [] for name in trainers}
         for index, batch in enumerate(batches):
             order = list(trainers) if index % 2 == 0 else list(trainers)[::-1]
             for name in order:
                 start = time.perf_counter()
-                terms = read[name](trainers[name].train_step(batch))
+                terms = read(trainers[name].train_step(batch))
                 if index:                                     # the first is a warm-up
                     seconds[name].append(time.perf_counter() - start)
                 print(f"step {index} {name}: {time.perf_counter() - start:.2f} s, "

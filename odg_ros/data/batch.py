@@ -18,7 +18,9 @@ a pickle of ``{"version": str, "dataset": "nuscenes" | "waymo", "dataroot": str,
 
 Model-ready sample (``OccDataset.__getitem__``), T frames (0 = current, then older), N cameras::
 
-    images          float32 [T, N, 3, H, W]  preprocess.normalize'd network input
+    images          uint8 [T, N, H, W, 3]    RGB network input, not yet normalised (a quarter
+                                             of float32's bytes to copy and pin); ``to_device``
+                                             makes it the model's float32 [T, N, 3, H, W]
     ego2img         float32 [T, N, 4, 4]     frame t's ego -> input pixels (geometry.ego_to_image)
     ego_warp        float32 [T, 4, 4]        T_ego(t)_from_ego(0); identity at t = 0
     time_delta      float32 [T]              t_0 - t_t in seconds (>= 0)
@@ -33,11 +35,14 @@ Model-ready sample (``OccDataset.__getitem__``), T frames (0 = current, then old
                                              current-frame camera, input pixels, depth in m
     token           str
     has_occ         bool                     False when the keyframe has no GT file (all free)
-``collate`` stacks the tensors into a leading batch dim B and keeps the rest as lists.
+``collate`` stacks the tensors into a leading batch dim B and keeps the rest as lists;
+``to_device`` uploads a batch and normalises its images there (preprocess.normalize).
 """
 from __future__ import annotations
 
 import torch
+
+from ..preprocess import normalize
 
 CAMERA_NAMES = ("CAM_FRONT", "CAM_FRONT_RIGHT", "CAM_FRONT_LEFT",
                 "CAM_BACK", "CAM_BACK_LEFT", "CAM_BACK_RIGHT")
@@ -52,3 +57,23 @@ def collate(samples: list[dict]) -> dict:
         values = [s[key] for s in samples]
         batch[key] = torch.stack(values) if key in STACKED_KEYS else values
     return batch
+
+
+def to_device(batch: dict, device, non_blocking: bool = True) -> dict:
+    """A collated batch on ``device``: tensors (and lists of them) copied, uint8 images
+    normalised there (float images are taken as normalised already). Copies from pinned
+    memory do not block the host; nothing else is read back."""
+    out = {}
+    for key, value in batch.items():
+        if torch.is_tensor(value):
+            out[key] = value.to(device, non_blocking=non_blocking)
+        elif isinstance(value, list) and value and torch.is_tensor(value[0]):
+            out[key] = [v.to(device, non_blocking=non_blocking) for v in value]
+        elif isinstance(value, list) and value and isinstance(value[0], list):
+            out[key] = [[t.to(device, non_blocking=non_blocking) for t in v] for v in value]
+        else:
+            out[key] = value
+    images = out.get("images")
+    if torch.is_tensor(images) and images.dtype == torch.uint8:
+        out["images"] = normalize(images)
+    return out

@@ -294,7 +294,7 @@ class OccDataset(torch.utils.data.Dataset):
         inside = geometry.inside_bev_range(gt_boxes, self.cfg.pc_range)
         gt_boxes, gt_labels = gt_boxes[inside], gt_labels[inside]
         return {
-            "images": preprocess.normalize(torch.from_numpy(images)),
+            "images": torch.from_numpy(images),
             "ego2img": torch.from_numpy(ego2img).float(),
             "ego_warp": torch.from_numpy(np.stack(ego_warp)).float(),
             "time_delta": torch.tensor(time_delta, dtype=torch.float32),

@@ -9,7 +9,7 @@ import torch
 from tqdm import tqdm
 
 from ..classes import DYNAMIC_OCC_CLASSES, occ_labels
-from ..data.batch import collate
+from ..data.batch import collate, to_device
 from ..data.dataset import OccDataset
 from ..geometry import inside_bev_range
 from ..metrics.detection import DetectionScore
@@ -17,7 +17,6 @@ from ..metrics.rayiou import LidarOrigins
 from ..metrics.score import OccScore
 from ..network.padding import pad_occupancy
 from ..network.postprocess import box_list, occupancy_grid
-from .trainer import to_device
 
 
 def dynamic_class_miou(result: dict, dynamic=DYNAMIC_OCC_CLASSES) -> float | None:

@@ -45,7 +45,7 @@ from tqdm import tqdm
 
 from ..config import ModelConfig
 from ..data.augment import augment_batch
-from ..data.batch import collate
+from ..data.batch import collate, to_device
 from ..data.dataset import OccDataset, replay_history_draws
 from ..losses.criterion import ODGCriterion
 from ..network import ODG
@@ -138,20 +138,6 @@ def training_renderer(name: str, device: torch.device):
             from error
     from ..render.gsplat_backend import render_cameras_gsplat
     return render_cameras_gsplat
-
-
-def to_device(batch: dict, device) -> dict:
-    out = {}
-    for key, value in batch.items():
-        if torch.is_tensor(value):
-            out[key] = value.to(device, non_blocking=True)
-        elif isinstance(value, list) and value and torch.is_tensor(value[0]):
-            out[key] = [v.to(device, non_blocking=True) for v in value]
-        elif isinstance(value, list) and value and isinstance(value[0], list):
-            out[key] = [[t.to(device, non_blocking=True) for t in v] for v in value]
-        else:
-            out[key] = value
-    return out
 
 
 def zero_weight_anchor(output) -> torch.Tensor:
