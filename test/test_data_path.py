@@ -53,3 +53,79 @@ def test_a_step_on_uint8_images_is_the_step_on_normalised_floats(split, tmp_path
     for a, b in zip(new.model.parameters(), old.model.parameters()):
         torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-7)
 
+
+# ---------------------------------------------------------------------------- prefetch
+class RecordedStreams:
+    """Stands in for CudaStreams: logs the calls the prefetcher makes, in order."""
+
+    def __init__(self, log):
+        self.log, self.on_side_now, self.kept = log, False, set()
+
+    def on_side(self):
+        streams = self
+
+        class Side:
+            def __enter__(self):
+                streams.on_side_now = True
+
+            def __exit__(self, *exc):
+                streams.on_side_now = False
+        return Side()
+
+    def mark_uploaded(self):
+        assert self.on_side_now, "the upload's event must be recorded on the side stream"
+        event = f"event{self.log[-1].split()[-1]}"
+        self.log.append(f"record {event}")
+        return event
+
+    def wait(self, event):
+        assert not self.on_side_now
+        self.log.append(f"wait {event}")
+
+    def keep_for_current(self, tensor):
+        self.log.append("keep")
+        self.kept.add(id(tensor))
+
+
+def host_batches(log, count):
+    for k in range(count):
+        log.append(f"fetch {k}")
+        yield {"images": torch.full((1, 1, 1, 2, 2, 3), k, dtype=torch.uint8),
+               "time_delta": torch.full((1, 1), float(k)), "token": [f"s{k}"],
+               "render_targets": [[torch.full((2, 4), float(k))]]}
+
+
+def run_prefetcher(count, streams_for):
+    from odg_ros.data.prefetch import DevicePrefetcher, batch_tensors
+    log = []
+    streams = streams_for(log)
+
+    def upload(batch, device):
+        assert streams is None or streams.on_side_now, "uploads run on the side stream"
+        log.append(f"upload {int(batch['time_delta'][0, 0])}")
+        return to_device(batch, device)
+    for batch in DevicePrefetcher(host_batches(log, count), "cpu", upload, streams):
+        log.append(f"step {int(batch['time_delta'][0, 0])}")
+        assert batch["images"].dtype == torch.float32
+        if streams is not None:     # every tensor the step reads, nested ones too
+            assert {id(t) for t in batch_tensors(batch)} <= streams.kept
+            assert len(list(batch_tensors(batch))) == 3
+    return log
+
+
+def test_prefetcher_uploads_the_next_batch_before_the_current_step():
+    """With streams: batch k+1 is fetched and its upload queued on the side stream before
+    step k; step k waits for batch k's event only, and every tensor of batch k (nested
+    render targets too) is marked as used by the current stream before the step."""
+    log = run_prefetcher(3, RecordedStreams)
+    hand_over = lambda k: [f"wait event{k}", "keep", "keep", "keep", f"step {k}"]  # noqa: E731
+    assert log == (["fetch 0", "upload 0", "record event0", "fetch 1", "upload 1",
+                    "record event1"] + hand_over(0)
+                   + ["fetch 2", "upload 2", "record event2"] + hand_over(1) + hand_over(2))
+
+
+def test_prefetcher_without_streams_fetches_nothing_ahead():
+    """On the CPU each batch is fetched and uploaded only when its step is next."""
+    log = run_prefetcher(3, lambda log: None)
+    assert log == [f"{what} {k}" for k in range(3) for what in ("fetch", "upload", "step")]
+    assert run_prefetcher(0, RecordedStreams) == []

@@ -47,6 +47,7 @@ from ..config import ModelConfig
 from ..data.augment import augment_batch
 from ..data.batch import collate, to_device
 from ..data.dataset import OccDataset, replay_history_draws
+from ..data.prefetch import DevicePrefetcher
 from ..losses.criterion import ODGCriterion
 from ..network import ODG
 from ..network.backbone_weights import backbone_start, load_backbone_weights
@@ -481,6 +482,7 @@ class Trainer:
 
     # The phases of a step, each its own method so that a census can tell them apart.
     def _load_batch(self, batch: dict) -> dict:
+        # fit's batches come uploaded (DevicePrefetcher), for which to_device does nothing
         batch = to_device(batch, self.device)
         if self.opts.augment:
             batch = augment_batch(batch, self.cfg.pc_range)
@@ -557,7 +559,7 @@ class Trainer:
                     # before this state: at its first epoch (workers) or this epoch's start.
                     self._set_rng_state(rng)
                     rng = None
-                for batch in batches:
+                for batch in DevicePrefetcher(batches, self.device):
                     if self.step >= self.total_steps:
                         break
                     lr = self.optimizer.param_groups[1]["lr"]
