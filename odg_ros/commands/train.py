@@ -47,6 +47,14 @@ def add_arguments(parser):
                              "SparseBEV's stop_prev_grad)")
     parser.add_argument("--no-augment", action="store_true",
                         help="no data augmentation (flip, resize-and-crop, photometric)")
+    parser.add_argument("--checkpoint-backbone", action="store_true",
+                        help="gradient checkpointing of the backbone: its stages run again in "
+                             "the backward pass instead of keeping their activations (less "
+                             "memory, about one more backbone forward; default: off; needs "
+                             "frozen BatchNorm, as with --backbone-weights)")
+    parser.add_argument("--compile", action="store_true",
+                        help="torch.compile the model's forward (the first step compiles, "
+                             "minutes for ODG-T; default: off, eager)")
     parser.add_argument("--set", action="append", metavar="KEY=VALUE",
                         help="model config override, repeatable, e.g. --set das_attention=false "
                              "(the keys of model/odg_cpu.yaml; default: the preset as it is)")
@@ -78,6 +86,7 @@ def run(args) -> int:
                         workers=args.workers, seed=args.seed, render=not args.no_render,
                         render_pixels_per_camera=args.render_pixels, renderer=args.renderer,
                         history_grad=not args.no_history_grad, augment=not args.no_augment,
+                        checkpoint_backbone=args.checkpoint_backbone, compile=args.compile,
                         checkpoint_every=args.checkpoint_every, log_every=args.log_every,
                         device=args.device,
                         backbone_weights=args.backbone_weights,

@@ -12,6 +12,7 @@ import copy
 
 import torch
 from torch import nn
+from torch.utils.checkpoint import checkpoint
 
 ARCHITECTURES = {
     "resnet18": ("basic", (2, 2, 2, 2)),
@@ -78,6 +79,9 @@ class ResNet(nn.Module):
         block = BasicBlock if kind == "basic" else Bottleneck
         self.frozen_stages = frozen_stages
         self.norm_eval = norm_eval
+        # True: layer1..4 keep only their inputs for the backward pass and run again in it
+        # (gradient checkpointing; training memory of large images and many frames)
+        self.checkpoint_stages = False
         self.conv1 = nn.Conv2d(3, 64, 7, 2, 3, bias=False)
         self.bn1 = nn.BatchNorm2d(64)
         self.relu = nn.ReLU(inplace=True)
@@ -117,7 +121,12 @@ class ResNet(nn.Module):
         x = self.maxpool(self.relu(self.bn1(self.conv1(x))))
         feats = []
         for i in range(1, 5):
-            x = getattr(self, f"layer{i}")(x)
+            layer = getattr(self, f"layer{i}")
+            if self.checkpoint_stages and torch.is_grad_enabled() and \
+                    any(p.requires_grad for p in layer.parameters()):
+                x = checkpoint(layer, x, use_reentrant=False)
+            else:
+                x = layer(x)
             feats.append(x)
         return feats
 

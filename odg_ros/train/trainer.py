@@ -75,6 +75,8 @@ class TrainOptions:
     renderer: str = "auto"                # gsplat's CUDA rasteriser where it can run, else ours
     history_grad: bool = True             # False: no backbone gradient through past frames
     augment: bool = True                  # flip, resize-and-crop, photometric (data/augment.py)
+    checkpoint_backbone: bool = False     # recompute the backbone in the backward (memory)
+    compile: bool = False                 # torch.compile the model's forward
     checkpoint_every: int = 500
     log_every: int = 10                   # steps between reads of the losses from the device
     device: str = "auto"
@@ -139,6 +141,25 @@ def training_renderer(name: str, device: torch.device):
             from error
     from ..render.gsplat_backend import render_cameras_gsplat
     return render_cameras_gsplat
+
+
+def channels_last_convolutions(model: ODG) -> None:
+    """Backbone and FPN weights in channels-last memory, the layout their inputs and
+    features have (ODG.extract_features): cuDNN then runs NHWC kernels without re-laying
+    out each weight and its gradient in every step. Values are unchanged."""
+    model.backbone.to(memory_format=torch.channels_last)
+    model.neck.to(memory_format=torch.channels_last)
+
+
+def checkpoint_backbone(model: ODG) -> None:
+    """The backbone stages that train keep only their inputs for the backward pass and run
+    again in it (gradient checkpointing): less activation memory, one more backbone forward.
+    Refused where BatchNorm trains: the second forward would update its statistics twice."""
+    if not model.backbone.norm_eval:
+        raise ValueError("--checkpoint-backbone needs a backbone with frozen BatchNorm "
+                         "(norm_eval, as with pretrained weights): this one trains its "
+                         "BatchNorm statistics, which the recomputation would update twice")
+    model.backbone.checkpoint_stages = True
 
 
 def zero_weight_anchor(output) -> torch.Tensor:
@@ -332,6 +353,10 @@ class Trainer:
             payload = read_checkpoint(opts.init_checkpoint)
             load_weights(self.model, payload["model"])
         self.model.to(self.device)
+        if self.device.type == "cuda":
+            channels_last_convolutions(self.model)
+        if opts.checkpoint_backbone:
+            checkpoint_backbone(self.model)
         # fused on every device: one kernel per parameter group, skipping a step on a device
         # flag (found_inf), and on the CPU about 3x faster than the foreach update
         self.optimizer = torch.optim.AdamW(parameter_groups(self.model, opts), lr=opts.lr,
@@ -358,6 +383,11 @@ class Trainer:
         self.ddp = (DistributedDataParallel(self.model, device_ids=None if self.device.type ==
                                             "cpu" else [self.device])
                     if self.world > 1 else None)
+        self.forward_module = self.ddp or self.model
+        if opts.compile:
+            # a module compiled lazily: the first step traces it (graph breaks fall back
+            # to eager); the state dict, checkpoints and DDP keep the plain module
+            self.forward_module = torch.compile(self.forward_module)
 
     # ------------------------------------------------------------------ checkpoints
     @property
@@ -491,9 +521,8 @@ class Trainer:
     def _forward(self, batch: dict):
         with torch.autocast(self.device.type, dtype=self.amp_dtype,
                             enabled=self.amp_dtype is not None):
-            return (self.ddp or self.model)(batch["images"], batch["ego2img"], batch["ego_warp"],
-                                            batch["time_delta"],
-                                            history_grad=self.opts.history_grad)
+            return self.forward_module(batch["images"], batch["ego2img"], batch["ego_warp"],
+                                       batch["time_delta"], history_grad=self.opts.history_grad)
 
     def _losses(self, output, batch: dict):
         losses = self.criterion(output, batch)
