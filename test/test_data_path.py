@@ -129,3 +129,27 @@ def test_prefetcher_without_streams_fetches_nothing_ahead():
     log = run_prefetcher(3, lambda log: None)
     assert log == [f"{what} {k}" for k in range(3) for what in ("fetch", "upload", "step")]
     assert run_prefetcher(0, RecordedStreams) == []
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(),
+                    reason="side streams and record_stream need a GPU; no GPU on this machine")
+def test_prefetched_cuda_batches_equal_direct_uploads_while_steps_run():
+    """Real streams: each batch arrives complete although the current stream is busy with a
+    long computation when its upload is queued, and no later upload overwrites it."""
+    from odg_ros.data.prefetch import DevicePrefetcher
+    host = [{k: (v.pin_memory() if torch.is_tensor(v) else v) for k, v in b.items()}
+            for b in host_batches([], 6)]
+    work = torch.randn(2048, 2048, device="cuda")
+    read = []
+    for batch in DevicePrefetcher(host, "cuda"):
+        for _ in range(20):                  # the "step": keeps the current stream busy
+            work = torch.tanh(work @ work)
+        # queued after the long work; the batch is dropped at once: without record_stream a
+        # later upload could take its memory before this copy runs
+        read.append((batch["images"].clone(), batch["render_targets"][0][0].clone()))
+        del batch
+    torch.cuda.synchronize()
+    for (images, targets), original in zip(read, host, strict=True):
+        expected = to_device(original, "cuda")
+        torch.testing.assert_close(images, expected["images"], rtol=0, atol=0)
+        torch.testing.assert_close(targets, expected["render_targets"][0][0], rtol=0, atol=0)
