@@ -7,7 +7,8 @@ Rows: the full-size decode, and the loader's work for a network input (reduced-s
 as preprocess.jpeg_reduction allows, then preprocess.resize_crop). Decoders: Pillow (the
 fallback), simplejpeg, OpenCV's cv2.imdecode (opencv-python-headless), PyTurboJPEG (needs a
 system libturbojpeg 3; reported as missing when it is absent). Without --image a textured
-synthetic picture is written at quality 90.
+synthetic picture is written at quality 90. Last, the host normalisation of one ODG-T
+sample (what the loader's workers did before they shipped uint8).
 """
 import argparse
 import io
@@ -120,6 +121,22 @@ def main():
             cells.append(f"{med * 1e3:6.2f} ({med / base:4.2f}x, d{diff})")
         print(f"{label + f' /{factor}':16}" + "".join(f"{c:>22}" for c in cells))
     print("(ratio: time / Pillow's time; dN: largest pixel difference to Pillow's output)")
+    worker_normalisation()
+
+
+def worker_normalisation(shape=(8, 6, 256, 704, 3), repeats=5):
+    """What the loader no longer does per ODG-T sample: normalise on the host, ship float32."""
+    import torch
+    images = torch.randint(0, 256, shape, dtype=torch.uint8)
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        preprocess.normalize(images)
+        times.append(time.perf_counter() - start)
+    print(f"\nOne ODG-T sample {list(shape)}: uint8 {images.numel() / 2**20:.1f} MiB, float32 "
+          f"{images.numel() * 4 / 2**20:.1f} MiB; preprocess.normalize on the host (what the "
+          f"workers no longer do): {statistics.median(times) * 1e3:.0f} ms "
+          f"({torch.get_num_threads()} thread(s), median of {repeats})")
 
 
 if __name__ == "__main__":
