@@ -175,6 +175,41 @@ def test_nan_output_raises_naming_the_term():
         ODGCriterion(CFG, render=False)(out, make_batch())
 
 
+def test_all_layers_in_one_render_call_equal_one_call_per_layer():
+    """The criterion renders every layer and sample in one call; each layer's render terms
+    and the gradients of every output are those of one render_cameras call per layer and
+    sample (float64 transmittance sums: last-bit differences only)."""
+    from odg_ros.render import render_cameras
+    calls = []
+
+    def per_scene(*args, **kwargs):
+        calls.append(1)
+        return render_cameras(*args, **kwargs)
+
+    results = []
+    for renderer in (None, per_scene):
+        out = make_output()
+        losses = ODGCriterion(CFG, render_pixels_per_camera=16, renderer=renderer)(
+            out, make_batch())
+        losses["loss"].backward()
+        results.append((losses, [t.grad for t in all_output_tensors(out)]))
+    assert len(calls) == 6 * B
+    (joint, joint_grads), (separate, separate_grads) = results
+    assert all(joint[f"render_sem_l{l}"] > 0 for l in range(1, 7))
+    for name in joint:
+        torch.testing.assert_close(joint[name], separate[name], rtol=1e-6, atol=0)
+    for a, b in zip(joint_grads, separate_grads):
+        torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-9)
+
+
+@pytest.mark.parametrize("column", [2, 3])
+def test_nonfinite_render_target_is_a_clear_error_read_with_the_losses(column):
+    batch = make_batch()
+    batch["render_targets"][1][0][3, column] = float("nan")
+    with pytest.raises(ValueError, match="non-finite render target"):
+        ODGCriterion(CFG, render_pixels_per_camera=0)(make_output(), batch)
+
+
 def test_box_gt_encoding_consistency():
     """A prediction equal to the encoded GT has zero L1 (the criterion uses the same code)."""
     out = make_output()

@@ -15,11 +15,10 @@ from odg_ros.train.trainer import Trainer, TrainOptions
 
 MAX_OPS = 12_000
 MAX_SYNCS_OUTSIDE_RENDERER = 16
-# Our renderer still sizes its work on the host: its input check, the projection (2 reads),
-# the tile pairs, and per depth batch its bounds and two compactions; with the render loss's
-# target check about 8 reads per call, six calls a step. Pinned where it is, so that it can
-# only go down.
-MAX_SYNCS = 55
+# One renderer call draws all six layers; it still sizes its work on the host: its input
+# check, the projection (2 reads), the tile pairs, and per depth batch its bounds and two
+# compactions. Pinned where it is, so that it can only go down.
+MAX_SYNCS = 14
 
 
 @pytest.fixture(scope="module")

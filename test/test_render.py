@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import torch
 
-from odg_ros.render import RenderResult, render_cameras, render_gaussians
+from odg_ros.render import RenderResult, render_cameras, render_gaussians, render_scenes
 from odg_ros.render import splat as splat_module
 from odg_ros.render.splat import _PairWeightedSum
 
@@ -243,6 +243,54 @@ def test_render_cameras_equals_single_renders():
         single = render(scene, cam, kk, pix)
         for a, b in zip(result, single):
             torch.testing.assert_close(a, b, atol=1e-12, rtol=1e-12)
+
+
+@pytest.mark.parametrize("chunk", [10**9, 997])
+def test_render_scenes_equals_each_scene_alone(monkeypatch, chunk):
+    """Three scenes of different sizes, each with its own two cameras and pixels, in one call:
+    values and gradients as three render_cameras calls (in one depth batch and in many)."""
+    monkeypatch.setattr(splat_module, "CANDIDATE_CHUNK", chunk)
+    names = ("means", "scales", "rotations", "opacities", "features")
+    scenes, cams, pixels = [], [], []
+    for seed, (num_gaussians, num_pixels) in enumerate([(120, 90), (40, 60), (200, 30)]):
+        scene, cam_a, k, pix_a = random_scene(10 + seed, num_gaussians, num_pixels, dense=True)
+        _, cam_b, _, pix_b = random_scene(20 + seed, 1, num_pixels // 2)
+        scenes.append({n: scene[n].clone().requires_grad_(True) for n in names})
+        cams.append(torch.stack([cam_a, cam_b]))
+        pixels.append([pix_a, pix_b])
+    ks = k.expand(3, 2, 3, 3)
+    joint = render_scenes([[s[n] for n in names] for s in scenes], torch.stack(cams), ks,
+                          pixels, HW)
+    joint_grads = torch.autograd.grad(
+        sum(r.depth.sum() + r.features.square().sum() + r.alpha.sum()
+            for per_scene in joint for r in per_scene),
+        [s[n] for s in scenes for n in names])
+    for i, scene in enumerate(scenes):
+        alone = render_cameras(*(scene[n] for n in names), cams[i], ks[i], pixels[i], HW)
+        grads = torch.autograd.grad(sum(r.depth.sum() + r.features.square().sum()
+                                        + r.alpha.sum() for r in alone),
+                                    [scene[n] for n in names])
+        assert len(joint[i]) == 2
+        for ours, single in zip(joint[i], alone):
+            assert single.alpha.max() > 0.5          # the scene is seen by its camera
+            for a, b in zip(ours, single):     # float64 sums of more pairs: last-bit rounding
+                torch.testing.assert_close(a, b, atol=1e-10, rtol=1e-9)
+        for a, b in zip(joint_grads[5 * i:5 * i + 5], grads):
+            torch.testing.assert_close(a, b, atol=1e-10, rtol=1e-9)
+
+
+def test_render_scenes_rejects_mismatched_scenes():
+    scene, cam, k, pix = random_scene(1, 10, 5)
+    gaussians = [scene[n] for n in ("means", "scales", "rotations", "opacities", "features")]
+    with pytest.raises(ValueError, match="2 scenes need cam_from_ego"):
+        render_scenes([gaussians, gaussians], cam[None, None], k[None, None], [[pix]] * 2, HW)
+    with pytest.raises(ValueError, match="scene 1 is torch.float32"):
+        render_scenes([gaussians, [t.float() for t in gaussians]], cam.expand(2, 1, 4, 4),
+                      k.expand(2, 1, 3, 3), [[pix]] * 2, HW)
+    with pytest.raises(ValueError, match="scales must be"):
+        render_scenes([gaussians[:1] + [gaussians[1][:3]] + gaussians[2:]],
+                      cam[None, None], k[None, None], [[pix]], HW)
+    assert render_scenes([], cam[None, None][:0], k[None, None][:0], [], HW) == []
 
 
 # ----------------------------------------------------------------------------- gradients

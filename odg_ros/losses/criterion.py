@@ -20,7 +20,8 @@ import torch
 from ..config import ModelConfig
 from .box import box_loss, match_layers, matched_normaliser
 from .chamfer import occupancy_loss, occupancy_target
-from .render_loss import render_layer_weights, render_loss, sample_render_targets
+from .render_loss import (NONFINITE_TARGET, render_layer_weights, render_losses,
+                          sample_render_targets)
 
 log = logging.getLogger(__name__)
 
@@ -93,6 +94,23 @@ class ODGCriterion:
             matches = match_layers([(layer.boxes, layer.box_logits) for layer in output.layers],
                                    batch["gt_boxes"], batch["gt_labels"])
 
+        targets_finite = torch.ones((), dtype=torch.bool, device=device)
+        if self.use_render:
+            # every layer in one renderer call: its reads of sizes are paid once per step
+            render_layers = []
+            for l, layer in enumerate(output.layers, start=1):
+                if layer.scales is None or layer.rotations is None or layer.opacities is None:
+                    raise ValueError(f"layer {l} has no scales/rotations/opacities (Phi MLPs not "
+                                     "run); the rendering loss needs them")
+                means = layer.means.reshape(B, -1, 3)
+                G = means.shape[1]
+                render_layers.append((means, layer.scales.reshape(B, G, 3),
+                                      layer.rotations.reshape(B, G, 4),
+                                      layer.opacities.reshape(B, G),
+                                      layer.logits.reshape(B, G, -1)))
+            rendered, targets_finite = render_losses(render_layers, render_targets, cam_from_ego,
+                                                     intrinsics, cfg.image_size, self.renderer)
+
         losses: dict[str, torch.Tensor] = {}
         init = occupancy_loss(output.init_means.reshape(B, -1, 3), None, targets, cfg.pc_range)
         losses["occ_chamfer_l0"] = init.chamfer
@@ -115,21 +133,18 @@ class ODGCriterion:
                 stats["nonfinite_box_targets"] += box.num_nonfinite_targets
 
             if self.use_render:
-                if layer.scales is None or layer.rotations is None or layer.opacities is None:
-                    raise ValueError(f"layer {l} has no scales/rotations/opacities (Phi MLPs not "
-                                     "run); the rendering loss needs them")
-                G = means.shape[1]
-                ren = render_loss(means, layer.scales.reshape(B, G, 3),
-                                  layer.rotations.reshape(B, G, 4),
-                                  layer.opacities.reshape(B, G), logits, render_targets,
-                                  cam_from_ego, intrinsics, cfg.image_size, self.renderer)
+                ren = rendered[l - 1]
                 losses[f"render_depth_l{l}"], losses[f"render_sem_l{l}"] = ren.depth, ren.semantic
                 total = total + self.render_weights[l - 1] * (ren.depth + ren.semantic)
                 stats["render_pixels"] += ren.num_pixels
                 stats["render_labelled_pixels"] += ren.num_labelled
 
         losses["loss"] = total
-        bad = nonfinite_names(losses)          # one host read for every term and the total
+        # one host read for every term, the total and the render targets
+        bad = nonfinite_names({**losses, NONFINITE_TARGET: torch.where(targets_finite, 0.0,
+                                                                       float("nan"))})
+        if NONFINITE_TARGET in bad:
+            raise ValueError(NONFINITE_TARGET)
         if bad:
             raise FloatingPointError(f"non-finite loss terms: {', '.join(bad)}")
         if stats["nonfinite_match_costs"]:

@@ -20,11 +20,12 @@ Choices the paper leaves open, and ours:
   few).
 * Layer weights: lambda_l = 0.05 for the first and the last layer, 0.01 for the others.
 
-The renderer is ``odg_ros.render.render_cameras`` -- ``render_gaussians`` for the N cameras of a
-sample in one pass (gsplat conventions, docs/architecture.md sec. 5); a callable with its signature
+The renderer is ours, ``odg_ros.render`` (gsplat conventions, docs/architecture.md sec. 5):
+``render_losses`` draws every layer of every sample in one ``render_scenes`` call. A callable
+with the signature of ``render_cameras`` (the N cameras of one sample)
 ``(means, scales, rotations, opacities, features, cam_from_ego [N,4,4], intrinsics [N,3,3],
 pixels N x [P_n,2], image_hw, near=) -> N x RenderResult(depth, features, alpha)`` can be
-passed instead.
+passed instead; it is called once per layer and sample.
 """
 from __future__ import annotations
 
@@ -43,11 +44,6 @@ def render_layer_weights(num_layers: int) -> list[float]:
     """lambda_l for l = 1..L (paper: 0.05 for l in {1, L}, 0.01 otherwise)."""
     return [RENDER_WEIGHT_OUTER if l in (0, num_layers - 1) else RENDER_WEIGHT_INNER
             for l in range(num_layers)]
-
-
-def default_renderer() -> Callable:
-    from ..render import render_cameras
-    return render_cameras
 
 
 def sample_render_targets(render_targets: Sequence[Sequence[torch.Tensor]], max_pixels: int,
@@ -86,49 +82,98 @@ def render_loss(means: torch.Tensor, scales: torch.Tensor, rotations: torch.Tens
     means/scales [B, G, 3], rotations [B, G, 4] (w, x, y, z), opacities [B, G], logits [B, G, C];
     render_targets B x N x [P, 4] (u, v, depth m, label) in network-input pixels;
     cam_from_ego [B, N, 4, 4], intrinsics [B, N, 3, 3] (network input).
+    A non-finite target raises ValueError (one host read; render_losses leaves it to the caller).
     """
-    B, G = means.shape[:2]
-    if (scales.shape != (B, G, 3) or rotations.shape != (B, G, 4) or opacities.shape != (B, G)
-            or logits.shape[:2] != (B, G)):
-        raise ValueError("Gaussian attributes must be [B, G, ...] with matching B, G: means "
-                         f"{tuple(means.shape)} scales {tuple(scales.shape)} rotations "
-                         f"{tuple(rotations.shape)} opacities {tuple(opacities.shape)} "
-                         f"logits {tuple(logits.shape)}")
-    if len(render_targets) != B or cam_from_ego.shape[:2] != intrinsics.shape[:2] \
-            or cam_from_ego.shape[0] != B:
+    (result,), targets_finite = render_losses(
+        [(means, scales, rotations, opacities, logits)], render_targets, cam_from_ego,
+        intrinsics, image_hw, renderer, near)
+    if not targets_finite:
+        raise ValueError(NONFINITE_TARGET)
+    return result
+
+
+NONFINITE_TARGET = "non-finite render target (u, v, depth or label)"
+
+
+def render_losses(layers: Sequence[Sequence[torch.Tensor]],
+                  render_targets: Sequence[Sequence[torch.Tensor]], cam_from_ego: torch.Tensor,
+                  intrinsics: torch.Tensor, image_hw: tuple[int, int],
+                  renderer: Callable | None = None, near: float = NEAR_PLANE
+                  ) -> tuple[list[RenderLossResult], torch.Tensor]:
+    """render_loss of L layers that share the targets and cameras, in one renderer call.
+
+    layers: L tuples (means, scales, rotations, opacities, logits) shaped as in render_loss,
+    each with its own number of Gaussians G_l. Our renderer (renderer None) draws every
+    (layer, sample) scene in one render_scenes call, so what a call costs the host is paid
+    once per step, not per layer; another renderer is called once per scene.
+    Returns (L RenderLossResults, targets_finite): a 0-dim device bool, false if any target
+    holds a NaN or inf (left unread: the caller reads it with its own flags; depth and label
+    are not checked otherwise, and make the losses NaN).
+    """
+    B, N = cam_from_ego.shape[:2]
+    if len(render_targets) != B or intrinsics.shape[:2] != (B, N):
         raise ValueError("render_targets / cam_from_ego / intrinsics do not match the batch")
-    renderer = renderer or default_renderer()
-    num_classes = logits.shape[-1]
-    probs = torch.softmax(logits.float(), dim=-1)
-    depth_sum = sem_sum = probs.new_zeros(())
-    num_pixels = num_labelled = 0
+    for means, scales, rotations, opacities, logits in layers:
+        G = means.shape[1] if means.ndim == 3 else -1
+        if (means.shape[0] != B or means.shape != (B, G, 3) or scales.shape != (B, G, 3)
+                or rotations.shape != (B, G, 4) or opacities.shape != (B, G)
+                or logits.shape[:2] != (B, G)):
+            raise ValueError("Gaussian attributes must be [B, G, ...] with the batch's B and "
+                             f"one G: means {tuple(means.shape)} scales {tuple(scales.shape)} "
+                             f"rotations {tuple(rotations.shape)} opacities "
+                             f"{tuple(opacities.shape)} logits {tuple(logits.shape)}")
+    device = layers[0][0].device if layers else cam_from_ego.device
+    targets = []                                # per sample: N tensors [P_n, 4] on the device
     for b in range(B):
-        if len(render_targets[b]) != cam_from_ego.shape[1]:
+        if len(render_targets[b]) != N:
             raise ValueError(f"sample {b}: {len(render_targets[b])} render target sets for "
-                             f"{cam_from_ego.shape[1]} cameras")
-        targets = [t.to(means.device, torch.float32) for t in render_targets[b]]
-        if any(t.dim() != 2 or t.shape[1] != 4 for t in targets):
+                             f"{N} cameras")
+        per_camera = [t.to(device, torch.float32) for t in render_targets[b]]
+        if any(t.dim() != 2 or t.shape[1] != 4 for t in per_camera):
             raise ValueError(f"sample {b}: render targets must be [P, 4] (u, v, depth, label)")
-        target = torch.cat(targets) if targets else means.new_zeros(0, 4)
-        if target.shape[0] == 0:
-            continue
-        if not torch.isfinite(target).all():
-            raise ValueError(f"sample {b}: non-finite render target")
-        results = renderer(means[b].float(), scales[b].float(), rotations[b].float(),
-                           opacities[b].float(), probs[b], cam_from_ego[b].float(),
-                           intrinsics[b].float(), [t[:, :2] for t in targets], tuple(image_hw),
-                           near=near)
-        depth = torch.cat([r.depth for r in results])
-        features = torch.cat([r.features for r in results])
-        depth_sum = depth_sum + (depth - target[:, 2]).abs().sum()
-        num_pixels += target.shape[0]
-        labels = target[:, 3].round().long()
-        labelled = (labels >= 0) & (labels < num_classes)
-        # every pixel's mass at its (clamped) label, the unlabelled ones weighted 0: the
-        # number of labelled pixels stays on the device
-        mass = features.gather(1, labels.clamp(0, num_classes - 1)[:, None])[:, 0]
-        sem_sum = sem_sum - torch.where(labelled, torch.log(mass + SEMANTIC_EPS), 0).sum()
-        num_labelled = num_labelled + labelled.sum()
-    return RenderLossResult(depth=depth_sum / max(num_pixels, 1),
-                            semantic=sem_sum / torch.as_tensor(num_labelled).clamp(min=1),
-                            num_pixels=num_pixels, num_labelled=num_labelled)
+        targets.append(per_camera)
+    joined = [torch.cat(t) if t else torch.zeros(0, 4, device=device) for t in targets]
+    targets_finite = torch.stack([torch.isfinite(t).all() for t in joined]).all() if joined \
+        else torch.ones((), dtype=torch.bool, device=device)
+    rendered_samples = [b for b in range(B) if joined[b].shape[0]]
+    probs = [torch.softmax(logits.float(), dim=-1) for *_, logits in layers]
+    scenes = [((means[b].float(), scales[b].float(), rotations[b].float(),
+                opacities[b].float(), probs[l][b]), b)
+              for l, (means, scales, rotations, opacities, _) in enumerate(layers)
+              for b in rendered_samples]
+    if renderer is None and scenes:
+        from ..render import render_scenes
+        rendered = render_scenes(
+            [gaussians for gaussians, _ in scenes],
+            torch.stack([cam_from_ego[b] for _, b in scenes]).float(),
+            torch.stack([intrinsics[b] for _, b in scenes]).float(),
+            [[t[:, :2] for t in targets[b]] for _, b in scenes], tuple(image_hw), near=near)
+    else:
+        rendered = [renderer(*gaussians, cam_from_ego[b].float(), intrinsics[b].float(),
+                             [t[:, :2] for t in targets[b]], tuple(image_hw), near=near)
+                    for gaussians, b in scenes]
+    rendered = iter(rendered)
+    num_pixels = sum(joined[b].shape[0] for b in rendered_samples)
+    results = []
+    for prob in probs:
+        num_classes = prob.shape[-1]
+        depth_sum = sem_sum = prob.new_zeros(())
+        num_labelled = 0
+        for b in rendered_samples:
+            target = joined[b]
+            per_camera = next(rendered)
+            depth = torch.cat([r.depth for r in per_camera])
+            features = torch.cat([r.features for r in per_camera])
+            depth_sum = depth_sum + (depth - target[:, 2]).abs().sum()
+            labels = target[:, 3].round().long()
+            labelled = (labels >= 0) & (labels < num_classes)
+            # every pixel's mass at its (clamped) label, the unlabelled ones weighted 0: the
+            # number of labelled pixels stays on the device
+            mass = features.gather(1, labels.clamp(0, num_classes - 1)[:, None])[:, 0]
+            sem_sum = sem_sum - torch.where(labelled, torch.log(mass + SEMANTIC_EPS), 0).sum()
+            num_labelled = num_labelled + labelled.sum()
+        results.append(RenderLossResult(
+            depth=depth_sum / max(num_pixels, 1),
+            semantic=sem_sum / torch.as_tensor(num_labelled).clamp(min=1),
+            num_pixels=num_pixels, num_labelled=num_labelled))
+    return results, targets_finite

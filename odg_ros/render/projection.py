@@ -105,13 +105,18 @@ def splat_power(cov_xy: torch.Tensor, cov_yy: torch.Tensor, det: torch.Tensor,
 
 def project_gaussians(means: torch.Tensor, scales: torch.Tensor, rotations: torch.Tensor,
                       opacities: torch.Tensor, cam_from_ego: torch.Tensor,
-                      intrinsics: torch.Tensor, image_hw, near: float) -> Splats:
+                      intrinsics: torch.Tensor, image_hw, near: float,
+                      gaussian_scene: torch.Tensor | None = None,
+                      cameras_per_scene: int | None = None) -> Splats:
     """Project G Gaussians into N cameras; keep the splats that can touch the image.
 
     means [G, 3] (ego, m), scales [G, 3] (m), rotations [G, 4] (w, x, y, z), opacities [G],
     cam_from_ego [N, 4, 4], intrinsics [N, 3, 3], image_hw (H, W). Returns Splats sorted by
     depth. A splat is dropped when z <= near, opacity < 1/255 or its alpha >= 1/255 box
     misses the image [0, W] x [0, H].
+    gaussian_scene [G] long, cameras_per_scene M (optional, together): K = N / M independent
+    scenes, scene k seen by cameras k M ... (k + 1) M - 1 only; a Gaussian is projected into
+    its own scene's cameras.
     """
     height, width = image_hw
     rot = quaternion_to_rotation(normalise_quaternions(rotations))
@@ -120,9 +125,16 @@ def project_gaussians(means: torch.Tensor, scales: torch.Tensor, rotations: torc
     cam_rot = cam_from_ego[:, :3, :3]                                  # [N, 3, 3]
     cam_t = cam_from_ego[:, :3, 3]                                     # [N, 3]
     with torch.no_grad():
-        z_all = torch.einsum("nj,gj->ng", cam_rot[:, 2], means) + cam_t[:, None, 2]
+        if gaussian_scene is None:
+            z_all = torch.einsum("nj,gj->ng", cam_rot[:, 2], means) + cam_t[:, None, 2]
+        else:       # [M, G]: each Gaussian against its own scene's M cameras
+            z_axis = cam_rot[:, 2].view(-1, cameras_per_scene, 3)[gaussian_scene]   # [G, M, 3]
+            z_all = (torch.einsum("gmj,gj->mg", z_axis, means)
+                     + cam_t[:, 2].view(-1, cameras_per_scene)[gaussian_scene].t())
         candidate = (z_all > near) & (opacities >= ALPHA_MIN)[None, :]
         camera, gaussian = candidate.nonzero(as_tuple=True)
+        if gaussian_scene is not None:
+            camera = gaussian_scene[gaussian] * cameras_per_scene + camera
 
     r = cam_rot[camera]                                                # [S0, 3, 3]
     p = torch.einsum("sij,sj->si", r, means[gaussian]) + cam_t[camera]

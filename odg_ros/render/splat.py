@@ -25,7 +25,9 @@ T from a float64 segmented cumulative sum of log(1 - alpha), and pixels that rea
 early stop leave the later batches. The weighted sums are CSR sparse x dense products.
 The host waits for the device three times per depth batch (the batch's bounds and size in
 one read, and two compactions), never for the bookkeeping of which pixels are still active.
-Memory is O(contributing pairs) plus one batch of candidates.
+Memory is O(contributing pairs) plus one batch of candidates. render_scenes draws several
+independent scenes (the render loss: every decoder layer of every sample) in one such pass, so
+those reads are paid once for all of them.
 
 The code is device-agnostic PyTorch but has only been run on CPU; on CUDA, gsplat_backend.py
 renders the same with gsplat's rasteriser. test/test_render_gsplat.py checks this renderer
@@ -105,8 +107,58 @@ def render_cameras(means: torch.Tensor, scales: torch.Tensor, rotations: torch.T
         means, scales, rotations, opacities, features, cam_from_ego, intrinsics, pixels,
         image_hw, near, tile_size)
     with torch.autocast(means.device.type, enabled=False):
-        return _render_cameras(means, scales, rotations, opacities, features, cam_from_ego,
-                               intrinsics, pixels, height, width, near, tile_size)
+        return _render_scenes(means, scales, rotations, opacities, features, None, None,
+                              cam_from_ego, intrinsics, pixels, height, width, near, tile_size)
+
+
+def render_scenes(scenes: Sequence[Sequence[torch.Tensor]], cam_from_ego: torch.Tensor,
+                  intrinsics: torch.Tensor, pixels: Sequence[Sequence[torch.Tensor]],
+                  image_hw: Sequence[int], near: float = 0.05,
+                  tile_size: int = TILE_SIZE) -> list[list[RenderResult]]:
+    """render_cameras of K independent scenes in one pass: what one call costs the host (its
+    reads of sizes from the device) is paid once for all K.
+
+    scenes: K tuples (means, scales, rotations, opacities, features) as in render_cameras,
+    each with its own number of Gaussians and one dtype and device for all; cam_from_ego
+    [K, N, 4, 4], intrinsics [K, N, 3, 3]: scene k seen by its own N cameras; pixels: K lists
+    of N tensors [P, 2]. Returns K lists of N RenderResults, each equal to render_cameras of
+    that scene alone (to float64 rounding of the transmittance sums).
+    """
+    if cam_from_ego.ndim != 4 or intrinsics.ndim != 4 or len(scenes) != cam_from_ego.shape[0]:
+        raise ValueError(f"{len(scenes)} scenes need cam_from_ego [K={len(scenes)}, N, 4, 4] "
+                         f"and intrinsics [K, N, 3, 3], got {tuple(cam_from_ego.shape)} and "
+                         f"{tuple(intrinsics.shape)}")
+    if len(pixels) != len(scenes):
+        raise ValueError(f"got {len(pixels)} pixel lists for {len(scenes)} scenes")
+    if not scenes:
+        return []
+    num_cameras = cam_from_ego.shape[1]
+    for k, scene in enumerate(scenes):
+        if len(scene) != 5:
+            raise ValueError(f"scene {k} must be (means, scales, rotations, opacities, "
+                             f"features), got {len(scene)} tensors")
+        _check_shapes(*scene)
+        first = scenes[0]
+        if (scene[0].dtype, scene[0].device, scene[4].shape[1]) != \
+                (first[0].dtype, first[0].device, first[4].shape[1]):
+            raise ValueError(f"scene {k} is {scene[0].dtype} on {scene[0].device} with "
+                             f"{scene[4].shape[1]} features; scene 0 is {first[0].dtype} on "
+                             f"{first[0].device} with {first[4].shape[1]}")
+    # every value check below covers all scenes in one read
+    gaussians = [torch.cat([scene[i] for scene in scenes]) for i in range(5)]
+    flat_pixels = [p for per_scene in pixels for p in per_scene]
+    (height, width), (means, scales, rotations, opacities, features) = checked_gaussians(
+        *gaussians, cam_from_ego.flatten(0, 1), intrinsics.flatten(0, 1), flat_pixels,
+        image_hw, near, tile_size)
+    gaussian_scene = torch.repeat_interleave(
+        torch.arange(len(scenes), device=means.device),
+        torch.tensor([scene[0].shape[0] for scene in scenes], device=means.device),
+        output_size=means.shape[0])
+    with torch.autocast(means.device.type, enabled=False):
+        results = _render_scenes(means, scales, rotations, opacities, features, gaussian_scene,
+                                 num_cameras, cam_from_ego.flatten(0, 1), intrinsics.flatten(0, 1),
+                                 flat_pixels, height, width, near, tile_size)
+    return [results[k * num_cameras:(k + 1) * num_cameras] for k in range(len(scenes))]
 
 
 def checked_gaussians(means, scales, rotations, opacities, features, cam_from_ego, intrinsics,
@@ -121,9 +173,12 @@ def checked_gaussians(means, scales, rotations, opacities, features, cam_from_eg
     return (height, width), gaussians
 
 
-def _render_cameras(means, scales, rotations, opacities, features, cam_from_ego, intrinsics,
-                    pixels, height, width, near, tile_size) -> list[RenderResult]:
-    """render_cameras on checked inputs of one float32/float64 dtype, autocast off."""
+def _render_scenes(means, scales, rotations, opacities, features, gaussian_scene,
+                   cameras_per_scene, cam_from_ego, intrinsics, pixels, height, width, near,
+                   tile_size) -> list[RenderResult]:
+    """Checked inputs of one float32/float64 dtype, autocast off; gaussian_scene [G] (None: one
+    scene) picks the cameras a Gaussian is seen by: the cameras_per_scene of its scene in
+    cam_from_ego [K N, 4, 4] (scene-major). Returns K N RenderResults."""
     num_cameras = cam_from_ego.shape[0]
     counts = [int(p.shape[0]) for p in pixels]
     pixel_uv = torch.cat([p.to(means.dtype) for p in pixels], dim=0) if pixels else \
@@ -133,7 +188,9 @@ def _render_cameras(means, scales, rotations, opacities, features, cam_from_ego,
         torch.tensor(counts, device=means.device, dtype=torch.long), output_size=sum(counts))
 
     splats = project_gaussians(means, scales, rotations, opacities, cam_from_ego.to(means.dtype),
-                               intrinsics.to(means.dtype), (height, width), near)
+                               intrinsics.to(means.dtype), (height, width), near,
+                               gaussian_scene=gaussian_scene,
+                               cameras_per_scene=cameras_per_scene)
     weights, pair_pixel, pair_splat = _composite(splats, pixel_uv, pixel_camera, num_cameras,
                                                  (height, width), tile_size)
 
@@ -383,24 +440,9 @@ def _csr(rows, cols, vals, shape):
 def _check_inputs(means, scales, rotations, opacities, features, cam_from_ego, intrinsics,
                   pixels, image_hw, near, tile_size) -> tuple[int, int]:
     """Clear errors for malformed input; returns (H, W)."""
-    if means.ndim != 2 or means.shape[1] != 3:
-        raise ValueError(f"means must be [G, 3], got {tuple(means.shape)}")
-    g = means.shape[0]
-    expected = {"scales": (scales, (g, 3)), "rotations": (rotations, (g, 4)),
-                "opacities": (opacities, (g,))}
-    for name, (tensor, shape) in expected.items():
-        if tuple(tensor.shape) != shape:
-            raise ValueError(f"{name} must be {list(shape)}, got {tuple(tensor.shape)}")
-    if features.ndim != 2 or features.shape[0] != g:
-        raise ValueError(f"features must be [G={g}, C], got {tuple(features.shape)}")
-    if not means.dtype.is_floating_point:
-        raise ValueError(f"means must be floating point, got {means.dtype}")
+    _check_shapes(means, scales, rotations, opacities, features)
     named = {"means": means, "scales": scales, "rotations": rotations, "opacities": opacities,
              "features": features}
-    for name, tensor in named.items():
-        if tensor.dtype != means.dtype or tensor.device != means.device:
-            raise ValueError(f"{name} is {tensor.dtype} on {tensor.device}; expected "
-                             f"{means.dtype} on {means.device} like means")
     if cam_from_ego.ndim != 3 or cam_from_ego.shape[1:] != (4, 4):
         raise ValueError(f"cam_from_ego must be [N, 4, 4], got {tuple(cam_from_ego.shape)}")
     n = cam_from_ego.shape[0]
@@ -443,3 +485,25 @@ def _check_inputs(means, scales, rotations, opacities, features, cam_from_ego, i
         if bad:
             raise ValueError(message)
     return height, width
+
+
+def _check_shapes(means, scales, rotations, opacities, features) -> None:
+    """Clear errors for Gaussians of mismatched shapes, dtypes or devices."""
+    if means.ndim != 2 or means.shape[1] != 3:
+        raise ValueError(f"means must be [G, 3], got {tuple(means.shape)}")
+    g = means.shape[0]
+    expected = {"scales": (scales, (g, 3)), "rotations": (rotations, (g, 4)),
+                "opacities": (opacities, (g,))}
+    for name, (tensor, shape) in expected.items():
+        if tuple(tensor.shape) != shape:
+            raise ValueError(f"{name} must be {list(shape)}, got {tuple(tensor.shape)}")
+    if features.ndim != 2 or features.shape[0] != g:
+        raise ValueError(f"features must be [G={g}, C], got {tuple(features.shape)}")
+    if not means.dtype.is_floating_point:
+        raise ValueError(f"means must be floating point, got {means.dtype}")
+    named = {"means": means, "scales": scales, "rotations": rotations, "opacities": opacities,
+             "features": features}
+    for name, tensor in named.items():
+        if tensor.dtype != means.dtype or tensor.device != means.device:
+            raise ValueError(f"{name} is {tensor.dtype} on {tensor.device}; expected "
+                             f"{means.dtype} on {means.device} like means")
