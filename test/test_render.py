@@ -7,7 +7,7 @@ import torch
 
 from odg_ros.render import RenderResult, render_cameras, render_gaussians, render_scenes
 from odg_ros.render import splat as splat_module
-from odg_ros.render.splat import _PairWeightedSum
+from odg_ros.render.splat import _PairWeightedSum, _TileGrid
 
 HW = (128, 352)
 K = np.array([[250.0, 0.0, 176.0], [0.0, 250.0, 64.0], [0.0, 0.0, 1.0]])
@@ -277,6 +277,46 @@ def test_render_scenes_equals_each_scene_alone(monkeypatch, chunk):
                 torch.testing.assert_close(a, b, atol=1e-10, rtol=1e-9)
         for a, b in zip(joint_grads[5 * i:5 * i + 5], grads):
             torch.testing.assert_close(a, b, atol=1e-10, rtol=1e-9)
+
+
+def test_host_reads_per_call_one_plus_three_per_depth_batch(monkeypatch):
+    """What makes the host wait for the device (counted as on CUDA): the projection's
+    candidates, one read of every size and check before compositing, and per depth batch
+    its two compactions and (after the first) its bounds; the backward pass none."""
+    from odg_ros.train.census import Census, CensusMode
+    batches = []
+    candidate_pairs = splat_module._candidate_pairs
+    monkeypatch.setattr(splat_module, "_candidate_pairs",
+                        lambda *args: batches.append(1) or candidate_pairs(*args))
+    names = ("means", "scales", "rotations", "opacities", "features")
+    scenes, pixels = [], []
+    for seed in range(3):
+        scene, cam, k, pix = random_scene(30 + seed, 60, 40, dense=True)
+        scenes.append([scene[n].clone().requires_grad_(True) for n in names])
+        pixels.append([pix])
+    for chunk in (10**9, 300):
+        monkeypatch.setattr(splat_module, "CANDIDATE_CHUNK", chunk)
+        batches.clear()
+        census = Census()
+        with CensusMode(census, None):
+            results = render_scenes(scenes, cam.expand(3, 1, 4, 4), k.expand(3, 1, 3, 3),
+                                    pixels, HW)
+            sum(r[0].depth.sum() + r[0].alpha.sum() for r in results).backward()
+        syncs = sum(census.syncs.values())
+        if chunk == 10**9:
+            assert len(batches) == 1 and syncs == 4, census.report()
+        else:
+            assert len(batches) > 3 and syncs <= 1 + 3 * len(batches), census.report()
+
+
+def test_tile_indices_are_valid_for_any_pixel_value():
+    """Pixels are binned before the input checks are read: a NaN or inf pixel must still
+    give a tile index in range (on CUDA an index out of range is a device-side abort, not
+    the clear error the checks raise)."""
+    grid = _TileGrid(40, 70, 16, 2)
+    values = torch.tensor([float("nan"), float("inf"), -float("inf"), -1e30, 1e30, -3.0, 69.9])
+    for index, size in ((grid.column(values), grid.tiles_x), (grid.row(values), grid.tiles_y)):
+        assert ((index >= 0) & (index < size)).all(), index
 
 
 def test_render_scenes_rejects_mismatched_scenes():

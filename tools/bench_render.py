@@ -2,11 +2,13 @@
 earlier revision of odg_ros/render/splat.py, in one process, interleaved, medians.
 
     python tools/bench_render.py [--against main] [--gaussians 3000] [--pixels 400]
-        [--chunk 1000000] [--repeats 12]
+        [--chunk 1000000] [--repeats 12] [--scenes 1]
 
 Scene: six cameras around the ego, random Gaussians in a 20 x 20 x 4 m box, random pixels.
 Host syncs are counted with the CUDA paths forced (odg_ros.train.census); a smaller --chunk
-makes more depth batches.
+makes more depth batches. --scenes K renders K such scenes of their own Gaussians (as the
+render loss renders its decoder layers): in one render_scenes call where the code has it,
+else in K render_cameras calls.
 """
 import argparse
 import importlib.util
@@ -40,8 +42,8 @@ def splat_at(rev: str):
     return module
 
 
-def scene(num_gaussians: int, num_pixels: int, num_cameras: int = 6):
-    g = torch.Generator().manual_seed(1)
+def scene(num_gaussians: int, num_pixels: int, num_cameras: int = 6, seed: int = 1):
+    g = torch.Generator().manual_seed(seed)
     means = (torch.rand(num_gaussians, 3, generator=g) - 0.5) * torch.tensor([20.0, 20.0, 4.0])
     scales = torch.rand(num_gaussians, 3, generator=g) * 0.8 + 0.05
     rotations = torch.randn(num_gaussians, 4, generator=g)
@@ -62,10 +64,19 @@ def scene(num_gaussians: int, num_pixels: int, num_cameras: int = 6):
 
 def call(module, args) -> float:
     module.CANDIDATE_CHUNK = args.chunk
-    gaussians, cams, k, pixels = scene(args.gaussians, args.pixels)
+    scenes = [scene(args.gaussians, args.pixels, seed=1 + i) for i in range(args.scenes)]
+    _, cams, k, pixels = scenes[0]              # the same cameras and pixels for every scene
     start = time.perf_counter()
-    results = module.render_cameras(*gaussians, cams, k, pixels, (HEIGHT, WIDTH))
-    sum(r.depth.sum() + r.features.sum() + r.alpha.sum() for r in results).backward()
+    if hasattr(module, "render_scenes"):
+        results = module.render_scenes([gaussians for gaussians, *_ in scenes],
+                                       cams.expand(len(scenes), -1, -1, -1),
+                                       k.expand(len(scenes), -1, -1, -1),
+                                       [pixels] * len(scenes), (HEIGHT, WIDTH))
+    else:
+        results = [module.render_cameras(*gaussians, cams, k, pixels, (HEIGHT, WIDTH))
+                   for gaussians, *_ in scenes]
+    sum(r.depth.sum() + r.features.sum() + r.alpha.sum()
+        for per_scene in results for r in per_scene).backward()
     return time.perf_counter() - start
 
 
@@ -76,6 +87,7 @@ def main() -> None:
     parser.add_argument("--pixels", type=int, default=400, help="per camera")
     parser.add_argument("--chunk", type=int, default=splat.CANDIDATE_CHUNK)
     parser.add_argument("--repeats", type=int, default=12)
+    parser.add_argument("--scenes", type=int, default=1)
     args = parser.parse_args()
     versions = {"before": splat_at(args.against), "this": splat}
     seconds = {name: [] for name in versions}

@@ -17,6 +17,7 @@ identity) can never come out negative by cancellation; the blurred determinant i
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -62,8 +63,8 @@ def quaternion_to_rotation(unit_quaternions: torch.Tensor) -> torch.Tensor:
 
 @dataclass
 class Splats:
-    """The visible (camera, Gaussian) splats, sorted by camera depth (stable: ties keep the
-    Gaussian order). S = number of splats.
+    """Projected (camera, Gaussian) splats; project_gaussians returns the visible ones sorted
+    by camera depth (stable: ties keep the Gaussian order). S = number of splats.
 
     camera [S] long, gaussian [S] long: which camera / input Gaussian each splat comes from.
     mean2d [S, 2]: projected centre (u, v) in pixels.
@@ -90,6 +91,11 @@ class Splats:
     def __len__(self) -> int:
         return int(self.camera.shape[0])
 
+    def take(self, index: torch.Tensor) -> "Splats":
+        """The splats at ``index`` [S'] long, in that order."""
+        return Splats(**{name: value if name == "overflow" else value[index]
+                         for name, value in vars(self).items()})
+
 
 def splat_power(cov_xy: torch.Tensor, cov_yy: torch.Tensor, det: torch.Tensor,
                 delta_u: torch.Tensor, delta_v: torch.Tensor) -> torch.Tensor:
@@ -110,10 +116,37 @@ def project_gaussians(means: torch.Tensor, scales: torch.Tensor, rotations: torc
                       cameras_per_scene: int | None = None) -> Splats:
     """Project G Gaussians into N cameras; keep the splats that can touch the image.
 
+    Arguments as project_candidates. Returns the visible splats, sorted by depth.
+    """
+    candidates, visible = project_candidates(means, scales, rotations, opacities, cam_from_ego,
+                                             intrinsics, image_hw, near, gaussian_scene,
+                                             cameras_per_scene)
+    with torch.no_grad():
+        keep = visible.nonzero(as_tuple=True)[0]
+        keep = keep[torch.argsort(candidates.depth[keep], stable=True)]
+    return candidates.take(keep)
+
+
+def depth_order(candidates: Splats, visible: torch.Tensor) -> torch.Tensor:
+    """Order of the candidates with the visible ones first, sorted by depth (stable), as
+    project_gaussians returns them: its splats are take(depth_order(...)[:visible.sum()])."""
+    with torch.no_grad():
+        return torch.argsort(torch.where(visible, candidates.depth,
+                                         torch.full_like(candidates.depth, math.inf)), stable=True)
+
+
+def project_candidates(means: torch.Tensor, scales: torch.Tensor, rotations: torch.Tensor,
+                       opacities: torch.Tensor, cam_from_ego: torch.Tensor,
+                       intrinsics: torch.Tensor, image_hw, near: float,
+                       gaussian_scene: torch.Tensor | None = None,
+                       cameras_per_scene: int | None = None) -> tuple[Splats, torch.Tensor]:
+    """Project G Gaussians into N cameras: every (camera, Gaussian) candidate in front of the
+    near plane with opacity >= 1/255 (unsorted), and which of them are visible.
+
     means [G, 3] (ego, m), scales [G, 3] (m), rotations [G, 4] (w, x, y, z), opacities [G],
-    cam_from_ego [N, 4, 4], intrinsics [N, 3, 3], image_hw (H, W). Returns Splats sorted by
-    depth. A splat is dropped when z <= near, opacity < 1/255 or its alpha >= 1/255 box
-    misses the image [0, W] x [0, H].
+    cam_from_ego [N, 4, 4], intrinsics [N, 3, 3], image_hw (H, W). Returns (Splats of the
+    candidates, visible [S] bool). Visible: the splat's alpha >= 1/255 box touches the image
+    [0, W] x [0, H].
     gaussian_scene [G] long, cameras_per_scene M (optional, together): K = N / M independent
     scenes, scene k seen by cameras k M ... (k + 1) M - 1 only; a Gaussian is projected into
     its own scene's cameras.
@@ -175,10 +208,7 @@ def project_gaussians(means: torch.Tensor, scales: torch.Tensor, rotations: torc
         visible = (hi[:, 0] >= 0) & (lo[:, 0] <= width) & (hi[:, 1] >= 0) & (lo[:, 1] <= height)
         # read together with the renderer's first size, not on its own
         overflow = (~(torch.isfinite(mean2d).all(-1) & torch.isfinite(det)) & visible).any()
-        keep = visible.nonzero(as_tuple=True)[0]
-        keep = keep[torch.argsort(z[keep], stable=True)]
-    return Splats(camera=camera[keep], gaussian=gaussian[keep], mean2d=mean2d[keep],
-                  cov_xx=cov_xx[keep], cov_xy=cov_xy[keep], cov_yy=cov_yy[keep], det=det[keep],
-                  depth=z[keep], opacity=opacity[keep], half_extent=half_extent[keep],
-                  overflow=overflow)
+    return Splats(camera=camera, gaussian=gaussian, mean2d=mean2d, cov_xx=cov_xx, cov_xy=cov_xy,
+                  cov_yy=cov_yy, det=det, depth=z, opacity=opacity, half_extent=half_extent,
+                  overflow=overflow), visible
 

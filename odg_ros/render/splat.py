@@ -23,8 +23,11 @@ tiles are ever formed, never a dense Gaussians x pixels tensor. Splats go front 
 depth batches of ~1M candidate pairs; candidates are tested without autograd, survivors get
 T from a float64 segmented cumulative sum of log(1 - alpha), and pixels that reached the
 early stop leave the later batches. The weighted sums are CSR sparse x dense products.
-The host waits for the device three times per depth batch (the batch's bounds and size in
-one read, and two compactions), never for the bookkeeping of which pixels are still active.
+The host waits for the device once for the projection's candidates, once for every size
+and input check before compositing (visible splats, tile pairs, and the first depth batch's
+bounds from a summed-area table of pixels per tile, in one copy), twice per depth batch (two
+compactions) and once more per later batch (its bounds); never for the bookkeeping of which
+pixels are still active.
 Memory is O(contributing pairs) plus one batch of candidates. render_scenes draws several
 independent scenes (the render loss: every decoder layer of every sample) in one such pass, so
 those reads are paid once for all of them.
@@ -43,7 +46,8 @@ from typing import NamedTuple, Sequence
 
 import torch
 
-from .projection import ALPHA_MAX, ALPHA_MIN, Splats, project_gaussians, splat_power
+from .projection import (ALPHA_MAX, ALPHA_MIN, Splats, depth_order, project_candidates,
+                         splat_power)
 
 TRANSMITTANCE_MIN = 1e-4         # a pixel is done once T would reach this (exclusive)
 # Two splats at the alpha cap leave T = (1 - 0.99)^2 = 1e-4, exactly the cut, a common case
@@ -103,12 +107,13 @@ def render_cameras(means: torch.Tensor, scales: torch.Tensor, rotations: torch.T
     bf16's 8 mantissa bits (a 704 px image has a 4 px step there) and the sparse products
     have no half-precision CPU kernels.
     """
-    (height, width), (means, scales, rotations, opacities, features) = checked_gaussians(
-        means, scales, rotations, opacities, features, cam_from_ego, intrinsics, pixels,
-        image_hw, near, tile_size)
+    (height, width), (means, scales, rotations, opacities, features), checks = \
+        _gaussians_and_checks(means, scales, rotations, opacities, features, cam_from_ego,
+                              intrinsics, pixels, image_hw, near, tile_size)
     with torch.autocast(means.device.type, enabled=False):
         return _render_scenes(means, scales, rotations, opacities, features, None, None,
-                              cam_from_ego, intrinsics, pixels, height, width, near, tile_size)
+                              cam_from_ego, intrinsics, pixels, height, width, near, tile_size,
+                              checks)
 
 
 def render_scenes(scenes: Sequence[Sequence[torch.Tensor]], cam_from_ego: torch.Tensor,
@@ -147,9 +152,9 @@ def render_scenes(scenes: Sequence[Sequence[torch.Tensor]], cam_from_ego: torch.
     # every value check below covers all scenes in one read
     gaussians = [torch.cat([scene[i] for scene in scenes]) for i in range(5)]
     flat_pixels = [p for per_scene in pixels for p in per_scene]
-    (height, width), (means, scales, rotations, opacities, features) = checked_gaussians(
-        *gaussians, cam_from_ego.flatten(0, 1), intrinsics.flatten(0, 1), flat_pixels,
-        image_hw, near, tile_size)
+    (height, width), (means, scales, rotations, opacities, features), checks = \
+        _gaussians_and_checks(*gaussians, cam_from_ego.flatten(0, 1), intrinsics.flatten(0, 1),
+                              flat_pixels, image_hw, near, tile_size)
     gaussian_scene = torch.repeat_interleave(
         torch.arange(len(scenes), device=means.device),
         torch.tensor([scene[0].shape[0] for scene in scenes], device=means.device),
@@ -157,28 +162,41 @@ def render_scenes(scenes: Sequence[Sequence[torch.Tensor]], cam_from_ego: torch.
     with torch.autocast(means.device.type, enabled=False):
         results = _render_scenes(means, scales, rotations, opacities, features, gaussian_scene,
                                  num_cameras, cam_from_ego.flatten(0, 1), intrinsics.flatten(0, 1),
-                                 flat_pixels, height, width, near, tile_size)
+                                 flat_pixels, height, width, near, tile_size, checks)
     return [results[k * num_cameras:(k + 1) * num_cameras] for k in range(len(scenes))]
 
 
 def checked_gaussians(means, scales, rotations, opacities, features, cam_from_ego, intrinsics,
                       pixels, image_hw, near, tile_size):
-    """What every renderer does first: clear errors for malformed input, half-precision
-    Gaussians in float32. Returns ((H, W), (means, scales, rotations, opacities, features))."""
-    height, width = _check_inputs(means, scales, rotations, opacities, features, cam_from_ego,
-                                  intrinsics, pixels, image_hw, near, tile_size)
+    """What every renderer does first: clear errors for malformed input (one host read),
+    half-precision Gaussians in float32. Returns ((H, W), (means, scales, rotations,
+    opacities, features))."""
+    hw, gaussians, checks = _gaussians_and_checks(means, scales, rotations, opacities, features,
+                                                  cam_from_ego, intrinsics, pixels, image_hw,
+                                                  near, tile_size)
+    _raise_failed(checks, torch.stack([flag for _, flag in checks]).tolist())
+    return hw, gaussians
+
+
+def _gaussians_and_checks(means, scales, rotations, opacities, features, cam_from_ego,
+                          intrinsics, pixels, image_hw, near, tile_size):
+    """checked_gaussians with the value checks returned unread (as in _check_inputs)."""
+    height, width, checks = _check_inputs(means, scales, rotations, opacities, features,
+                                          cam_from_ego, intrinsics, pixels, image_hw, near,
+                                          tile_size)
     gaussians = (means, scales, rotations, opacities, features)
     if means.dtype in (torch.float16, torch.bfloat16):
         gaussians = tuple(t.float() for t in gaussians)
-    return (height, width), gaussians
+    return (height, width), gaussians, checks
 
 
 def _render_scenes(means, scales, rotations, opacities, features, gaussian_scene,
                    cameras_per_scene, cam_from_ego, intrinsics, pixels, height, width, near,
-                   tile_size) -> list[RenderResult]:
-    """Checked inputs of one float32/float64 dtype, autocast off; gaussian_scene [G] (None: one
-    scene) picks the cameras a Gaussian is seen by: the cameras_per_scene of its scene in
-    cam_from_ego [K N, 4, 4] (scene-major). Returns K N RenderResults."""
+                   tile_size, checks) -> list[RenderResult]:
+    """Inputs of one float32/float64 dtype, autocast off, shapes checked; checks: the value
+    checks, unread (_check_inputs). gaussian_scene [G] (None: one scene) picks the cameras a
+    Gaussian is seen by: the cameras_per_scene of its scene in cam_from_ego [K N, 4, 4]
+    (scene-major). Returns K N RenderResults."""
     num_cameras = cam_from_ego.shape[0]
     counts = [int(p.shape[0]) for p in pixels]
     pixel_uv = torch.cat([p.to(means.dtype) for p in pixels], dim=0) if pixels else \
@@ -187,12 +205,19 @@ def _render_scenes(means, scales, rotations, opacities, features, gaussian_scene
         torch.arange(num_cameras, device=means.device),
         torch.tensor(counts, device=means.device, dtype=torch.long), output_size=sum(counts))
 
-    splats = project_gaussians(means, scales, rotations, opacities, cam_from_ego.to(means.dtype),
-                               intrinsics.to(means.dtype), (height, width), near,
-                               gaussian_scene=gaussian_scene,
-                               cameras_per_scene=cameras_per_scene)
-    weights, pair_pixel, pair_splat = _composite(splats, pixel_uv, pixel_camera, num_cameras,
-                                                 (height, width), tile_size)
+    candidates, visible = project_candidates(
+        means, scales, rotations, opacities, cam_from_ego.to(means.dtype),
+        intrinsics.to(means.dtype), (height, width), near, gaussian_scene=gaussian_scene,
+        cameras_per_scene=cameras_per_scene)
+    grid = _TileGrid(height, width, tile_size, num_cameras)
+    binned = grid.bin_pixels(pixel_uv, pixel_camera,
+                             torch.ones(pixel_uv.shape[0], dtype=torch.bool,
+                                        device=means.device))
+    keep, num_tile_pairs, first_batch = _visible_splats(candidates, visible, grid, binned[1],
+                                                        checks)
+    splats = candidates.take(keep)
+    weights, pair_pixel, pair_splat = _composite(splats, pixel_uv, pixel_camera, grid, binned,
+                                                 num_tile_pairs, first_batch)
 
     # One weighted sum gives features, depth and accumulated alpha (a column of ones).
     values = torch.cat([features[splats.gaussian], splats.depth[:, None],
@@ -206,11 +231,61 @@ def _render_scenes(means, scales, rotations, opacities, features, gaussian_scene
     return results
 
 
+@torch.no_grad()
+def _visible_splats(candidates: Splats, visible: torch.Tensor, grid: "_TileGrid",
+                    tile_count: torch.Tensor, checks):
+    """The one host read before compositing: the number of visible splats, of their (splat,
+    tile) pairs and the first depth batch's bounds, with the projection's overflow flag and
+    the input checks (raised here, before any size is used).
+
+    tile_count [num_tiles]: requested pixels per tile. Returns (the candidates to keep: the
+    visible splats sorted by depth, as project_gaussians gives them; the number of their
+    (splat, tile) pairs; the first depth batch as (first pair past it, first splat past it,
+    its candidate pairs)).
+    """
+    order = depth_order(candidates, visible)
+    lo = candidates.mean2d - candidates.half_extent
+    hi = candidates.mean2d + candidates.half_extent
+    # invisible or overflowing splats touch no tile (their indices would be garbage)
+    boxed = visible & torch.isfinite(lo).all(-1) & torch.isfinite(hi).all(-1)
+    col0, col1 = (torch.where(boxed, grid.column(x), 0) for x in (lo[:, 0], hi[:, 0]))
+    row0, row1 = (torch.where(boxed, grid.row(y), 0) for y in (lo[:, 1], hi[:, 1]))
+    tiles_of_splat = torch.where(boxed, (col1 - col0 + 1) * (row1 - row0 + 1), 0)[order]
+    # requested pixels under each splat's tiles: a summed-area table of the tile counts
+    table = tile_count.new_zeros(grid.num_cameras, grid.tiles_y + 1, grid.tiles_x + 1)
+    table[:, 1:, 1:] = tile_count.view(grid.num_cameras, grid.tiles_y,
+                                       grid.tiles_x).cumsum(1).cumsum(2)
+    table = table.flatten()
+
+    def corner(row, col):
+        return table[(candidates.camera * (grid.tiles_y + 1) + row) * (grid.tiles_x + 1) + col]
+
+    pairs_of_splat = torch.where(boxed, corner(row1 + 1, col1 + 1) - corner(row0, col1 + 1)
+                                 - corner(row1 + 1, col0) + corner(row0, col0), 0)[order]
+    zero = pairs_of_splat.new_zeros(1)
+    pairs_before = torch.cat([zero, torch.cumsum(pairs_of_splat, 0)])      # before splat i
+    tiles_before = torch.cat([zero, torch.cumsum(tiles_of_splat, 0)])
+    num_visible = visible.sum()
+    # as each later batch: whole splats up to CANDIDATE_CHUNK candidates, at least one
+    last = torch.minimum(torch.searchsorted(pairs_before[1:], zero + CANDIDATE_CHUNK,
+                                            right=True).clamp_min(1), num_visible)
+    read = torch.cat([num_visible[None], tiles_before[-1:], candidates.overflow[None], last,
+                      tiles_before.index_select(0, last), pairs_before.index_select(0, last)]
+                     + [flag[None] for _, flag in checks]).tolist()
+    num_visible, num_tile_pairs, overflow, last, tile_pairs_before, num_candidates = read[:6]
+    _raise_failed(checks, read[6:])
+    if overflow:
+        raise FloatingPointError("Gaussian projection overflowed (non-finite 2D mean or "
+                                 "covariance); scales or positions are out of range")
+    return order[:num_visible], num_tile_pairs, (tile_pairs_before, last, num_candidates)
+
+
 def _composite(splats: Splats, pixel_uv: torch.Tensor, pixel_camera: torch.Tensor,
-               num_cameras: int, image_hw, tile_size: int):
+               grid: "_TileGrid", binned, num_tile_pairs: int, first_batch):
     """Compositing weights w = T alpha of every contributing (splat, pixel) pair.
 
-    Returns weight [M] (differentiable), pixel [M], splat [M] (long).
+    binned: grid.bin_pixels of every pixel; num_tile_pairs and first_batch: from
+    _visible_splats. Returns weight [M] (differentiable), pixel [M], splat [M] (long).
 
     Splats are processed front to back in depth batches of whole splats (about
     CANDIDATE_CHUNK candidate pairs each). Within a batch: splat -> tiles its alpha box
@@ -223,37 +298,38 @@ def _composite(splats: Splats, pixel_uv: torch.Tensor, pixel_camera: torch.Tenso
     takes no part in later batches (this is what keeps dense scenes cheap).
     """
     device = pixel_uv.device
-    height, width = image_hw
     num_pixels = pixel_uv.shape[0]
-    grid = _TileGrid(height, width, tile_size, num_cameras)
     params = torch.stack([splats.mean2d[:, 0], splats.mean2d[:, 1], splats.cov_xy,
                           splats.cov_yy, splats.det, splats.opacity], dim=-1)    # [S, 6]
     weights, pair_pixels, pair_splats = [], [], []
     if len(splats) and num_pixels:
-        st_splat, st_tile = _splat_tiles(splats, grid)
+        st_splat, st_tile = _splat_tiles(splats, grid, num_tile_pairs)
         splat_first_st = torch.searchsorted(st_splat, torch.arange(len(splats) + 1, device=device))
         log_t = torch.zeros(num_pixels, dtype=torch.float64, device=device)  # running log T
         active = torch.ones(num_pixels, dtype=torch.bool, device=device)
-        pixels_by_tile, tile_count, tile_first = grid.bin_pixels(pixel_uv, pixel_camera, active)
+        pixels_by_tile, tile_count, tile_first = binned
         # Candidates before each (splat, tile) pair, counted over the still-active pixels;
         # a leading 0 so that before[a] is the count before pair a.
         before = None
         splat_of_pair = torch.cat([st_splat, st_splat.new_full((1,), len(splats))])
         first = 0                                       # first splat of the batch
+        bounds = (0, *first_batch)                      # known from the first read
         while first < len(splats):
             with torch.no_grad():
-                if before is None:                      # (re)counted when pixels drop out
-                    before = torch.cat([st_tile.new_zeros(1),
-                                        torch.cumsum(tile_count[st_tile], 0)])
-                # The batch's bounds and candidate count on the device, read in one copy.
-                # (one-element tensors: indexing with a 0-d tensor would read it on the host)
-                a = splat_first_st[first:first + 1]
-                before_a = before.index_select(0, a)
-                cut = torch.searchsorted(before[1:], before_a + CANDIDATE_CHUNK, right=True)
-                last = torch.clamp_min(splat_of_pair.index_select(0, cut), first + 1)
-                b = splat_first_st.index_select(0, last)
-                a, b, last, num_candidates = torch.cat(
-                    [a, b, last, before.index_select(0, b) - before_a]).tolist()
+                if bounds is None:
+                    if before is None:                  # (re)counted when pixels drop out
+                        before = torch.cat([st_tile.new_zeros(1),
+                                            torch.cumsum(tile_count[st_tile], 0)])
+                    # The batch's bounds and candidate count on the device, read in one copy.
+                    # (one-element tensors: indexing with a 0-d tensor would read it on the host)
+                    a = splat_first_st[first:first + 1]
+                    before_a = before.index_select(0, a)
+                    cut = torch.searchsorted(before[1:], before_a + CANDIDATE_CHUNK, right=True)
+                    last = torch.clamp_min(splat_of_pair.index_select(0, cut), first + 1)
+                    b = splat_first_st.index_select(0, last)
+                    bounds = torch.cat([a, b, last, before.index_select(0, b) - before_a]).tolist()
+                a, b, last, num_candidates = bounds
+                bounds = None
                 pair_splat, pair_pixel = _candidate_pairs(
                     st_splat[a:b], st_tile[a:b], pixels_by_tile, tile_count, tile_first,
                     num_candidates)
@@ -306,14 +382,16 @@ class _TileGrid:
         self.tiles_x = -(-width // tile_size)
         self.tiles_y = -(-height // tile_size)
         self.tiles_per_camera = self.tiles_x * self.tiles_y
+        self.num_cameras = num_cameras
         self.num_tiles = num_cameras * self.tiles_per_camera
 
     def column(self, u: torch.Tensor) -> torch.Tensor:
         # A monotone clamped floor: u in [lo, hi] implies column(lo) <= column(u) <= column(hi).
-        return torch.floor(u / self.tile_size).clamp(0, self.tiles_x - 1).long()
+        # Any value, NaN too, gives a valid index: input checks are read only after binning.
+        return torch.floor(u / self.tile_size).nan_to_num(0.0).clamp(0, self.tiles_x - 1).long()
 
     def row(self, v: torch.Tensor) -> torch.Tensor:
-        return torch.floor(v / self.tile_size).clamp(0, self.tiles_y - 1).long()
+        return torch.floor(v / self.tile_size).nan_to_num(0.0).clamp(0, self.tiles_y - 1).long()
 
     @torch.no_grad()
     def bin_pixels(self, pixel_uv, pixel_camera, active):
@@ -330,9 +408,10 @@ class _TileGrid:
 
 
 @torch.no_grad()
-def _splat_tiles(splats: Splats, grid: _TileGrid):
+def _splat_tiles(splats: Splats, grid: _TileGrid, total: int):
     """Every (splat, tile) pair where the splat's alpha >= 1/255 box touches the tile,
-    sorted by splat. -> st_splat [T] long, st_tile [T] long (global tile id)."""
+    sorted by splat; total = the number of those pairs (read by the caller).
+    -> st_splat [T] long, st_tile [T] long (global tile id)."""
     device = splats.mean2d.device
     lo = splats.mean2d.detach() - splats.half_extent
     hi = splats.mean2d.detach() + splats.half_extent
@@ -340,11 +419,6 @@ def _splat_tiles(splats: Splats, grid: _TileGrid):
     row0, row1 = grid.row(lo[:, 1]), grid.row(hi[:, 1])
     span = col1 - col0 + 1
     tiles_of_splat = span * (row1 - row0 + 1)
-    # the one host read: the size of the pair list, and whether the projection overflowed
-    total, overflow = torch.stack([tiles_of_splat.sum(), splats.overflow.long()]).tolist()
-    if overflow:
-        raise FloatingPointError("Gaussian projection overflowed (non-finite 2D mean or "
-                                 "covariance); scales or positions are out of range")
     st_splat = torch.repeat_interleave(torch.arange(len(splats), device=device), tiles_of_splat,
                                        output_size=total)
     local = torch.arange(total, device=device) - torch.repeat_interleave(
@@ -438,8 +512,9 @@ def _csr(rows, cols, vals, shape):
 
 
 def _check_inputs(means, scales, rotations, opacities, features, cam_from_ego, intrinsics,
-                  pixels, image_hw, near, tile_size) -> tuple[int, int]:
-    """Clear errors for malformed input; returns (H, W)."""
+                  pixels, image_hw, near, tile_size):
+    """Clear errors for malformed shapes; returns (H, W, checks): the value checks as
+    (message, device flag true if failed), for the caller to read with its first sizes."""
     _check_shapes(means, scales, rotations, opacities, features)
     named = {"means": means, "scales": scales, "rotations": rotations, "opacities": opacities,
              "features": features}
@@ -463,8 +538,8 @@ def _check_inputs(means, scales, rotations, opacities, features, cam_from_ego, i
             raise ValueError(f"pixels[{i}] must be [P, 2] (u, v), got {tuple(p.shape)}")
         if p.device != means.device:
             raise ValueError(f"pixels[{i}] is on {p.device}, Gaussians on {means.device}")
-    # Every value check is a flag on the device, and the host reads them all at once: one
-    # wait for the device per call instead of one per check.
+    # Every value check is a flag on the device, read with the renderer's first sizes: no
+    # wait for the device of its own.
     checks = [(f"{name} contains NaN or inf", ~torch.isfinite(t).all())
               for name, t in named.items()]
     rot = cam_from_ego[:, :3, :3].double()
@@ -480,11 +555,14 @@ def _check_inputs(means, scales, rotations, opacities, features, cam_from_ego, i
     checks += [(f"pixels[{i}] must be finite and inside [0, W={width}] x [0, H={height}]",
                 ~(torch.isfinite(p).all() & (p >= 0).all() & (p[:, 0] <= width).all()
                   & (p[:, 1] <= height).all())) for i, p in enumerate(pixels) if p.shape[0]]
-    failed = torch.stack([flag.to(means.device) for _, flag in checks]).tolist()
+    return height, width, [(message, flag.to(means.device)) for message, flag in checks]
+
+
+def _raise_failed(checks, failed) -> None:
+    """ValueError with the message of the first failed check (failed: the flags, read)."""
     for (message, _), bad in zip(checks, failed):
         if bad:
             raise ValueError(message)
-    return height, width
 
 
 def _check_shapes(means, scales, rotations, opacities, features) -> None:
