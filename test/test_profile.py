@@ -16,9 +16,9 @@ from odg_ros.train.trainer import Trainer, TrainOptions
 MAX_OPS = 12_000
 MAX_SYNCS_OUTSIDE_RENDERER = 16
 # One renderer call draws all six layers. It still waits for the device to size its work:
-# the projection's candidates, one read of every size and check before compositing, and two
-# compactions per depth batch (one batch here). Pinned where it is, so that it can only go down.
-MAX_SYNCS = 11
+# the projection's candidates, one read of every size and check before compositing, and one
+# compaction per depth batch (one batch here). Pinned where it is, so that it can only go down.
+MAX_SYNCS = 10
 
 
 @pytest.fixture(scope="module")

@@ -25,9 +25,9 @@ T from a float64 segmented cumulative sum of log(1 - alpha), and pixels that rea
 early stop leave the later batches. The weighted sums are CSR sparse x dense products.
 The host waits for the device once for the projection's candidates, once for every size
 and input check before compositing (visible splats, tile pairs, and the first depth batch's
-bounds from a summed-area table of pixels per tile, in one copy), twice per depth batch (two
-compactions) and once more per later batch (its bounds); never for the bookkeeping of which
-pixels are still active.
+bounds from a summed-area table of pixels per tile, in one copy), once per depth batch (one
+compaction: the pairs above alpha 1/255 before the early stop) and once more per later batch
+(its bounds); never for the bookkeeping of which pixels are still active.
 Memory is O(contributing pairs) plus one batch of candidates. render_scenes draws several
 independent scenes (the render loss: every decoder layer of every sample) in one such pass, so
 those reads are paid once for all of them.
@@ -289,13 +289,15 @@ def _composite(splats: Splats, pixel_uv: torch.Tensor, pixel_camera: torch.Tenso
 
     Splats are processed front to back in depth batches of whole splats (about
     CANDIDATE_CHUNK candidate pairs each). Within a batch: splat -> tiles its alpha box
-    touches -> the still-active requested pixels in those tiles -> exact alpha test without
-    autograd -> pairs sorted by (pixel, depth) -> T from the pixel's running log
+    touches -> the still-active requested pixels in those tiles -> pairs sorted by (pixel,
+    depth) -> without autograd, the exact alpha test and T from the pixel's running log
     transmittance plus an exclusive segmented cumsum of log(1 - alpha), in float64 (a global
     cumsum minus its value at each pixel's first pair; float64 so the subtraction of large
-    running sums loses nothing). A pair is kept while T (1 - alpha) > 1e-4; T only decreases,
-    so the kept pairs are a prefix as in the sequential early stop, and a pixel that stopped
-    takes no part in later batches (this is what keeps dense scenes cheap).
+    running sums loses nothing; pairs below alpha 1/255 add 0). A pair is kept while it
+    contributes and T (1 - alpha) > 1e-4; T only decreases, so the kept pairs are a prefix
+    of the contributing ones as in the sequential early stop, and one compaction keeps
+    them. T is then computed again, differentiably, on the kept pairs alone. A pixel that
+    stopped takes no part in later batches (this is what keeps dense scenes cheap).
     """
     device = pixel_uv.device
     num_pixels = pixel_uv.shape[0]
@@ -333,37 +335,36 @@ def _composite(splats: Splats, pixel_uv: torch.Tensor, pixel_camera: torch.Tenso
                 pair_splat, pair_pixel = _candidate_pairs(
                     st_splat[a:b], st_tile[a:b], pixels_by_tile, tile_count, tile_first,
                     num_candidates)
-                alpha = _pair_alpha(params.detach(), pixel_uv, pair_splat, pair_pixel)
-                contributes = (alpha >= ALPHA_MIN).nonzero(as_tuple=True)[0]
-                pair_splat = pair_splat.index_select(0, contributes)
-                pair_pixel = pair_pixel.index_select(0, contributes)
-                # Splats are depth-sorted, so the splat index is the depth rank.
-                order = torch.argsort(pair_pixel * len(splats) + pair_splat)
+                # By pixel, then depth: the candidates come in splat order, which is the
+                # depth order, so a stable sort by pixel keeps it within each pixel.
+                order = torch.argsort(pair_pixel, stable=True)
                 pair_splat, pair_pixel = pair_splat[order], pair_pixel[order]
-            first = last
-            if pair_splat.shape[0] == 0:
-                continue
-            alpha = _pair_alpha(params, pixel_uv, pair_splat, pair_pixel)
-            log_one_minus = torch.log1p(-alpha.double())
-            running = torch.cumsum(log_one_minus, 0) - log_one_minus       # exclusive
-            pairs_per_pixel = _counts(pair_pixel, num_pixels)
-            segment_first = torch.cumsum(pairs_per_pixel, 0) - pairs_per_pixel
-            log_transmittance = (running - running[segment_first[pair_pixel]]
-                                 + log_t[pair_pixel])
-            with torch.no_grad():
-                include = ((log_transmittance + log_one_minus)
-                           > math.log(TRANSMITTANCE_MIN) + STOP_LOG_MARGIN)
-                kept = include.nonzero(as_tuple=True)[0]
+                alpha = _pair_alpha(params.detach(), pixel_uv, pair_splat, pair_pixel)
+                # pairs below alpha 1/255 are skipped: they leave T as it is
+                contributes = alpha >= ALPHA_MIN
+                log_one_minus = torch.log1p(-torch.where(contributes, alpha, 0).double())
+                include = (_log_transmittance(log_one_minus, pair_pixel, log_t)
+                           + log_one_minus > math.log(TRANSMITTANCE_MIN) + STOP_LOG_MARGIN)
+                kept = (include & contributes).nonzero(as_tuple=True)[0]     # the one wait
                 stops = _counts(pair_pixel, num_pixels, ~include)
-            weight = alpha * torch.exp(log_transmittance).to(alpha.dtype)
-            weights.append(weight.index_select(0, kept))
-            pair_pixels.append(pair_pixel.index_select(0, kept))
-            pair_splats.append(pair_splat.index_select(0, kept))
-            log_t = log_t.index_add(0, pair_pixels[-1], log_one_minus.index_select(0, kept))
-            if kept.shape[0] < include.shape[0]:        # some pixels stopped: size known here
+                pair_splat = pair_splat.index_select(0, kept)
+                pair_pixel = pair_pixel.index_select(0, kept)
+            first = last
+            if kept.shape[0]:
+                # The kept pairs of a pixel are a prefix of its contributing pairs, so T from
+                # the kept pairs alone is the same T, now differentiable.
+                alpha = _pair_alpha(params, pixel_uv, pair_splat, pair_pixel)
+                log_one_minus = torch.log1p(-alpha.double())
+                weight = alpha * torch.exp(
+                    _log_transmittance(log_one_minus, pair_pixel, log_t)).to(alpha.dtype)
+                weights.append(weight)
+                pair_pixels.append(pair_pixel)
+                pair_splats.append(pair_splat)
+                log_t = log_t.index_add(0, pair_pixel, log_one_minus)
+            if first < len(splats):
+                # Pixels that stopped leave the later batches. Whether any did is not read:
+                # re-binning costs a sort of the pixels on the device, a read a wait.
                 active &= stops == 0
-                # Once every pixel has stopped, the next batch has no candidates and takes
-                # all remaining splats: one more read, instead of one per batch to ask.
                 pixels_by_tile, tile_count, tile_first = grid.bin_pixels(
                     pixel_uv, pixel_camera, active)
                 before = None
@@ -371,6 +372,17 @@ def _composite(splats: Splats, pixel_uv: torch.Tensor, pixel_camera: torch.Tenso
         empty = torch.zeros(0, dtype=torch.long, device=device)
         return params[:0, 0] * 0, empty, empty
     return torch.cat(weights), torch.cat(pair_pixels), torch.cat(pair_splats)
+
+
+def _log_transmittance(log_one_minus: torch.Tensor, pair_pixel: torch.Tensor,
+                      log_t: torch.Tensor) -> torch.Tensor:
+    """log T before each pair: the pixel's running log T plus an exclusive segmented cumsum
+    of log(1 - alpha) over its earlier pairs (pairs sorted by pixel, float64; a global cumsum
+    minus its value at each pixel's first pair)."""
+    running = torch.cumsum(log_one_minus, 0) - log_one_minus                 # exclusive
+    pairs_per_pixel = _counts(pair_pixel, log_t.shape[0])
+    segment_first = torch.cumsum(pairs_per_pixel, 0) - pairs_per_pixel
+    return running - running[segment_first[pair_pixel]] + log_t[pair_pixel]
 
 
 class _TileGrid:
