@@ -36,7 +36,8 @@ class ODGCriterion:
     render: False for the ablation "without rendering supervision".
     render_pixels_per_camera: supervised LiDAR pixels per camera and call (random, seeded);
         <= 0 uses all of them.
-    renderer: a callable with the signature of ``odg_ros.render.render_cameras`` (the default).
+    renderer: None for ours (every layer and sample in one ``render_scenes`` call), or a
+        callable with the signature of ``odg_ros.render.render_cameras`` (one call each).
     nn_method: nearest-neighbour search of the Chamfer loss ("auto", "kdtree", "cdist").
 
     After each call ``last_stats`` holds counts worth logging (samples without occupied voxel,

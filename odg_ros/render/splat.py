@@ -251,17 +251,8 @@ def _visible_splats(candidates: Splats, visible: torch.Tensor, grid: "_TileGrid"
     col0, col1 = (torch.where(boxed, grid.column(x), 0) for x in (lo[:, 0], hi[:, 0]))
     row0, row1 = (torch.where(boxed, grid.row(y), 0) for y in (lo[:, 1], hi[:, 1]))
     tiles_of_splat = torch.where(boxed, (col1 - col0 + 1) * (row1 - row0 + 1), 0)[order]
-    # requested pixels under each splat's tiles: a summed-area table of the tile counts
-    table = tile_count.new_zeros(grid.num_cameras, grid.tiles_y + 1, grid.tiles_x + 1)
-    table[:, 1:, 1:] = tile_count.view(grid.num_cameras, grid.tiles_y,
-                                       grid.tiles_x).cumsum(1).cumsum(2)
-    table = table.flatten()
-
-    def corner(row, col):
-        return table[(candidates.camera * (grid.tiles_y + 1) + row) * (grid.tiles_x + 1) + col]
-
-    pairs_of_splat = torch.where(boxed, corner(row1 + 1, col1 + 1) - corner(row0, col1 + 1)
-                                 - corner(row1 + 1, col0) + corner(row0, col0), 0)[order]
+    pairs_of_splat = torch.where(boxed, _pixels_in_boxes(
+        grid, tile_count, candidates.camera, row0, row1, col0, col1), 0)[order]
     zero = pairs_of_splat.new_zeros(1)
     pairs_before = torch.cat([zero, torch.cumsum(pairs_of_splat, 0)])      # before splat i
     tiles_before = torch.cat([zero, torch.cumsum(tiles_of_splat, 0)])
@@ -278,6 +269,23 @@ def _visible_splats(candidates: Splats, visible: torch.Tensor, grid: "_TileGrid"
         raise FloatingPointError("Gaussian projection overflowed (non-finite 2D mean or "
                                  "covariance); scales or positions are out of range")
     return order[:num_visible], num_tile_pairs, (tile_pairs_before, last, num_candidates)
+
+
+def _pixels_in_boxes(grid: "_TileGrid", tile_count: torch.Tensor, camera: torch.Tensor,
+                     row0: torch.Tensor, row1: torch.Tensor, col0: torch.Tensor,
+                     col1: torch.Tensor) -> torch.Tensor:
+    """Binned pixels in each box of tiles [row0, row1] x [col0, col1] of a camera (the
+    candidate pairs of a splat), from a summed-area table: no (splat, tile) list needed."""
+    table = tile_count.new_zeros(grid.num_cameras, grid.tiles_y + 1, grid.tiles_x + 1)
+    table[:, 1:, 1:] = tile_count.view(grid.num_cameras, grid.tiles_y,
+                                       grid.tiles_x).cumsum(1).cumsum(2)
+    table = table.flatten()
+
+    def corner(row, col):
+        return table[(camera * (grid.tiles_y + 1) + row) * (grid.tiles_x + 1) + col]
+
+    return (corner(row1 + 1, col1 + 1) - corner(row0, col1 + 1) - corner(row1 + 1, col0)
+            + corner(row0, col0))
 
 
 def _composite(splats: Splats, pixel_uv: torch.Tensor, pixel_camera: torch.Tensor,
@@ -305,31 +313,28 @@ def _composite(splats: Splats, pixel_uv: torch.Tensor, pixel_camera: torch.Tenso
                           splats.cov_yy, splats.det, splats.opacity], dim=-1)    # [S, 6]
     weights, pair_pixels, pair_splats = [], [], []
     if len(splats) and num_pixels:
-        st_splat, st_tile = _splat_tiles(splats, grid, num_tile_pairs)
+        st_splat, st_tile, boxes = _splat_tiles(splats, grid, num_tile_pairs)
         splat_first_st = torch.searchsorted(st_splat, torch.arange(len(splats) + 1, device=device))
         log_t = torch.zeros(num_pixels, dtype=torch.float64, device=device)  # running log T
         active = torch.ones(num_pixels, dtype=torch.bool, device=device)
         pixels_by_tile, tile_count, tile_first = binned
-        # Candidates before each (splat, tile) pair, counted over the still-active pixels;
-        # a leading 0 so that before[a] is the count before pair a.
-        before = None
-        splat_of_pair = torch.cat([st_splat, st_splat.new_full((1,), len(splats))])
         first = 0                                       # first splat of the batch
         bounds = (0, *first_batch)                      # known from the first read
         while first < len(splats):
             with torch.no_grad():
                 if bounds is None:
-                    if before is None:                  # (re)counted when pixels drop out
-                        before = torch.cat([st_tile.new_zeros(1),
-                                            torch.cumsum(tile_count[st_tile], 0)])
-                    # The batch's bounds and candidate count on the device, read in one copy.
-                    # (one-element tensors: indexing with a 0-d tensor would read it on the host)
-                    a = splat_first_st[first:first + 1]
-                    before_a = before.index_select(0, a)
-                    cut = torch.searchsorted(before[1:], before_a + CANDIDATE_CHUNK, right=True)
-                    last = torch.clamp_min(splat_of_pair.index_select(0, cut), first + 1)
-                    b = splat_first_st.index_select(0, last)
-                    bounds = torch.cat([a, b, last, before.index_select(0, b) - before_a]).tolist()
+                    # The batch's bounds and candidate count on the device, read in one copy:
+                    # whole splats while the active pixels under their boxes add up to at
+                    # most CANDIDATE_CHUNK (at least one splat).
+                    through = torch.cumsum(_pixels_in_boxes(
+                        grid, tile_count, splats.camera[first:],
+                        *(edge[first:] for edge in boxes)), 0)
+                    count = torch.searchsorted(through, through.new_full(
+                        (1,), CANDIDATE_CHUNK), right=True).clamp_min(1)
+                    bounds = torch.cat([splat_first_st[first:first + 1],
+                                        splat_first_st.index_select(0, first + count),
+                                        first + count,
+                                        through.index_select(0, count - 1)]).tolist()
                 a, b, last, num_candidates = bounds
                 bounds = None
                 pair_splat, pair_pixel = _candidate_pairs(
@@ -367,7 +372,6 @@ def _composite(splats: Splats, pixel_uv: torch.Tensor, pixel_camera: torch.Tenso
                 active &= stops == 0
                 pixels_by_tile, tile_count, tile_first = grid.bin_pixels(
                     pixel_uv, pixel_camera, active)
-                before = None
     if not weights:
         empty = torch.zeros(0, dtype=torch.long, device=device)
         return params[:0, 0] * 0, empty, empty
@@ -423,7 +427,8 @@ class _TileGrid:
 def _splat_tiles(splats: Splats, grid: _TileGrid, total: int):
     """Every (splat, tile) pair where the splat's alpha >= 1/255 box touches the tile,
     sorted by splat; total = the number of those pairs (read by the caller).
-    -> st_splat [T] long, st_tile [T] long (global tile id)."""
+    -> st_splat [T] long, st_tile [T] long (global tile id), and each splat's box of tiles
+    (row0, row1, col0, col1) [S] long."""
     device = splats.mean2d.device
     lo = splats.mean2d.detach() - splats.half_extent
     hi = splats.mean2d.detach() + splats.half_extent
@@ -438,7 +443,7 @@ def _splat_tiles(splats: Splats, grid: _TileGrid, total: int):
     st_tile = (splats.camera[st_splat] * grid.tiles_per_camera
                + (row0[st_splat] + local // span[st_splat]) * grid.tiles_x
                + col0[st_splat] + local % span[st_splat])
-    return st_splat, st_tile
+    return st_splat, st_tile, (row0, row1, col0, col1)
 
 
 def _candidate_pairs(st_splat, st_tile, pixels_by_tile, tile_count, tile_first, total):
