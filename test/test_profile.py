@@ -18,7 +18,7 @@ MAX_SYNCS_OUTSIDE_RENDERER = 16
 # One renderer call draws all six layers. It still waits for the device to size its work:
 # the projection's candidates, one read of every size and check before compositing, and one
 # compaction per depth batch (one batch here). Pinned where it is, so that it can only go down.
-MAX_SYNCS = 10
+MAX_SYNCS = 9
 
 
 @pytest.fixture(scope="module")
