@@ -38,3 +38,33 @@ def test_an_unknown_part_is_refused(tmp_path):
     result = gpu_checks("benchmark", tmp_path, DEVICE="cpu")
     assert result.returncode == 2
     assert "unknown part 'benchmark'" in result.stdout
+
+
+def test_every_command_line_of_every_part_parses(tmp_path):
+    """CHECK=parse records each command of the GPU run (CUDA modes included) and has each
+    command's own parser check it, and pytest collect the tests: no typo reaches a GPU."""
+    result = gpu_checks("all", tmp_path, DEVICE="cpu", CHECK="parse")
+    assert result.returncode == 0, result.stdout + result.stderr
+    lines = [json.loads(line) for line in (tmp_path / "commands.jsonl").read_text().splitlines()]
+    commands = {" ".join(line[:2]) for line in lines}
+    for expected in ("odg train", "odg profile", "odg bench", "odg export", "odg demo",
+                     "tools/measure_node_overhead.py --sets", "pytest -q"):
+        assert expected in commands, expected
+    train = [line for line in lines if line[:2] == ["odg", "train"] and "odg_t" in line]
+    assert train and all("--backbone-weights" in line for line in train)
+    bench = [line for line in lines if line[:2] == ["odg", "bench"] and "--compile" in line]
+    assert bench and "eager,compiled,graphs" in bench[0] and "fp32,bf16" in bench[0]
+    assert "29 command lines, 0 refused" in result.stdout
+
+
+def test_a_typo_in_a_command_line_fails_the_parse_check(tmp_path):
+    script = (ROOT / "tools/gpu_checks.sh").read_text()
+    broken = tmp_path / "gpu_checks.sh"
+    broken.write_text(script.replace("--log-every 4", "--log-evry 4")
+                      .replace('cd "$(dirname "$0")/.."', f'cd "{ROOT}"'))
+    result = subprocess.run(["bash", str(broken), "speed", str(tmp_path / "out")],
+                            env=dict(os.environ, PYTHON=sys.executable, DEVICE="cpu",
+                                     CHECK="parse"),
+                            capture_output=True, text=True, timeout=300)
+    assert result.returncode == 1
+    assert "unrecognized arguments: --log-evry" in result.stdout

@@ -59,4 +59,6 @@ def test_profile_command_prints_phases_and_lines(split, tmp_path, capsys):
         assert f"\n{phase}" in text
     saved = json.loads(out.read_text())
     assert saved["ops_per_step"] > 0 and len(saved["ops_by_line"]) == 3
+    assert sum(p["ops"] for p in saved["by_phase"].values()) == saved["ops_per_step"]
+    assert saved["by_phase"]["backward"]["ops"] > 0 and saved["gpu"] is None
     assert main(["profile", "train", "--data", str(tmp_path / "missing.pkl")]) == 2

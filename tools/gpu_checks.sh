@@ -5,39 +5,63 @@
 #
 #   make gpu-wheels                        # on a machine with PyPI: gsplat's wheel into .whl/
 #   bash tools/gpu_checks.sh PART [OUT]    # on the GPU machine (carry .whl there)
-# Where one job may run at most ten minutes, run it as three jobs on the same machine (carry
-# .whl along; times measured on the H100):
-#   1. build (87 s), tests (29 s), train (5 min)   only these two need the gsplat build
-#   2. bench (64 s), sweep (7 min)
-#   3. presets (4 min: torch.compile takes ~90 s per model)
+# Where one job may run at most ten minutes, run the parts as jobs on one machine (carry .whl;
+# PART may list several, comma-separated), most wanted first. Times are estimates from the
+# first H100 run (ODG-T trained at 2.98 s a step then; torch.compile took ~90 s per model):
+#   1. build,speed     gsplat JIT (90 s); 4 ODG-T runs + odg_cpu (~5 min)
+#   2. node_t          4 compiles of ODG-T's step (~6-8 min)
+#   3. profile,compile census + profiler (~1 min); --compile (~3 min), checkpointing (~1 min)
+#   4. node_cpu,aoti   ~3 min; AOTInductor export and load (~3 min)
+#   5. node_l          ~6-8 min
+#   6. tests,train     ~4 min (the AOTInductor test compiles C++); ~3 min
+#   7. node            odg demo (~2 min) and the node's overhead (~1 min)
+#   8. bench,sweep     64 s, 7 min;  9. presets  4 min
 #
 # PART ("all" runs every one in this order):
 #   build    gsplat's CUDA kernels, JIT-compiled into .torch_extensions/ (kept for the next
 #            parts on the same machine), and what the machine is
-#   tests    the tests that only run on CUDA: gsplat's kernels render what our renderer does
-#            (values and gradients), a training run with the gsplat render loss, and every
-#            renderer / gsplat / training test on this machine
-#   bench    one online step of ODG-T and ODG-L at paper resolution (6 x 256 x 704, 8 frames),
-#            fp32 and bf16, per stage, and of the shipped odg_cpu checkpoint
-#   sweep    speed against error of the shipped checkpoint on this GPU (odg bench --sweep on a
-#            one-scene synthetic world): history, pruning, query budgets, bf16/fp16,
-#            torch.compile and CUDA graphs
+#   tests    the tests that only run on CUDA: gsplat against our renderer (values and
+#            gradients), training with gsplat, nvJPEG decoding of camera sets, the prefetcher's
+#            side-stream uploads, the node's step in every mode, and the AOTInductor file
+#            end to end (ODG_AOTI_TEST=1: a C++ compile)
+#   train    the shipped checkpoint scored on CUDA and on the CPU (the same grid, to float
+#            noise); odg_cpu and ODG-T trained 12 steps with our renderer and gsplat's
+#   speed    seconds per training step: ODG-T at batch 1, 2 and 4, odg_cpu at batch 1
+#            (--log-every 4), the GPU's utilisation sampled meanwhile (nvidia-smi)
+#   profile  odg profile train on CUDA: census, kernel time against wall time (ODG-T, odg_cpu)
+#   compile  ODG-T trained a few steps with --compile, then with --checkpoint-backbone
+#   node_t   odg bench --compile eager,compiled,graphs --precision fp32,bf16: ODG-T at
+#   node_l   6 x 256 x 704, 8 frames (random weights: timing and bf16 error); ODG-L the same;
+#   node_cpu the shipped odg_cpu on the one-scene world's keyframes
+#   aoti     odg export --aoti of the shipped odg_cpu on CUDA, and its load time against the
+#            compile (odg bench --compiled-step)
+#   node     the node end to end (odg demo: the node's device is auto, so CUDA here) and the
+#            node's own overhead per set (tools/measure_node_overhead.py)
+#   bench    one online step of ODG-T and ODG-L at paper resolution, eager, per stage
+#   sweep    speed against error of the shipped checkpoint (odg bench --sweep)
 #   presets  the same for ODG-T and ODG-L at paper resolution (random weights: timing only)
-#   train    the shipped checkpoint scored on that world on CUDA and on the CPU (the same grid,
-#            to float noise), and training speed of odg_cpu and ODG-T with our renderer and
-#            with gsplat's
-# Everything lands in OUT (default out/gpu), at most a few files per part. DEVICE=cpu runs the
-# same commands on the CPU (the CUDA tests skip): how this script is checked without a GPU.
+# Every part makes what it needs (the one-scene world, random ResNet-50 weights for the
+# frozen presets) unless an earlier part on the machine did. Results: JSON, CSV, logs and
+# PNGs in OUT (default out/gpu), and the whole output in OUT/gpu_checks.log;
+# `python tools/gpu_report.py OUT` turns them into the tables of a report.
+# DEVICE=cpu runs the same commands on the CPU (the CUDA tests skip): how this script is
+# checked without a GPU. CHECK=parse runs nothing: each command line is recorded, and at the
+# end its options are parsed by the command's own parser (pytest lines: collected, at least one
+# test selected), so that the script is checked in seconds (test/test_gpu_checks.py).
 set -uo pipefail
 cd "$(dirname "$0")/.."
 PART=${1:-all}
 OUT=${2:-${OUT:-out/gpu}}
 DEVICE=${DEVICE:-cuda}
+CHECK=${CHECK:-run}
 PY=${PYTHON:-python3}
 mkdir -p "$OUT"
 export PYTHONUNBUFFERED=1 PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}"
 export TORCH_EXTENSIONS_DIR="$PWD/.torch_extensions" MAX_JOBS=${MAX_JOBS:-$(nproc)}
+exec > >(tee -a "$OUT/gpu_checks.log") 2>&1
 failed=0
+COMMANDS="$OUT/commands.jsonl"   # CHECK=parse: the command lines, checked at the end
+[ "$CHECK" = parse ] && : > "$COMMANDS"
 
 say() { echo "gpu_checks: $*"; }
 step() {  # step NAME command...: run, time, keep going when it fails (each part says so)
@@ -47,9 +71,38 @@ step() {  # step NAME command...: run, time, keep going when it fails (each part
     if "$@"; then say "$name: ok in $((SECONDS - start)) s"
     else say "$name: FAILED (exit $?) after $((SECONDS - start)) s"; failed=1; fi
 }
+record() {  # CHECK=parse: keep the command line (one JSON list a line) instead of running it
+    $PY -c 'import json, sys; print(json.dumps(sys.argv[1:]))' "$@" >> "$COMMANDS"
+}
+odg() {
+    if [ "$CHECK" = parse ]; then record odg "$@"; else $PY -m odg_ros.cli "$@"; fi
+}
+tool() {  # tool tools/X.py ARGS...
+    if [ "$CHECK" = parse ]; then record "$@"; else $PY "$@"; fi
+}
+tests() {  # tests PYTEST-ARGS...
+    if [ "$CHECK" = parse ]; then record pytest "$@"; else $PY -m pytest "$@"; fi
+}
+into() {  # into FILE command...: the command's stdout into FILE
+    local file=$1
+    shift
+    if [ "$CHECK" = parse ]; then "$@"; else "$@" > "$file"; fi
+}
+GPU_SAMPLER=
+gpu_sampling() {  # gpu_sampling FILE | gpu_sampling stop: nvidia-smi every 200 ms, if present
+    if [ "$1" = stop ]; then
+        [ -n "$GPU_SAMPLER" ] && kill "$GPU_SAMPLER" 2>/dev/null
+        GPU_SAMPLER=
+    elif [ "$CHECK" = run ] && command -v nvidia-smi >/dev/null; then
+        nvidia-smi --query-gpu=timestamp,utilization.gpu,memory.used,power.draw \
+            --format=csv,nounits -lms 200 > "$1" &
+        GPU_SAMPLER=$!
+    fi
+}
+trap 'gpu_sampling stop' EXIT
 
 # gsplat from the carried wheel where the machine has none (a GPU box may reach no registry)
-if ! $PY -c "import gsplat" 2>/dev/null; then
+if [ "$CHECK" = run ] && ! $PY -c "import gsplat" 2>/dev/null; then
     if compgen -G ".whl/gsplat-*.whl" >/dev/null; then
         $PY -m pip install -q --no-index --no-deps --no-compile --target /tmp/odg_site .whl/*.whl \
             && export PYTHONPATH="$PYTHONPATH:/tmp/odg_site"
@@ -66,7 +119,7 @@ if [ "$DEVICE" = cuda ]; then
 fi
 
 part_build() {
-    $PY - <<'EOF' > "$OUT/machine.json"
+    $PY - <<'PYEOF' > "$OUT/machine.json"
 import json, platform, torch
 info = {"python": platform.python_version(), "torch": torch.__version__,
         "cuda": torch.version.cuda, "device": None}
@@ -80,17 +133,25 @@ try:
 except ImportError:
     pass
 print(json.dumps(info, indent=1))
-EOF
+PYEOF
     cat "$OUT/machine.json"
+    command -v nvidia-smi >/dev/null && nvidia-smi > "$OUT/nvidia-smi.txt"
     if [ "$DEVICE" = cuda ]; then
         step "gsplat CUDA kernels (JIT)" $PY -c "from gsplat.cuda._backend import _C; assert _C is not None, 'gsplat found no CUDA toolkit'"
     fi
 }
 
 part_tests() {
-    step "CUDA tests" $PY -m pytest -q -p no:cacheprovider -rs --timeout 900 \
+    step "CUDA tests" tests -q -p no:cacheprovider -rs --timeout 900 \
         --junitxml="$OUT/tests.xml" test/test_render_gsplat.py test/test_render.py \
         test/test_loss_render.py test/test_train.py -k "cuda or gsplat or render"
+    step "CUDA tests of the data path and the node's step" tests -q -p no:cacheprovider -rs \
+        --timeout 900 --junitxml="$OUT/tests_node.xml" test/test_online_images.py \
+        test/test_data_path.py test/test_online_step.py test/test_online_predictor.py
+    export ODG_AOTI_TEST=1
+    step "AOTInductor file end to end (C++ compile)" tests -q -p no:cacheprovider -rs \
+        --timeout 900 --junitxml="$OUT/tests_aoti.xml" test/test_compiled_step.py
+    unset ODG_AOTI_TEST
 }
 
 part_bench() {
@@ -100,34 +161,44 @@ part_bench() {
     for p in odg_t odg_l; do
         for k in fp32 bf16; do
             [ "$DEVICE" = cpu ] && [ "$p" = odg_l ] && continue  # 16 s a step on a CPU
-            step "bench $p $k" bash -c "$PY -m odg_ros.cli bench --preset $p --device $DEVICE \
-                --precision $k --iters $iters --warmup $warmup --json > $runs/$p-$k.json"
+            step "bench $p $k" into "$runs/$p-$k.json" odg bench --preset $p --device $DEVICE \
+                --precision $k --iters $iters --warmup $warmup --json
         done
     done
     for k in fp32 bf16; do
-        step "bench odg_cpu (shipped) $k" bash -c "$PY -m odg_ros.cli bench --checkpoint \
-            model/odg_cpu.pt --device $DEVICE --precision $k --iters $iters --warmup $warmup \
-            --json > $runs/odg_cpu_shipped-$k.json"
+        step "bench odg_cpu (shipped) $k" into "$runs/odg_cpu_shipped-$k.json" odg bench \
+            --checkpoint model/odg_cpu.pt --device $DEVICE --precision $k --iters $iters \
+            --warmup $warmup --json
     done
+    [ "$CHECK" = parse ] && return
     $PY -c "import json, sys; json.dump({p.split('/')[-1][:-5]: json.load(open(p))
         for p in sys.argv[1:]}, sys.stdout, indent=1)" "$runs"/*.json > "$OUT/bench.json"
 }
 
 WORLD=out/gpu_world  # one 4 s scene (8 keyframes) the training worlds never used
 world() {
-    [ -f "$WORLD/infos_all.pkl" ] && return
-    rm -rf "$WORLD"
-    step "one-scene world" $PY -m odg_ros.cli synth --out "$WORLD" --scenes 1 --seconds 4 \
-        --seed 1000
-    step "infos" $PY -m odg_ros.cli prepare --dataroot "$WORLD" --out "$WORLD/infos_all.pkl" \
-        --split all
+    [ -f "$WORLD/infos_all.pkl" ] || [ -n "${WORLD_RECORDED:-}" ] && return
+    WORLD_RECORDED=$([ "$CHECK" = parse ] && echo 1)
+    [ "$CHECK" = run ] && rm -rf "$WORLD"
+    step "one-scene world" odg synth --out "$WORLD" --scenes 1 --seconds 4 --seed 1000
+    step "infos" odg prepare --dataroot "$WORLD" --out "$WORLD/infos_all.pkl" --split all
+}
+
+R50=out/gpu_resnet50_random.pth  # stands in for ImageNet weights: the frozen presets need some
+resnet50_weights() {
+    [ -f "$R50" ] || [ "$CHECK" = parse ] && return
+    step "random ResNet-50 weights (torchvision layout)" $PY -c "
+import sys, torch
+from odg_ros.network.backbone import ResNet
+torch.manual_seed(0)
+torch.save(ResNet('resnet50').state_dict(), sys.argv[1])" "$R50"
 }
 
 part_sweep() {
     world
     local limit=8 isolate=--no-isolate  # CUDA peak memory is reset per configuration
     [ "$DEVICE" = cpu ] && limit=2 isolate=
-    step "sweep of the shipped checkpoint" $PY -m odg_ros.cli bench --sweep \
+    step "sweep of the shipped checkpoint" odg bench --sweep \
         --data "$WORLD/infos_all.pkl" --checkpoint model/odg_cpu.pt --device "$DEVICE" \
         --out "$OUT/sweep_shipped" --limit $limit --iters 3 $isolate
 }
@@ -136,37 +207,119 @@ part_presets() {
     world
     local presets=config/sweep_presets_gpu.json isolate=--no-isolate
     [ "$DEVICE" = cpu ] && presets=config/sweep_presets_gpu_standin.json isolate=
-    step "sweep of ODG-T and ODG-L" $PY -m odg_ros.cli bench --sweep --configs "$presets" \
+    step "sweep of ODG-T and ODG-L" odg bench --sweep --configs "$presets" \
         --data "$WORLD/infos_all.pkl" --checkpoint model/odg_cpu.pt --device "$DEVICE" \
         --out "$OUT/sweep_presets" --limit 2 --iters 3 $isolate
 }
 
+train_run() {  # train_run NAME PRESET STEPS ARGS...: odg train, its log kept as OUT/train_NAME.csv
+    local name=$1 preset=$2 steps=$3 runs=out/gpu_runs weights=
+    shift 3
+    [ "$preset" != odg_cpu ] && weights="--backbone-weights $R50"
+    [ "$CHECK" = run ] && rm -rf "$runs/$name"
+    step "train $name" odg train --preset "$preset" --data "$WORLD/infos_all.pkl" \
+        --out "$runs/$name" --steps "$steps" --checkpoint-every 1000 --device "$DEVICE" \
+        --workers 4 $weights "$@"
+    [ "$CHECK" = run ] && cp "$runs/$name/train_log.csv" "$OUT/train_$name.csv" 2>/dev/null
+    return 0
+}
+
 part_train() {
-    local world=$WORLD runs=out/gpu_runs
     world
+    resnet50_weights
     for d in "$DEVICE" cpu; do
-        step "eval on $d" bash -c "$PY -m odg_ros.cli eval --checkpoint model/odg_cpu.pt \
-            --data '$world/infos_all.pkl' --device $d --json > '$OUT/eval_$d.json'"
+        step "eval on $d" into "$OUT/eval_$d.json" odg eval --checkpoint model/odg_cpu.pt \
+            --data "$WORLD/infos_all.pkl" --device $d --json
         [ "$DEVICE" = cpu ] && break
     done
-    local renderers=torch preset
+    local renderers=torch
     [ "$DEVICE" = cuda ] && renderers="torch gsplat"
     for preset in odg_cpu odg_t; do
         for r in $renderers; do
-            rm -rf "$runs/$preset-$r"
-            step "train $preset ($r renderer)" $PY -m odg_ros.cli train --preset "$preset" \
-                --data "$world/infos_all.pkl" --out "$runs/$preset-$r" --steps 12 \
-                --checkpoint-every 1000 --device "$DEVICE" --renderer "$r" --workers 2
-            cp "$runs/$preset-$r/train_log.csv" "$OUT/train_${preset}_$r.csv" 2>/dev/null
+            train_run "${preset}_$r" $preset 12 --renderer $r --log-every 4
         done
-        [ "$DEVICE" = cpu ] && break  # ODG-T trains at tens of seconds a step on a CPU
+        [ "$DEVICE" = cpu ] && [ "$CHECK" = run ] && break  # ODG-T: tens of seconds a step
     done
 }
 
-case "$PART" in
-    build|tests|bench|sweep|presets|train) "part_$PART" ;;
-    all) part_build; part_tests; part_train; part_bench; part_sweep; part_presets ;;
-    *) say "unknown part '$PART' (build, tests, bench, sweep, presets, train or all)"; exit 2 ;;
-esac
+part_speed() {  # seconds per step, --log-every 4: three reads after the first (compiling) one
+    world
+    resnet50_weights
+    gpu_sampling "$OUT/gpu_util_speed.csv"
+    train_run odg_cpu_b1 odg_cpu 16 --log-every 4
+    for b in 1 2 4; do
+        train_run odg_t_b$b odg_t 16 --batch-size $b --log-every 4
+        [ "$DEVICE" = cpu ] && [ "$CHECK" = run ] && break
+    done
+    gpu_sampling stop
+}
+
+part_profile() {
+    world
+    resnet50_weights
+    step "profile ODG-T" odg profile train --preset odg_t --backbone-weights "$R50" \
+        --data "$WORLD/infos_all.pkl" --device "$DEVICE" --json "$OUT/profile_odg_t.json"
+    step "profile odg_cpu" odg profile train --preset odg_cpu --data "$WORLD/infos_all.pkl" \
+        --device "$DEVICE" --json "$OUT/profile_odg_cpu.json"
+}
+
+part_compile() {
+    world
+    resnet50_weights
+    gpu_sampling "$OUT/gpu_util_compile.csv"
+    train_run odg_t_compile odg_t 12 --compile --log-every 4
+    train_run odg_t_checkpointed odg_t 12 --checkpoint-backbone --log-every 4
+    gpu_sampling stop
+}
+
+node_bench() {  # node_bench NAME ARGS...: the node's step in every mode, fp32 and bf16
+    local name=$1 modes=eager,compiled,graphs iters=20 warmup=3
+    shift
+    [ "$DEVICE" = cpu ] && [ "$CHECK" = run ] && modes=eager,compiled iters=2 warmup=1
+    step "node step $name" into "$OUT/node_$name.json" odg bench --compile $modes \
+        --precision fp32,bf16 --device "$DEVICE" --iters $iters --warmup $warmup --json "$@"
+}
+
+part_node_t() { node_bench odg_t --preset odg_t --frames 8; }
+part_node_l() { node_bench odg_l --preset odg_l --frames 8; }
+part_node_cpu() {
+    world
+    node_bench odg_cpu --checkpoint model/odg_cpu.pt --data "$WORLD/infos_all.pkl"
+}
+
+part_aoti() {
+    world
+    local file=out/gpu_runs/odg_cpu_$DEVICE.pt2 modes=eager,compiled,graphs
+    [ "$DEVICE" = cpu ] && [ "$CHECK" = run ] && modes=eager,compiled
+    mkdir -p out/gpu_runs
+    step "odg export --aoti (odg_cpu)" odg export --checkpoint model/odg_cpu.pt --aoti "$file" \
+        --device "$DEVICE"
+    step "node step from the exported file" into "$OUT/node_odg_cpu_aoti.json" odg bench \
+        --compile $modes --compiled-step "$file" --checkpoint model/odg_cpu.pt \
+        --data "$WORLD/infos_all.pkl" --device "$DEVICE" --iters 20 --warmup 3 --json
+}
+
+part_node() {
+    step "odg demo (the node on $DEVICE)" into "$OUT/demo.json" odg demo --out out/gpu_demo \
+        --rate 1 --json
+    [ "$CHECK" = run ] && cp out/gpu_demo/demo.png out/gpu_demo/node.log "$OUT/" 2>/dev/null
+    step "node overhead" into "$OUT/node_overhead.txt" tool tools/measure_node_overhead.py \
+        --sets 30 --model-ms 15
+}
+
+PARTS="build tests train speed profile compile node_t node_l node_cpu aoti node bench sweep presets"
+[ "$PART" = all ] && PART=${PARTS// /,}
+for part in ${PART//,/ }; do
+    if [[ " $PARTS " != *" $part "* ]]; then
+        say "unknown part '$part' (one or more, comma-separated, of: $PARTS; or all)"; exit 2
+    fi
+done
+for part in ${PART//,/ }; do
+    say "part $part"
+    "part_$part"
+done
+if [ "$CHECK" = parse ]; then
+    step "command lines parse" $PY tools/gpu_checks_parse.py "$COMMANDS"
+fi
 say "results in $OUT: $(ls "$OUT" | tr '\n' ' ')"
 exit $failed

@@ -13,7 +13,7 @@ import torch
 
 from ..config import PRESET_NAMES, load_preset
 from ..data.batch import collate
-from ..train.census import census_of_steps
+from ..train.census import PHASES, census_of_steps
 from ..train.trainer import Trainer, TrainOptions
 from .common import device, existing_file, infos_file, positive_int, preset
 
@@ -64,20 +64,26 @@ def run(args) -> int:
           f"{args.batch_size}, {where}, {args.steps} counted step(s) "
           f"({seconds:.1f} s with the warm-up, under the census)\n")
     print(census.report(args.top))
+    gpu = None
     if trainer.device.type == "cuda":
-        print("\n" + cuda_profile(trainer, batches[-1]))
+        gpu = cuda_profile(trainer, batches[-1])
+        print("\n" + gpu.pop("table"))
     if args.json:
-        Path(args.json).write_text(json.dumps({
+        Path(args.json).write_text(json.dumps({"device": str(trainer.device), "gpu": gpu,
             "preset": cfg.name, "image_size": list(cfg.image_size), "cuda_paths": args.cuda_paths,
             "batch_size": args.batch_size, "ops_per_step": census.per_step(census.ops),
             "syncs_per_step": census.per_step(census.syncs),
+            "by_phase": {phase: {"ops": census.per_step(census.ops, phase),
+                                 "syncs": census.per_step(census.syncs, phase)}
+                         for phase in PHASES + ("other",)},
             "syncs_by_line": census.by_line(census.syncs, args.top),
             "ops_by_line": census.by_line(census.ops, args.top)}, indent=1))
     return 0
 
 
-def cuda_profile(trainer, batch) -> str:
-    """Kernel time against wall time of one step on the GPU (a GPU-bound step has them close)."""
+def cuda_profile(trainer, batch) -> dict:
+    """Kernel time against wall time of one step on the GPU (a GPU-bound step has them close):
+    the numbers, the busiest kernels, and ``table``, the text to print."""
     from torch.profiler import ProfilerActivity, profile
     torch.cuda.synchronize()
     with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as prof:
@@ -86,6 +92,12 @@ def cuda_profile(trainer, batch) -> str:
         torch.cuda.synchronize()
         wall = time.perf_counter() - start
     kernel = sum(e.self_device_time_total for e in prof.key_averages()) / 1e6
+    averages = sorted(prof.key_averages(), key=lambda e: -e.self_device_time_total)
     table = prof.key_averages().table(sort_by="self_cuda_time_total", row_limit=10)
-    return (f"one step on the GPU: {wall:.3f} s wall, {kernel:.3f} s of kernels "
-            f"({100 * kernel / wall:.0f}% busy under the profiler)\n{table}")
+    return {"wall_s": round(wall, 4), "kernel_s": round(kernel, 4),
+            "busy": round(kernel / wall, 3),
+            "top_kernels": [{"name": e.key, "calls": e.count,
+                             "seconds": round(e.self_device_time_total / 1e6, 5)}
+                            for e in averages[:10]],
+            "table": f"one step on the GPU: {wall:.3f} s wall, {kernel:.3f} s of kernels "
+                     f"({100 * kernel / wall:.0f}% busy under the profiler)\n{table}"}
