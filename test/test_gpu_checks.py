@@ -68,3 +68,40 @@ def test_a_typo_in_a_command_line_fails_the_parse_check(tmp_path):
                             capture_output=True, text=True, timeout=300)
     assert result.returncode == 1
     assert "unrecognized arguments: --log-evry" in result.stdout
+
+
+def test_report_tables_from_the_results_of_a_run(tmp_path):
+    """tools/gpu_report.py: training seconds after the warm-up steps, samples/s from the batch
+    in the run's name, GPU utilisation, the profile and a real node bench result."""
+    sys.path.insert(0, str(ROOT / "tools"))
+    from gpu_report import report
+    from odg_ros.benchmark import bench_node_step
+    from test_online_predictor import make_model
+
+    model, cfg = make_model()
+    bench = bench_node_step(cfg, "cpu", ("eager",), iters=1, warmup=0, model=model,
+                            progress=False, precisions=("fp32", "bf16"))
+    (tmp_path / "node_tiny.json").write_text(json.dumps(bench))
+    seconds = [9.0] * 4 + [0.5, 0.7, 0.6, 0.6, 0.8, 0.8, 0.8, 0.8]   # one read every 4 steps
+    rows = ["step,seconds,skipped_total"] + [f"{i + 1},{s},0" for i, s in enumerate(seconds)]
+    (tmp_path / "train_odg_t_b4.csv").write_text("\n".join(rows) + "\n")
+    (tmp_path / "gpu_util_speed.csv").write_text(
+        "timestamp, utilization.gpu [%], memory.used [MiB], power.draw [W]\n"
+        "2026/11/25 10:00:00.000, 0, 1024, 70\n2026/11/25 10:00:00.200, 80, 4096, 300\n"
+        "2026/11/25 10:00:00.400, 100, 2048, 310\n2026/11/25 10:00:00.6")   # cut off
+    (tmp_path / "profile_odg_t.json").write_text(json.dumps({
+        "preset": "odg_t", "image_size": [256, 704], "device": "cuda:0", "ops_per_step": 9000.0,
+        "syncs_per_step": 40.0, "by_phase": {"forward": {"ops": 5000.0, "syncs": 2.0}},
+        "gpu": {"wall_s": 0.5, "kernel_s": 0.4, "busy": 0.8,
+                "top_kernels": [{"name": "sm90_gemm", "calls": 300, "seconds": 0.1}]}}))
+    (tmp_path / "demo.json").write_text("{not json")
+    text = report(tmp_path)
+    # median of the steps after the first 4: 0.75 s a step of 4 samples
+    assert "| odg_t_b4 | 12 | 4 | 0.750 | 0.188 | 5.33 | 36.0 s | 0 skipped |" in text
+    assert "| speed | 3 | 60 | 90 | 4.0 |" in text
+    assert "| odg_t | 256 x 704 | cuda:0 | 9,000 | 40 | 0.500 | 0.400 | 80 |" in text
+    assert "| odg_t | sm90_gemm | 300 | 100.0 |" in text
+    for variant in ("eager-fp32", "eager-bf16"):
+        assert f"| tiny | {variant} | {cfg.image_size[0]} x {cfg.image_size[1]} |" in text
+    assert "| tiny | eager-bf16 | " in text.split("Largest differences")[1]
+    assert "(not summarised: demo.json: JSONDecodeError" in text

@@ -1,0 +1,202 @@
+"""The markdown tables of a GPU report (docs/reports/YYYY-MM-DD-<device>.md) from the results
+of ``tools/gpu_checks.sh`` in OUT: paste them, then write what they say.
+
+    python tools/gpu_report.py OUT [--skip-steps 4] > tables.md
+
+Reads what is there (every part is optional): machine.json, tests*.xml, train_*.csv,
+gpu_util_*.csv, profile_*.json, node_*.json, eval_*.json, demo.json. A file that cannot be
+read is named in one line in the output instead of its table.
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import re
+import statistics
+import sys
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+
+def table(header: list[str], rows: list[list]) -> str:
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    lines += ["| " + " | ".join("" if v is None else str(v) for v in row) + " |" for row in rows]
+    return "\n".join(lines)
+
+
+def fmt(value, digits=2) -> str:
+    if value is None:
+        return "-"
+    if isinstance(value, float):
+        return f"{value:,.{digits}f}"
+    return f"{value:,}" if isinstance(value, int) else str(value)
+
+
+def machine(out: Path) -> str:
+    m = json.loads((out / "machine.json").read_text())
+    gpu = m.get("device") or "no GPU"
+    extra = f", {m['memory_gib']} GiB, capability {m['capability']}" if m.get("device") else ""
+    return (f"Machine: **{gpu}**{extra}; PyTorch {m['torch']} (CUDA {m.get('cuda')}), "
+            f"Python {m['python']}, gsplat {m.get('gsplat', 'not installed')}.")
+
+
+def tests(out: Path) -> str:
+    rows = []
+    for path in sorted(out.glob("tests*.xml")):
+        suite = ET.parse(path).getroot()
+        suite = suite if suite.tag == "testsuite" else suite.find("testsuite")
+        n = {k: int(suite.get(k, 0)) for k in ("tests", "failures", "errors", "skipped")}
+        failed = [f"{c.get('name')}" for c in suite.iter("testcase")
+                  if c.find("failure") is not None or c.find("error") is not None]
+        rows.append([path.name, n["tests"] - n["failures"] - n["errors"] - n["skipped"],
+                     n["failures"] + n["errors"], n["skipped"], ", ".join(failed) or "-"])
+    return table(["junit file", "passed", "failed", "skipped", "failed tests"], rows)
+
+
+def batch_of(name: str) -> int:
+    match = re.search(r"_b(\d+)$", name)
+    return int(match.group(1)) if match else 1
+
+
+def train(out: Path, skip_steps: int) -> str:
+    """Seconds per step: the median over the steps after the first ``skip_steps`` (warm-up,
+    compiling). The log's seconds are per step, averaged between two reads of the losses."""
+    rows = []
+    for path in sorted(out.glob("train_*.csv")):
+        with path.open() as f:
+            log = list(csv.DictReader(f))
+        name = path.stem[len("train_"):]
+        timed = [float(r["seconds"]) for r in log[skip_steps:] if r.get("seconds")]
+        first = [float(r["seconds"]) for r in log[:skip_steps] if r.get("seconds")]
+        if not timed:
+            rows.append([name, len(log), "-", "-", "-", "-", "too few steps"])
+            continue
+        seconds = statistics.median(timed)
+        batch = batch_of(name)
+        skipped = log[-1].get("skipped_total", "0") if log else "0"
+        rows.append([name, len(log), batch, fmt(seconds, 3), fmt(seconds / batch, 3),
+                     fmt(batch / seconds), fmt(sum(first), 1) + " s" if first else "-",
+                     f"{skipped} skipped"])
+    return table(["run", "steps", "batch", "s/step (median)", "s/sample", "samples/s",
+                  f"first {skip_steps} steps", "notes"], rows)
+
+
+def gpu_util(out: Path) -> str:
+    rows = []
+    for path in sorted(out.glob("gpu_util_*.csv")):
+        samples = []
+        with path.open() as f:
+            for line in f:
+                fields = [x.strip() for x in line.split(",")]
+                try:
+                    samples.append((float(fields[1]), float(fields[2])))
+                except (IndexError, ValueError):
+                    continue   # the header, a truncated last line
+        if not samples:
+            rows.append([path.stem, 0, "-", "-", "-"])
+            continue
+        util = [u for u, _ in samples]
+        busy = [u for u in util if u > 0]
+        rows.append([path.stem[len("gpu_util_"):], len(samples), fmt(statistics.mean(util), 0),
+                     fmt(statistics.median(busy), 0) if busy else "-",
+                     fmt(max(m for _, m in samples) / 1024, 1)])
+    return table(["part", "samples (200 ms)", "mean GPU util %", "median util % while busy",
+                  "peak memory GiB"], rows)
+
+
+def profile(out: Path) -> str:
+    rows, kernels = [], []
+    for path in sorted(out.glob("profile_*.json")):
+        p = json.loads(path.read_text())
+        gpu = p.get("gpu") or {}
+        phases = ", ".join(f"{k} {v['ops']:,.0f}/{v['syncs']:,.0f}"
+                           for k, v in p.get("by_phase", {}).items() if v["ops"] or v["syncs"])
+        rows.append([p["preset"], f"{p['image_size'][0]} x {p['image_size'][1]}",
+                     p.get("device", "-"), fmt(p["ops_per_step"], 0), fmt(p["syncs_per_step"], 0),
+                     fmt(gpu.get("wall_s"), 3), fmt(gpu.get("kernel_s"), 3),
+                     fmt(100 * gpu["busy"], 0) if "busy" in gpu else "-", phases])
+        for k in gpu.get("top_kernels", [])[:5]:
+            kernels.append([p["preset"], k["name"][:60], k["calls"], fmt(1e3 * k["seconds"], 1)])
+    text = table(["preset", "input", "device", "ops/step", "host syncs/step", "wall s",
+                  "kernel s", "busy %", "ops/syncs by phase"], rows)
+    if kernels:
+        text += "\n\n" + table(["preset", "kernel", "calls", "ms"], kernels)
+    return text
+
+
+def node(out: Path) -> str:
+    rows, errors = [], []
+    for path in sorted(out.glob("node_*.json")):
+        r = json.loads(path.read_text())
+        for name, m in r["modes"].items():
+            lat = m["latency_ms"]
+            rows.append([path.stem[len("node_"):], name, f"{r['input'][2]} x {r['input'][3]}",
+                         r["frames"], fmt(lat["step"], 1), fmt(lat["model"], 1), fmt(m["fps"], 1),
+                         fmt(m["speedup"]), fmt(m["startup_s"], 1),
+                         fmt(m["grid_agreement_min"], 4), fmt(m["occupied_agreement_min"], 4)])
+            if "max_difference" in m:
+                errors.append([path.stem[len("node_"):], name] + [
+                    ", ".join(f"{k} {v:.3g}" for k, v in m["max_difference"].items())])
+    text = table(["run", "variant", "input", "frames", "step ms", "model ms", "FPS",
+                  "speedup", "start-up s", "grid agreement (min)", "occupied agreement (min)"],
+                 rows)
+    if errors:
+        text += ("\n\nLargest differences against each run's first variant:\n\n"
+                 + table(["run", "variant", "max |difference|"], errors))
+    return text
+
+
+def scores(out: Path) -> str:
+    rows = []
+    for path in sorted(out.glob("eval_*.json")):
+        e = json.loads(path.read_text())
+        rows.append([path.stem[len("eval_"):], fmt(e["mIoU"]), fmt(e["RayIoU"]),
+                     fmt(e["IoU_geometry"]), fmt((e.get("boxes") or {}).get("mAP"))])
+    return table(["eval on", "mIoU", "RayIoU", "geometry IoU", "box mAP"], rows)
+
+
+def demo(out: Path) -> str:
+    d = json.loads((out / "demo.json").read_text())
+    keys = ["frames_in", "frames_out", "dropped", "fps", "latency_ms_p50", "latency_ms_p95",
+            "mIoU", "RayIoU", "keyframes_scored"]
+    return table(keys, [[fmt(d.get(k)) for k in keys]])
+
+
+SECTIONS = [("Machine", "machine.json", machine), ("Tests", "tests*.xml", tests),
+            ("Training speed", "train_*.csv", None), ("GPU utilisation", "gpu_util_*.csv", gpu_util),
+            ("Training step on the GPU (odg profile train)", "profile_*.json", profile),
+            ("The node's step (odg bench --compile)", "node_*.json", node),
+            ("The shipped checkpoint scored", "eval_*.json", scores),
+            ("odg demo end to end", "demo.json", demo)]
+
+
+def report(out: Path, skip_steps: int = 4) -> str:
+    parts = []
+    for title, pattern, make in SECTIONS:
+        if not any(out.glob(pattern)):
+            continue
+        try:
+            body = train(out, skip_steps) if make is None else make(out)
+        except (OSError, ValueError, KeyError, TypeError, ET.ParseError) as error:
+            body = f"(not summarised: {pattern}: {type(error).__name__}: {error})"
+        parts.append(f"### {title}\n\n{body}")
+    return "\n\n".join(parts) + "\n"
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("out", type=Path, help="the OUT folder of tools/gpu_checks.sh")
+    parser.add_argument("--skip-steps", type=int, default=4,
+                        help="training steps left out of the medians (warm-up, compile; "
+                             "default 4, one read of the losses)")
+    args = parser.parse_args(argv)
+    if not args.out.is_dir():
+        print(f"gpu_report: no folder {args.out}", file=sys.stderr)
+        return 2
+    sys.stdout.write(report(args.out, args.skip_steps))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
