@@ -35,8 +35,8 @@
 #   node_cpu the shipped odg_cpu on the one-scene world's keyframes
 #   aoti     odg export --aoti of the shipped odg_cpu on CUDA, and its load time against the
 #            compile (odg bench --compiled-step)
-#   node     the node end to end (odg demo: the node's device is auto, so CUDA here) and the
-#            node's own overhead per set (tools/measure_node_overhead.py)
+#   node     the node end to end (odg demo --device cuda: needs ROS 2's Python packages) and
+#            the node's own overhead per set (tools/measure_node_overhead.py)
 #   bench    one online step of ODG-T and ODG-L at paper resolution, eager, per stage
 #   sweep    speed against error of the shipped checkpoint (odg bench --sweep)
 #   presets  the same for ODG-T and ODG-L at paper resolution (random weights: timing only)
@@ -301,7 +301,7 @@ part_aoti() {
 
 part_node() {
     step "odg demo (the node on $DEVICE)" into "$OUT/demo.json" odg demo --out out/gpu_demo \
-        --rate 1 --json
+        --device "$DEVICE" --rate 1 --json
     [ "$CHECK" = run ] && cp out/gpu_demo/demo.png out/gpu_demo/node.log "$OUT/" 2>/dev/null
     step "node overhead" into "$OUT/node_overhead.txt" tool tools/measure_node_overhead.py \
         --sets 30 --model-ms 15

@@ -1,7 +1,7 @@
 """``odg demo``: the main job, end to end on this machine (no GPU, no ROS install).
 
     odg demo [--out out/demo] [--checkpoint CKPT] [--seed 1000] [--seconds 8] [--rate 0.25]
-             [--image-size H W] [--json]
+             [--image-size H W] [--device D] [--json]
 
 1. a synthetic world of one scene (``odg synth``, a seed the training world does not use),
    its infos (``odg prepare --split all``) and a rosbag2 bag of it (``odg bag synth``);
@@ -27,7 +27,7 @@ from pathlib import Path
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from odg_ros.demo import DEFAULT_OUT, DEFAULT_RATE, DEFAULT_SECONDS, DEFAULT_SEED
 
-    from .common import existing_file, positive_float, positive_int
+    from .common import device, existing_file, positive_float, positive_int
 
     parser.add_argument("--out", type=Path, default=DEFAULT_OUT,
                         help=f"folder of the world, bag, logs, demo.json and demo.png "
@@ -49,6 +49,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--precision", choices=("fp32", "bf16", "fp16"), default="fp32",
                         help="the node's inference precision (bf16 autocast is ~1.4x faster on "
                              "a CPU with AVX512-BF16/AMX)")
+    parser.add_argument("--device", type=device, default="auto",
+                        help="the node's device: auto (cuda when available), cpu, cuda or cuda:N")
     parser.add_argument("--json", action="store_true",
                         help="print the numbers as JSON only (progress still goes to stderr)")
 
@@ -95,7 +97,7 @@ def _run(args, log) -> int:
             raise demo.DemoError(f"the ROS 2 Python packages are not importable ({error}); "
                                  "run `make setup`") from None
         record = run_session(world.bag, checkpoint, sets, out, args.rate, log=log,
-                             precision=args.precision)
+                             precision=args.precision, device=args.device)
         timings["node start"] = record.timings["node_start"]
         timings["replay"] = record.timings["replay"]
         timings["drain"] = record.timings["drain"]
@@ -113,6 +115,7 @@ def _run(args, log) -> int:
         report = demo.summarize(record, sets, meta, score, scored, args.rate)
         report["checkpoint"] = str(checkpoint)
         report["precision"] = args.precision
+        report["device"] = args.device
         report["world"] = spec.as_dict()
         report["out"] = str(out)
         if scored:

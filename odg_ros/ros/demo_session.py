@@ -88,12 +88,13 @@ class ChildProcess:
         return self.process.returncode
 
 
-def node_command(checkpoint: Path, precision: str = "fp32") -> list[str]:
+def node_command(checkpoint: Path, precision: str = "fp32", device: str = "auto") -> list[str]:
     return [sys.executable, "-m", "odg_ros.ros.node", "--ros-args",
             "--params-file", str(resource_path("config/odg.yaml")),
             "-r", f"__node:={NODE_NAME}",
             "-p", f"checkpoint:={checkpoint}",
             "-p", f"precision:={precision}",
+            "-p", f"device:={device}",
             "-p", "use_sim_time:=true"]
 
 
@@ -201,7 +202,8 @@ class PlannerStandIn:
 
 
 def run_session(bag: Path, checkpoint: Path, sets: CameraSets, out_dir: Path, rate: float,
-                progress: bool = True, log=print, precision: str = "fp32") -> SessionRecord:
+                progress: bool = True, log=print, precision: str = "fp32",
+                device: str = "auto") -> SessionRecord:
     """Start the node, wait until it is up, replay the bag, receive every output, collect the
     node's final diagnostics; stop everything. Raises DemoError on any failure."""
     import rclpy
@@ -222,7 +224,7 @@ def run_session(bag: Path, checkpoint: Path, sets: CameraSets, out_dir: Path, ra
 
         # --- the node ---------------------------------------------------------------------
         start = time.monotonic()
-        node = ChildProcess("odg_node", node_command(checkpoint, precision), out_dir / "node.log",
+        node = ChildProcess("odg_node", node_command(checkpoint, precision, device), out_dir / "node.log",
                             env)
         log(f"odg_node started (pid {node.process.pid}, log {node.log_path}); waiting for it "
             "to load the checkpoint")

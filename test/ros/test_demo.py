@@ -35,7 +35,7 @@ def run_demo(out, checkpoint, *extra, timeout=240):
 def demo_run(tiny_checkpoint, tmp_path_factory):
     pytest.importorskip("rclpy", reason="the ROS 2 Python wheels are not usable (make setup)")
     out = tmp_path_factory.mktemp("demo") / "out"
-    result = run_demo(out, tiny_checkpoint, "--json")
+    result = run_demo(out, tiny_checkpoint, "--json", "--device", "cpu")
     assert result.returncode == 0, result.stderr[-3000:]
     return out, result
 
@@ -54,6 +54,7 @@ def test_demo_runs_the_whole_path_across_processes(demo_run):
     assert report["unaccounted"] in (0, 1), report
     assert report["frames_out"] + report["dropped"] + report["unaccounted"] == report["frames_in"]
     assert report["keyframes"] == 3 and report["keyframes_scored"] > 0
+    assert report["device"] == "cpu" and ") on cpu" in (out / "node.log").read_text()
     assert 0.0 <= report["mIoU"] <= 100.0 and 0.0 <= report["RayIoU"] <= 100.0
     assert report["fps"] > 0 and 0 < report["latency_ms_p50"] <= report["latency_ms_p95"]
     assert report["latency_samples"] == report["frames_out"]
@@ -170,3 +171,10 @@ def test_bev_shows_the_highest_voxel_with_forward_up_and_left_left():
     assert tuple(rgb[0, 0]) == OCC_COLORS[4]                 # top-left: +x (front), +y (left)
     assert tuple(rgb[3, 2]) == tuple(int(0.45 * c) for c in OCC_COLORS[16])  # unseen: darker
     assert tuple(rgb[0, 1]) == OCC_COLORS[FREE_LABEL]
+
+
+def test_the_node_runs_on_the_demo_s_device():
+    from odg_ros.ros.demo_session import node_command
+    command = node_command("tiny.pt", "bf16", "cuda:1")
+    assert command[command.index("device:=cuda:1") - 1] == "-p"
+    assert "precision:=bf16" in command
