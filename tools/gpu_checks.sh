@@ -1,14 +1,14 @@
 #!/usr/bin/env bash
 # The checks that need a CUDA GPU, for a machine with PyTorch built for CUDA (a GPU box
 # without PyPI included): run from the repository root. Results of the first run, on an H100:
-# docs/reports/2026-11-25-h100.md.
+# docs/reports/2026-11-25-h100.md; what each part brings back: docs/gpu_checks.md.
 #
 #   make gpu-wheels                        # on a machine with PyPI: gsplat's wheel into .whl/
 #   bash tools/gpu_checks.sh PART [OUT]    # on the GPU machine (carry .whl there)
 # Where one job may run at most ten minutes, run the parts as jobs on one machine (carry .whl;
 # PART may list several, comma-separated), most wanted first. Times are estimates from the
 # first H100 run (ODG-T trained at 2.98 s a step then; torch.compile took ~90 s per model):
-#   1. build,speed     gsplat JIT (90 s); 4 ODG-T runs + odg_cpu (~5 min)
+#   1. build,speed     gsplat JIT (90 s); 3 ODG-T runs + odg_cpu, 12 steps each (~5 min)
 #   2. node_t          4 compiles of ODG-T's step (~6-8 min)
 #   3. profile,compile census + profiler (~1 min); --compile (~3 min), checkpointing (~1 min)
 #   4. node_cpu,aoti   ~3 min; AOTInductor export and load (~3 min)
@@ -242,13 +242,13 @@ part_train() {
     done
 }
 
-part_speed() {  # seconds per step, --log-every 4: three reads after the first (compiling) one
+part_speed() {  # seconds per step, --log-every 4: two reads after the first (warm-up) one
     world
     resnet50_weights
     gpu_sampling "$OUT/gpu_util_speed.csv"
-    train_run odg_cpu_b1 odg_cpu 16 --log-every 4
+    train_run odg_cpu_b1 odg_cpu 12 --log-every 4
     for b in 1 2 4; do
-        train_run odg_t_b$b odg_t 16 --batch-size $b --log-every 4
+        train_run odg_t_b$b odg_t 12 --batch-size $b --log-every 4
         [ "$DEVICE" = cpu ] && [ "$CHECK" = run ] && break
     done
     gpu_sampling stop
