@@ -105,3 +105,14 @@ def test_report_tables_from_the_results_of_a_run(tmp_path):
         assert f"| tiny | {variant} | {cfg.image_size[0]} x {cfg.image_size[1]} |" in text
     assert "| tiny | eager-bf16 | " in text.split("Largest differences")[1]
     assert "(not summarised: demo.json: JSONDecodeError" in text
+
+
+def test_report_tables_of_the_first_h100_run_give_its_numbers():
+    """The committed results of the first H100 run give the numbers its report states."""
+    sys.path.insert(0, str(ROOT / "tools"))
+    from gpu_report import report
+    text = report(ROOT / "docs/reports/2026-11-25-h100", skip_steps=2)   # "from step 3 on"
+    assert "| odg_t_torch | 12 | 1 | 2.976 |" in text and "| odg_cpu_torch | 12 | 1 | 1.421 |" in text
+    assert "| odg_t-fp32 | 256 x 704 | 8 | 14.2 | 70.2 (11.4 / 56.0 / 2.5) | 1.5 |" in text
+    assert "| cuda | 26.46 | 33.25 | 52.93 | 18.54 |" in text
+    assert "| tests_first_run.xml | 46 | 1 | 0 | test_trains_on_cuda_with_the_gsplat_renderer |" in text

@@ -4,7 +4,7 @@ of ``tools/gpu_checks.sh`` in OUT: paste them, then write what they say.
     python tools/gpu_report.py OUT [--skip-steps 4] > tables.md
 
 Reads what is there (every part is optional): machine.json, tests*.xml, train_*.csv,
-gpu_util_*.csv, profile_*.json, node_*.json, eval_*.json, demo.json. A file that cannot be
+gpu_util_*.csv, profile_*.json, node_*.json, bench.json, eval_*.json, demo.json. A file that cannot be
 read is named in one line in the output instead of its table.
 """
 from __future__ import annotations
@@ -147,6 +147,17 @@ def node(out: Path) -> str:
     return text
 
 
+def bench(out: Path) -> str:
+    rows = []
+    for name, r in sorted(json.loads((out / "bench.json").read_text()).items()):
+        lat = r["latency_ms"]
+        rows.append([name, f"{r['input'][2]} x {r['input'][3]}", r["frames"], fmt(r["fps"], 1),
+                     f"{lat['total']:.1f} ({lat['backbone']:.1f} / {lat['decoder']:.1f} / "
+                     f"{lat['postprocess']:.1f})", fmt(r.get("peak_memory_mb", 0) / 1024, 1)])
+    return table(["model-precision", "input", "frames", "FPS",
+                  "ms (backbone / decoder / post)", "peak memory GB"], rows)
+
+
 def scores(out: Path) -> str:
     rows = []
     for path in sorted(out.glob("eval_*.json")):
@@ -167,6 +178,7 @@ SECTIONS = [("Machine", "machine.json", machine), ("Tests", "tests*.xml", tests)
             ("Training speed", "train_*.csv", None), ("GPU utilisation", "gpu_util_*.csv", gpu_util),
             ("Training step on the GPU (odg profile train)", "profile_*.json", profile),
             ("The node's step (odg bench --compile)", "node_*.json", node),
+            ("One online step, eager, per stage (odg bench)", "bench.json", bench),
             ("The shipped checkpoint scored", "eval_*.json", scores),
             ("odg demo end to end", "demo.json", demo)]
 
