@@ -22,7 +22,8 @@
 #            parts on the same machine), and what the machine is
 #   tests    the tests that only run on CUDA: gsplat against our renderer (values and
 #            gradients), training with gsplat, nvJPEG decoding of camera sets, the prefetcher's
-#            side-stream uploads, the node's step in every mode, and the AOTInductor file
+#            side-stream uploads, --compile's losses against eager's (Inductor), the node's
+#            step in every mode against eager, and the AOTInductor file
 #            end to end (ODG_AOTI_TEST=1: a C++ compile)
 #   train    the shipped checkpoint scored on CUDA and on the CPU (the same grid, to float
 #            noise); odg_cpu and ODG-T trained 12 steps with our renderer and gsplat's
@@ -145,9 +146,10 @@ part_tests() {
     step "CUDA tests" tests -q -p no:cacheprovider -rs --timeout 900 \
         --junitxml="$OUT/tests.xml" test/test_render_gsplat.py test/test_render.py \
         test/test_loss_render.py test/test_train.py -k "cuda or gsplat or render"
-    step "CUDA tests of the data path and the node's step" tests -q -p no:cacheprovider -rs \
+    step "CUDA tests of the data path, --compile and the node's step" tests -q -p no:cacheprovider -rs \
         --timeout 900 --junitxml="$OUT/tests_node.xml" test/test_online_images.py \
-        test/test_data_path.py test/test_online_step.py test/test_online_predictor.py
+        test/test_data_path.py test/test_train_options.py test/test_online_step.py \
+        test/test_online_predictor.py
     export ODG_AOTI_TEST=1
     step "AOTInductor file end to end (C++ compile)" tests -q -p no:cacheprovider -rs \
         --timeout 900 --junitxml="$OUT/tests_aoti.xml" test/test_compiled_step.py
