@@ -189,11 +189,13 @@ world() {
 R50=out/gpu_resnet50_random.pth  # stands in for ImageNet weights: the frozen presets need some
 resnet50_weights() {
     [ -f "$R50" ] || [ "$CHECK" = parse ] && return
+    mkdir -p "$(dirname "$R50")"
     step "random ResNet-50 weights (torchvision layout)" $PY -c "
-import sys, torch
+import os, sys, torch
 from odg_ros.network.backbone import ResNet
 torch.manual_seed(0)
-torch.save(ResNet('resnet50').state_dict(), sys.argv[1])" "$R50"
+torch.save(ResNet('resnet50').state_dict(), sys.argv[1] + '.part')
+os.replace(sys.argv[1] + '.part', sys.argv[1])" "$R50"
 }
 
 part_sweep() {
