@@ -25,7 +25,7 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from ..geometry import is_rigid
+from ..geometry import rigid_mask
 from .diagnostics import PipelineStats
 from .errors import BAD_INPUT_KINDS, BadInput
 from ..preprocess import adjust_intrinsics
@@ -248,23 +248,24 @@ class OnlinePipeline:
         if missing:
             raise BadInput("missing_camera_info", f"no valid CameraInfo yet for {missing}")
 
-        # Cheap checks before the expensive decoding.
-        reference = camera_set.reference_stamp
-        reference_pose = self._checked_pose(reference)
-        camera_poses = [self._checked_pose(camera_set.stamps[c]) for c in names]
-        sensor2ego = []
-        for c in names:
-            T = self.extrinsics(c, infos[c].frame_id, camera_set.stamps[c])
-            if not is_rigid(T):
-                raise BadInput("missing_extrinsics", f"extrinsics of {c} are not rigid")
-            sensor2ego.append(T)
+        # Cheap checks before the expensive decoding, each kind for the whole set at once
+        # (stacked: NumPy on 4x4 matrices costs its per-call overhead, not arithmetic).
+        stamps = [camera_set.reference_stamp] + [camera_set.stamps[c] for c in names]
+        poses = _stacked_transforms([self.pose_lookup(t) for t in stamps])
+        for i in np.flatnonzero(~rigid_mask(poses))[:1]:
+            raise BadInput("bad_pose", f"pose at t={stamps[i]:.3f} is not a finite rigid "
+                           "transform")
+        sensor2ego = _stacked_transforms([self.extrinsics(c, infos[c].frame_id,
+                                                          camera_set.stamps[c]) for c in names])
+        for i in np.flatnonzero(~rigid_mask(sensor2ego))[:1]:
+            raise BadInput("missing_extrinsics", f"extrinsics of {names[i]} are not rigid")
         try:
             intrinsics = np.stack([adjust_intrinsics(infos[c].intrinsics, infos[c].image_hw,
                                                      self.input_hw) for c in names])
         except ValueError as error:      # a CameraInfo size no network input is made of
             raise BadInput("wrong_image_size", str(error)) from None
-        ego2img = set_ego2img(intrinsics, np.stack(sensor2ego), np.stack(camera_poses),
-                              reference_pose)
+        reference_pose = poses[0]
+        ego2img = set_ego2img(intrinsics, sensor2ego, poses[1:], reference_pose)
 
         t0 = time.perf_counter()
         on_device = None
@@ -273,9 +274,19 @@ class OnlinePipeline:
                 [camera_set.payloads[c][0] for c in names], names,
                 [infos[c].image_hw for c in names], self.input_hw,
                 self.settings.max_image_pixels)
-        images, ready = on_device if on_device is not None else (np.stack(list(
-            self._decoder_pool.map(lambda c: self._decode(c, camera_set.payloads[c][0],
-                                                          infos[c]), names))), None)
+        if on_device is not None:
+            images, ready = on_device
+        else:
+            # each decoding worker writes its camera into the set's array: the copy runs in
+            # the pool, in parallel, instead of a stack of six images in this thread
+            images, ready = np.empty((len(names), *self.input_hw, 3), np.uint8), None
+
+            def decode_into(i: int) -> None:
+                images[i] = self._decode(names[i], camera_set.payloads[names[i]][0],
+                                         infos[names[i]])
+
+            for _ in self._decoder_pool.map(decode_into, range(len(names))):
+                pass
         return PreparedSet(camera_set, images, ego2img, reference_pose,
                            {"lookup": t0 - t_lookup,
                             "decode_images": time.perf_counter() - t0}, ready)
@@ -288,12 +299,6 @@ class OnlinePipeline:
                                     original_hw)[0]
         except BadInput as error:
             raise BadInput(error.kind, f"{camera}: {error.message}") from None
-
-    def _checked_pose(self, stamp: float) -> np.ndarray:
-        T = self.pose_lookup(stamp)
-        if not is_rigid(T):
-            raise BadInput("bad_pose", f"pose at t={stamp:.3f} is not a finite rigid transform")
-        return T
 
     # ---------------------------------------------------------------------- reporting
     def counters(self) -> dict[str, int]:
@@ -321,3 +326,14 @@ class OnlinePipeline:
         if self._decoding is not None:
             self._decoding.join(timeout=5.0)
         self._decoder_pool.shutdown(wait=False, cancel_futures=True)
+
+
+def _stacked_transforms(matrices) -> np.ndarray:
+    """float64 [M, 4, 4] of looked-up transforms; one of another shape becomes NaN (so the
+    rigidity check that follows rejects it, naming it, as it does a non-rigid one)."""
+    out = np.full((len(matrices), 4, 4), np.nan)
+    for i, T in enumerate(matrices):
+        T = np.asarray(T, dtype=np.float64)
+        if T.shape == (4, 4):
+            out[i] = T
+    return out

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from ..geometry import ego_to_image, invert_transform, is_rigid, make_transform
+from ..geometry import invert_transforms, is_rigid, make_transform
 from .errors import BadInput
 
 
@@ -107,10 +107,14 @@ def set_ego2img(input_intrinsics, sensor2ego, camera_poses, reference_pose) -> n
     input_intrinsics [N, 3, 3] (network input), sensor2ego [N, 4, 4] (T_ego_from_cam),
     camera_poses [N, 4, 4] T_global_from_ego at each camera's stamp,
     reference_pose [4, 4] T_global_from_ego at the reference stamp -> float64 [N, 4, 4].
+    One stacked computation for the N cameras (NumPy on 4x4 matrices costs its per-call
+    overhead, not arithmetic); the same products as geometry.ego_to_image per camera.
+    Raises ValueError if an extrinsic or a pose is not rigid.
     """
+    input_intrinsics = np.asarray(input_intrinsics, dtype=np.float64)
     reference_pose = np.asarray(reference_pose, dtype=np.float64)
-    out = []
-    for K, T_ego_from_cam, pose in zip(input_intrinsics, sensor2ego, camera_poses):
-        ego_t_from_ego_ref = invert_transform(pose) @ reference_pose
-        out.append(ego_to_image(K, T_ego_from_cam) @ ego_t_from_ego_ref)
-    return np.stack(out)
+    projection = np.zeros((len(input_intrinsics), 4, 4))
+    projection[:, :3, :3] = input_intrinsics
+    projection[:, 3, 3] = 1.0
+    ego_t_from_ego_ref = invert_transforms(camera_poses) @ reference_pose
+    return (projection @ invert_transforms(sensor2ego)) @ ego_t_from_ego_ref
