@@ -166,7 +166,7 @@ def measure_overlap(pipeline, feed, start: float, model_ms: float, sets: int) ->
     rounds of 5 sets interleaved; a fresh set is always waiting (the source is never
     the bottleneck). -> median ms per set of each."""
     replay = pipeline.predictor._run
-    pipeline.predictor._run = lambda: (time.sleep(model_ms / 1e3), replay())[1]
+    pipeline.predictor._run = lambda images: (time.sleep(model_ms / 1e3), replay(images))[1]
     stamp = [start]
 
     def next_stamp():
@@ -225,8 +225,8 @@ def measure(preset: str, jpegs: list, sets: int, checkpoint: str | None, publish
     t0 = time.perf_counter()
     pipeline.process(pipeline.next_set(timeout=1.0))
     step_ms = (time.perf_counter() - t0) * 1e3
-    recorded = replayed_outputs(predictor._run(), cfg, occupied, boxes)
-    predictor._run = lambda: recorded
+    recorded = replayed_outputs(predictor._run(predictor._images), cfg, occupied, boxes)
+    predictor._run = lambda images: recorded
 
     from odg_ros.online.diagnostics import PipelineStats
     publish = publish_with(cfg, PipelineStats()) if publish_with else packing_only(cfg)

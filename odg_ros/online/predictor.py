@@ -21,7 +21,7 @@ import numpy as np
 import torch
 
 from ..config import ModelConfig
-from ..geometry import ego_warp
+from ..geometry import invert_transforms
 from ..network.outputs import ODGOutput
 from ..network.postprocess import box_dicts
 from ..network.precision import precision_context
@@ -165,10 +165,10 @@ class OnlinePredictor:
         with torch.cuda.graph(self._graph):
             self._outputs = self._function(self._images, self._packed)
 
-    def _run(self):
-        """The device step on the static input buffers -> its output tensors."""
+    def _run(self, images: torch.Tensor):
+        """The device step -> its output tensors (a CUDA graph reads the static buffers)."""
         if self._graph is None:
-            return self._function(self._images, self._packed)
+            return self._function(images, self._packed)
         self._graph.replay()
         return self._outputs
 
@@ -177,12 +177,14 @@ class OnlinePredictor:
         storage-slot order; empty slots get the oldest frame's geometry (finite, never read)."""
         current, oldest = frames[0], frames[-1]
         k, N = self.layout.capacity, self.cfg.num_cams
+        # the warps of all frames in one stacked computation (ego_warp's products)
+        frame_warps = invert_transforms(np.stack([f.pose for f in frames])) @ current.pose
         ego2img = np.broadcast_to(oldest.ego2img, (k, N, 4, 4)).copy()
-        warps = np.broadcast_to(ego_warp(current.pose, oldest.pose), (k, 4, 4)).copy()
+        warps = np.broadcast_to(frame_warps[-1], (k, 4, 4)).copy()
         deltas = np.full(k, current.stamp - oldest.stamp)
-        for frame, slot in zip(frames, slots):
+        for frame, slot, warp in zip(frames, slots, frame_warps):
             ego2img[slot] = frame.ego2img
-            warps[slot] = ego_warp(current.pose, frame.pose)
+            warps[slot] = warp
             deltas[slot] = current.stamp - frame.stamp
         frame_index = slots + [slots[-1]] * (self.cfg.num_frames - len(slots))
         self.layout.pack(self._packed_host.numpy(), ego2img, warps, deltas, frame_index,
@@ -212,8 +214,13 @@ class OnlinePredictor:
         frames = self.history.frames()
         assert len(frames) == len(self.ring)
         self._pack_geometry(frames, self.ring.slots())
+        images_in = self._images
         if isinstance(images, torch.Tensor):       # decoded on the device already
             self._images.copy_(images, non_blocking=True)
+        elif self.device.type == "cpu":
+            # the step reads the set's own array: on the CPU, copying it into a static
+            # buffer first would only cost time (no graph reads fixed addresses there)
+            images_in = torch.from_numpy(np.ascontiguousarray(images, dtype=np.uint8))
         else:
             self._images_host.numpy()[...] = images
             self._images.copy_(self._images_host, non_blocking=True)
@@ -224,7 +231,7 @@ class OnlinePredictor:
         if cuda:   # CUDA events: no synchronize inside the step
             started, finished = (torch.cuda.Event(enable_timing=True) for _ in range(2))
             started.record()
-        outputs = self._run()
+        outputs = self._run(images_in)
         if cuda:
             finished.record()
             for host, value in zip(self._host_outputs_for(outputs), outputs):
@@ -234,8 +241,10 @@ class OnlinePredictor:
             copied.synchronize()                          # the step's only wait
             outputs = self._host_outputs
         t2 = time.perf_counter()
-        # copies of their own: the buffers are rewritten by the next step
-        labels, confidence, boxes, score, label, valid = (o.numpy().copy() for o in outputs)
+        labels, confidence, boxes, score, label, valid = (
+            # copies of their own where the pinned buffers are rewritten by the next step;
+            # the CPU step's outputs are new tensors each time
+            o.numpy().copy() if cuda else o.numpy() for o in outputs)
         X, Y, Z = self.cfg.grid_shape
         boxes = box_dicts(boxes, score, label, valid)
         model_seconds = started.elapsed_time(finished) / 1e3 if cuda else t2 - t1
