@@ -22,12 +22,14 @@ def sample_grid():
     return grid
 
 
-def test_voxel_grid_fields_are_bytes_in_xyz_c_order():
+def test_voxel_grid_fields_are_flat_uint8_in_xyz_c_order():
     grid = sample_grid()
     confidence = np.arange(grid.size, dtype=np.uint32).astype(np.uint8).reshape(grid.shape)
     fields = voxel_grid_fields(grid, confidence, RANGE, 0.4)
-    assert isinstance(fields["labels"], bytes) and isinstance(fields["confidence"], bytes)
-    back = np.frombuffer(fields["labels"], np.uint8).reshape(200, 200, 16)
+    for name in ("labels", "confidence"):
+        assert fields[name].dtype == np.uint8 and fields[name].shape == (grid.size,)
+    assert np.shares_memory(fields["labels"], grid)             # a view: no copy
+    back = np.frombuffer(fields["labels"].tobytes(), np.uint8).reshape(200, 200, 16)
     assert np.array_equal(back, grid)
     i, j, k = 100, 120, 3
     assert fields["labels"][(i * 200 + j) * 16 + k] == OCC_CLASSES.index("car")
@@ -35,7 +37,9 @@ def test_voxel_grid_fields_are_bytes_in_xyz_c_order():
     assert fields["origin_position"] == (-40.0, -40.0, -1.0)
     assert (fields["size_x"], fields["size_y"], fields["size_z"]) == (200, 200, 16)
     assert fields["class_names"][FREE_LABEL] == "free" and fields["free_label"] == 17
-    assert voxel_grid_fields(grid, None, RANGE, 0.4)["confidence"] == b""
+    assert voxel_grid_fields(grid, None, RANGE, 0.4)["confidence"].size == 0
+    transposed = np.asfortranarray(grid)                     # still read in C order
+    assert voxel_grid_fields(transposed, None, RANGE, 0.4)["labels"].tobytes() == grid.tobytes()
     with pytest.raises(ValueError):
         voxel_grid_fields(grid.astype(np.int32), None, RANGE, 0.4)
 

@@ -116,6 +116,7 @@ def ros_publisher_self(cfg, stats):
     fake = types.SimpleNamespace(
         cfg=cfg, output_frame="base_link", stats=stats, now_seconds=time.time,
         params={"bev_min_z": 0.0, "bev_max_z": 2.0},
+        messages=m.ReusedMessages(),
         pub_grid=publisher(m.SemanticVoxelGrid, "occupancy"),
         pub_cloud=publisher(m.PointCloud2, "occupancy/cloud"),
         pub_bev=publisher(m.OccupancyGrid, "occupancy/bev"),

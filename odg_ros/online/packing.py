@@ -1,8 +1,9 @@
 """Prediction arrays -> the field values of the output messages (no ROS types here).
 
-Large arrays become ``bytes`` (``ndarray.tobytes()``), never Python lists: assigning bytes
-to a uint8[] / int8[] message field is a memcpy, a list is ~100x slower (docs/architecture.md sec. 7).
-The node copies these values into odg_ros_msgs / sensor_msgs / nav_msgs messages.
+Large arrays become ``bytes`` (``ndarray.tobytes()``) or flat uint8 arrays, never Python
+lists: copying them into a uint8[] / int8[] message field is a memcpy, a list is ~100x
+slower (docs/architecture.md sec. 7). The node copies these values into odg_ros_msgs /
+sensor_msgs / nav_msgs messages.
 """
 from __future__ import annotations
 
@@ -32,7 +33,8 @@ def voxel_centres(indices: np.ndarray, pc_range, voxel_size: float) -> np.ndarra
 
 def voxel_grid_fields(grid: np.ndarray, confidence: np.ndarray | None, pc_range,
                       voxel_size: float, labels: OccLabels = NUSCENES_LABELS) -> dict:
-    """odg_ros_msgs/SemanticVoxelGrid fields (all but the header).
+    """odg_ros_msgs/SemanticVoxelGrid fields (all but the header); labels and confidence
+    flat uint8 [X*Y*Z] in the grid's C order (views of the arrays given where contiguous).
 
     grid uint8 [X, Y, Z] (labels.free_label = free); confidence uint8 [X, Y, Z] or None;
     labels: the model's label set (ModelConfig.labels), which names the classes.
@@ -49,9 +51,10 @@ def voxel_grid_fields(grid: np.ndarray, confidence: np.ndarray | None, pc_range,
         "memory_order": "xyz_c",
         "free_label": labels.free_label,
         "unknown_label": 255,
-        "labels": np.ascontiguousarray(grid).tobytes(),
-        "confidence": b"" if confidence is None else
-        np.ascontiguousarray(confidence, dtype=np.uint8).tobytes(),
+        # flat uint8 views (no copy): the node copies them into its message
+        "labels": np.ascontiguousarray(grid).reshape(-1),
+        "confidence": np.zeros(0, np.uint8) if confidence is None else
+        np.ascontiguousarray(confidence, dtype=np.uint8).reshape(-1),
         "observed": b"",
         "class_names": list(labels.names),
     }

@@ -94,8 +94,58 @@ def stamp_seconds(stamp) -> float:
     return stamp_to_seconds(stamp.sec, stamp.nanosec)
 
 
-def _u8(data: bytes) -> array.array:
-    return array.array("B", data)
+def _u8(data) -> array.array:
+    """A uint8[] field value from bytes or a uint8 array (one memcpy)."""
+    out = array.array("B")
+    out.frombytes(data)
+    return out
+
+
+def _refilled_u8(field: array.array, values: np.ndarray) -> array.array:
+    """``field`` holding ``values`` (flat uint8): overwritten in place when the size is the
+    same, so a grid a set costs one memcpy and no allocation."""
+    if len(field) != values.size:
+        return _u8(values)
+    np.frombuffer(field, np.uint8)[:] = values
+    return field
+
+
+class ReusedMessages:
+    """The grid and object messages, refilled for each result instead of built anew: rclpy
+    serialises a message inside publish(), so it is free again once publish returns, and
+    building ~250 nested message objects a set (30 boxes) cost more than the rest of publish."""
+
+    def __init__(self):
+        self.grid = SemanticVoxelGrid()
+        self.objects: list[DynamicObject] = []
+
+    def grid_message(self, header: Header, fields: dict) -> SemanticVoxelGrid:
+        grid = self.grid
+        grid.header = header
+        grid.origin = _pose_msg(fields["origin_position"])
+        grid.resolution = fields["resolution"]
+        grid.size_x, grid.size_y, grid.size_z = \
+            fields["size_x"], fields["size_y"], fields["size_z"]
+        grid.memory_order = fields["memory_order"]
+        grid.free_label, grid.unknown_label = fields["free_label"], fields["unknown_label"]
+        grid.class_names = fields["class_names"]
+        grid.labels = _refilled_u8(grid.labels, fields["labels"])
+        grid.confidence = _refilled_u8(grid.confidence, fields["confidence"])
+        return grid
+
+    def object_array(self, header: Header, boxes: list[dict]) -> DynamicObjectArray:
+        while len(self.objects) < len(boxes):
+            self.objects.append(DynamicObject())
+        for box, obj in zip(boxes, self.objects):
+            o = packing.object_fields(box)
+            obj.class_id, obj.class_name, obj.score = o["class_id"], o["class_name"], o["score"]
+            position, orientation = obj.pose.position, obj.pose.orientation
+            position.x, position.y, position.z = o["position"]
+            orientation.w, orientation.x, orientation.y, orientation.z = o["orientation"]
+            obj.size.x, obj.size.y, obj.size.z = o["size"]
+            linear = obj.velocity.linear
+            linear.x, linear.y, linear.z = o["velocity"]
+        return DynamicObjectArray(header=header, objects=self.objects[:len(boxes)])
 
 
 def _pose_msg(position, orientation_wxyz=(1.0, 0.0, 0.0, 0.0)) -> Pose:
@@ -224,6 +274,7 @@ class OdgNode(Node):
         self._bad_input_loggers = {}
 
         # --- publishers -----------------------------------------------------------------
+        self.messages = ReusedMessages()
         self.pub_grid = self.create_publisher(SemanticVoxelGrid, "~/occupancy", OUTPUT_QOS)
         self.pub_cloud = self.create_publisher(PointCloud2, "~/occupancy/cloud", OUTPUT_QOS)
         self.pub_bev = self.create_publisher(OccupancyGrid, "~/occupancy/bev", OUTPUT_QOS)
@@ -368,15 +419,7 @@ class OdgNode(Node):
         cfg = self.cfg
         fields = packing.voxel_grid_fields(result.grid, result.confidence, cfg.pc_range,
                                            cfg.voxel_size, cfg.labels)
-        grid = SemanticVoxelGrid(header=header, origin=_pose_msg(fields["origin_position"]),
-                                 resolution=fields["resolution"], size_x=fields["size_x"],
-                                 size_y=fields["size_y"], size_z=fields["size_z"],
-                                 memory_order=fields["memory_order"],
-                                 free_label=fields["free_label"],
-                                 unknown_label=fields["unknown_label"],
-                                 class_names=fields["class_names"])
-        grid.labels = _u8(fields["labels"])
-        grid.confidence = _u8(fields["confidence"])
+        grid = self.messages.grid_message(header, fields)
         self.pub_grid.publish(grid)
 
         if self.pub_cloud.get_subscription_count():
@@ -401,15 +444,7 @@ class OdgNode(Node):
             bev.data = array.array("b", b["data"])
             self.pub_bev.publish(bev)
 
-        objects = DynamicObjectArray(header=header)
-        for box in result.boxes:
-            o = packing.object_fields(box)
-            obj = DynamicObject(class_id=o["class_id"], class_name=o["class_name"],
-                                score=o["score"], pose=_pose_msg(o["position"],
-                                                                 o["orientation"]),
-                                size=Vector3(x=o["size"][0], y=o["size"][1], z=o["size"][2]))
-            obj.velocity.linear = Vector3(x=o["velocity"][0], y=o["velocity"][1], z=0.0)
-            objects.objects.append(obj)
+        objects = self.messages.object_array(header, result.boxes)
         self.pub_objects.publish(objects)
 
         if self.pub_markers.get_subscription_count():
