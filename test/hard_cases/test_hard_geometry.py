@@ -98,6 +98,51 @@ def test_is_rigid_accepts_float32_rounding():
     assert geometry.is_rigid(geometry.make_transform(R, [1e3, -2e3, 5.0]))
 
 
+def test_rigid_mask_is_is_rigid_on_a_stack():
+    # the node checks a set's poses and extrinsics as one stack: same verdicts, one by one,
+    # on every way to fail and on both sides of the tolerance
+    R = rotation_matrix([0.3, -1, 2], 2.5)
+    cases = [geometry.make_transform(R, [1e3, -2e3, 5.0]),
+             geometry.make_transform(R.astype(np.float32).astype(np.float64), [1, 2, 3]),
+             np.where(np.eye(4) > 0, math.nan, 0.0),
+             geometry.make_transform(np.eye(3), [math.inf, 0, 0]),
+             geometry.make_transform(np.diag([1.0, -1.0, 1.0]), [0, 0, 0]),
+             np.vstack([np.eye(4)[:3], [0, 0, 1.0, 1.0]]),
+             np.vstack([np.eye(4)[:3], [0, 0, 0, 1.0 + 1e-9]])]
+    for scale in (1 + 4e-4, 1 + 6e-4, 1.01):        # R R^T off by ~2 (scale - 1)
+        cases.append(geometry.make_transform(scale * R, [0, 0, 0]))
+    stack = np.stack(cases)
+    expected = [geometry.is_rigid(T) for T in cases]
+    assert True in expected and False in expected
+    assert geometry.rigid_mask(stack).tolist() == expected
+    assert geometry.rigid_mask(stack.reshape(2, 5, 4, 4)).ravel().tolist() == expected
+    with pytest.raises(ValueError, match="4, 4"):
+        geometry.rigid_mask(np.eye(4)[:3])
+
+
+@HARD
+@given(seed=st.integers(0, 2**32 - 1), far=st.floats(1.0, 1e7))
+def test_stacked_inverses_and_ego2img_equal_the_one_matrix_functions(seed, far):
+    from odg_ros.online.rig import set_ego2img
+    rng = np.random.default_rng(seed)
+    poses = np.stack([geometry.make_transform(q, far * rng.uniform(-1, 1, 3))
+                      for q in rng.normal(size=(7, 4))])
+    extrinsics = np.stack([geometry.make_transform(q, rng.uniform(-2, 2, 3))
+                           for q in rng.normal(size=(6, 4))])
+    intrinsics = np.stack([[[f, 0, rng.uniform(100, 600)], [0, f, rng.uniform(50, 300)],
+                            [0, 0, 1]] for f in rng.uniform(50, 2000, 6)])
+    inverses = geometry.invert_transforms(poses)
+    assert all(np.array_equal(inverses[i], geometry.invert_transform(T))
+               for i, T in enumerate(poses))                              # bit for bit
+    one_by_one = np.stack([geometry.ego_to_image(K, S) @ (geometry.invert_transform(P)
+                                                          @ poses[0])
+                           for K, S, P in zip(intrinsics, extrinsics, poses[1:])])
+    assert np.array_equal(set_ego2img(intrinsics, extrinsics, poses[1:], poses[0]), one_by_one)
+    poses[4, :3, :3] *= 1.01
+    with pytest.raises(ValueError, match=r"transform \(4,\) is not rigid"):
+        geometry.invert_transforms(poses)
+
+
 @pytest.mark.parametrize("name,T", [
     ("nan", np.full((4, 4), math.nan)),
     ("non-orthonormal", geometry.make_transform(2.0 * np.eye(3), [1.0, 2.0, 3.0])),
