@@ -122,6 +122,7 @@ def test_one_graph_over_the_first_twelve_steps():
     predictor = OnlinePredictor(model, cfg, "cpu", max_gap=1.0, min_interval=0.9)
     predictor._function = torch.compile(predictor.online_step, backend=counting_backend,
                                         fullgraph=True, dynamic=False)
+    predictor._warm_up()            # compiled at start-up, as the constructor does
     sets = make_sets(cfg, 11)
     eager = OnlinePredictor(model, cfg, "cpu", max_gap=1.0, min_interval=0.9)
     for s in sets + [sets[0]]:                       # the last one goes back in time: reset

@@ -153,7 +153,11 @@ class OnlinePredictor:
                          0.0, 0, 0)
         self._packed.copy_(self._packed_host)
         if self.mode != "graphs":
-            self._function(self._images, self._packed)
+            # on the CPU as ``step`` passes images (a tensor over a NumPy array, made in
+            # inference mode): compiled, another kind of tensor would compile a second graph
+            images = torch.from_numpy(self._images_host.numpy()) \
+                if self.device.type == "cpu" else self._images
+            self._function(images, self._packed)
             return
         side = torch.cuda.Stream(self.device)
         side.wait_stream(torch.cuda.current_stream(self.device))
