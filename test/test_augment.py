@@ -226,3 +226,28 @@ def test_augment_batch_draws_per_sample_and_leaves_the_input_alone():
     assert out["images"].shape == batch["images"].shape
     assert out["token"] == batch["token"] and len(out["render_targets"]) == 2
     assert not torch.equal(out["ego2img"], original)
+
+
+@pytest.mark.parametrize("flip_probability", [0.0, 1.0])
+def test_augmentation_never_waits_for_the_device(flip_probability):
+    # with the CUDA paths forced every tensor counts as a device tensor, except those a CUDA
+    # run keeps on the host: the render targets (to_device leaves them) and host draws
+    from odg_ros.data.batch import collate, to_device
+    from odg_ros.train.census import Census, CensusMode, batch_host_tensors
+    batch = to_device(collate([make_batch(0), make_batch(1)]), "cpu")
+    census = Census()
+    with CensusMode(census, None, batch_host_tensors(batch)):
+        out = augment_batch(batch, PC_RANGE, zoom=(1.05, 1.1),
+                            flip_probability=flip_probability)
+    assert sum(census.ops.values()) > 20                              # it ran, on the device
+    assert sum(census.syncs.values()) == 0, census.report()
+    assert all(len(t) <= len(s) for o, b in zip(out["render_targets"], batch["render_targets"])
+               for t, s in zip(o, b))
+
+
+def test_to_device_leaves_render_targets_on_the_host():
+    from odg_ros.data.batch import collate, to_device
+    batch = collate([make_batch(0)])
+    moved = to_device(batch, "meta")
+    assert moved["images"].device.type == "meta"
+    assert moved["render_targets"][0][0] is batch["render_targets"][0][0]

@@ -13,10 +13,13 @@ Per sample (as OPUS / SparseBEV train, adapted to our already resized network in
   folded into ego2img and the intrinsics; render targets follow (those leaving the image
   are dropped, one per pixel kept: the nearest). Pixels from outside the source image are 0
   (the mean colour after normalisation).
+  Render targets stay where the batch keeps them: on the host (``batch.to_device``), so their
+  filtering and de-duplication, whose sizes depend on the data, never wait for the device.
 - **photometric distortion** of each image independently, each part with probability 0.5:
   brightness +-32/255, contrast x [0.5, 1.5], saturation x [0.5, 1.5] (hue is not varied).
-Evaluation never calls it. Geometry is float32 on the batch's device; random draws come from
-torch's global generator (saved and restored with a resumed run's RNG state).
+Evaluation never calls it. Geometry is float32 on the batch's device. Random draws come from a
+host generator, by default torch's global CPU generator (saved and restored with a resumed
+run's RNG state): reading a draw never waits for the device.
 """
 from __future__ import annotations
 
@@ -32,14 +35,18 @@ CONTRAST = (0.5, 1.5)
 SATURATION = (0.5, 1.5)
 
 
-def uniform(low: float, high: float, generator=None) -> float:
+def uniform(low: float, high: float, generator: torch.Generator) -> float:
     return low + (high - low) * float(torch.rand((), generator=generator))
 
 
 def augment_batch(batch: dict, pc_range, generator: torch.Generator | None = None,
                   zoom=ZOOM, flip_probability: float = FLIP_PROBABILITY,
                   photometric: bool = True) -> dict:
-    """A new batch dict, every sample augmented (module docstring); ``batch`` is unchanged."""
+    """A new batch dict, every sample augmented (module docstring); ``batch`` is unchanged.
+    ``generator``: a CPU generator for the random parameters (None: the global one)."""
+    generator = torch.default_generator if generator is None else generator
+    if generator.device.type != "cpu":
+        raise ValueError(f"augmentation draws on a host generator, got one on {generator.device}")
     out = dict(batch)
     B = batch["images"].shape[0]
     samples = [dict((k, v[b]) for k, v in batch.items()
@@ -47,7 +54,7 @@ def augment_batch(batch: dict, pc_range, generator: torch.Generator | None = Non
     for sample in samples:
         if float(torch.rand((), generator=generator)) < flip_probability:
             flip_sample(sample, pc_range)
-        s = uniform(*zoom, generator=generator)
+        s = uniform(*zoom, generator)
         H, W = sample["images"].shape[-2:]
         spare_x, spare_y = (s - 1.0) * W, (s - 1.0) * H
         offset = (uniform(min(0.0, spare_x), max(0.0, spare_x), generator),

@@ -36,7 +36,9 @@ Model-ready sample (``OccDataset.__getitem__``), T frames (0 = current, then old
     token           str
     has_occ         bool                     False when the keyframe has no GT file (all free)
 ``collate`` stacks the tensors into a leading batch dim B and keeps the rest as lists;
-``to_device`` uploads a batch and normalises its images there (preprocess.normalize).
+``to_device`` uploads a batch and normalises its images there (preprocess.normalize). The
+render targets stay on the host: their number per camera changes with every augmentation, and
+the render loss uploads only the pixels it draws from them.
 """
 from __future__ import annotations
 
@@ -50,6 +52,9 @@ CAMERA_NAMES = ("CAM_FRONT", "CAM_FRONT_RIGHT", "CAM_FRONT_LEFT",
 STACKED_KEYS = ("images", "ego2img", "ego_warp", "time_delta", "intrinsics", "cam_from_ego",
                 "occ_semantics", "occ_mask_camera", "occ_mask_lidar")
 
+# filtered and sampled on the host, where their sizes are known without waiting for the device
+HOST_KEYS = ("render_targets",)
+
 
 def collate(samples: list[dict]) -> dict:
     batch = {}
@@ -62,10 +67,13 @@ def collate(samples: list[dict]) -> dict:
 def to_device(batch: dict, device, non_blocking: bool = True) -> dict:
     """A collated batch on ``device``: tensors (and lists of them) copied, uint8 images
     normalised there (float images are taken as normalised already). Copies from pinned
-    memory do not block the host; nothing else is read back."""
+    memory do not block the host; nothing else is read back. ``render_targets`` stay where
+    they are (module docstring)."""
     out = {}
     for key, value in batch.items():
-        if torch.is_tensor(value):
+        if key in HOST_KEYS:
+            out[key] = value
+        elif torch.is_tensor(value):
             out[key] = value.to(device, non_blocking=non_blocking)
         elif isinstance(value, list) and value and torch.is_tensor(value[0]):
             out[key] = [v.to(device, non_blocking=non_blocking) for v in value]

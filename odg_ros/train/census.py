@@ -7,7 +7,10 @@ must wait for: ``.item()`` / ``bool()`` / ``float()`` reads, ``nonzero``, boolea
 ``unique``, ``bincount``, ``repeat_interleave`` without ``output_size``, a copy to the CPU, and
 ``.numpy()`` / ``.tolist()``. With ``cuda_paths`` the step takes the code paths a CUDA run takes
 (nearest neighbours on the device, fused AdamW) and every op of the CPU run counts as if its
-tensors lived on the GPU, so the census of a GPU run can be taken on a CPU.
+tensors lived on the GPU, so the census of a GPU run can be taken on a CPU. What a CUDA run
+keeps on the host is told apart: ops drawing from a CPU generator (a CUDA op cannot), the
+batch's host keys (``batch.HOST_KEYS``), and whatever is computed from these alone; ``.to()``
+of such a tensor is its upload.
 """
 from __future__ import annotations
 
@@ -19,6 +22,8 @@ from pathlib import Path
 
 import torch
 from torch.utils._python_dispatch import TorchDispatchMode
+
+from ..data.batch import HOST_KEYS
 
 aten = torch.ops.aten
 PHASES = ("data", "forward", "losses", "render", "backward", "optimizer")
@@ -35,6 +40,11 @@ _ALWAYS_SYNC = {aten._local_scalar_dense.default, aten.nonzero.default, aten.mas
                 aten._unique2.default, aten.unique_dim.default, aten.unique_consecutive.default,
                 aten.bincount.default}
 _HOST_READS = ("numpy", "tolist")
+
+
+def _draws_on_host(kwargs) -> bool:
+    generator = kwargs.get("generator")
+    return generator is not None and generator.device.type == "cpu"
 
 
 def _is_sync(func, args, kwargs, device_type: str | None) -> bool:
@@ -124,7 +134,9 @@ class CensusMode(TorchDispatchMode):
         self._kept = []             # host storages stay alive: their addresses are not reused
         for t in host_tensors:
             self._mark_host(t)
-        self._originals = {name: getattr(torch.Tensor, name) for name in _HOST_READS + ("cpu",)}
+        self._uploading = False
+        self._originals = {name: getattr(torch.Tensor, name)
+                           for name in _HOST_READS + ("cpu", "to")}
 
     def _mark_host(self, t: torch.Tensor) -> None:
         if t.layout != torch.strided:
@@ -141,7 +153,8 @@ class CensusMode(TorchDispatchMode):
         tensors = [t for a in list(args) + list(kwargs.values())
                    for t in (a if isinstance(a, (list, tuple)) else (a,))
                    if isinstance(t, torch.Tensor)]
-        if tensors and all(self._on_host(t) for t in tensors):
+        on_host = all(self._on_host(t) for t in tensors) if tensors else _draws_on_host(kwargs)
+        if on_host and not self._uploading:
             out = func(*args, **kwargs)
             if self.device_type is None:
                 for t in (out if isinstance(out, (list, tuple)) else (out,)):
@@ -171,6 +184,18 @@ class CensusMode(TorchDispatchMode):
                 self._mark_host(out)
             return out
         torch.Tensor.cpu = to_host
+
+        def upload(tensor, *args, _original=self._originals["to"], **kwargs):
+            out = _original(tensor, *args, **kwargs)
+            device = torch._C._nn._parse_to(*args, **kwargs)[0]
+            if self.device_type is None and device is not None and self._on_host(tensor):
+                self._uploading = True                 # the copy is a launch; its result is
+                try:                                   # a device tensor
+                    out = out.clone()
+                finally:
+                    self._uploading = False
+            return out
+        torch.Tensor.to = upload
         return super().__enter__()
 
     def __exit__(self, *exc):
@@ -194,6 +219,20 @@ def optimizer_host_tensors(optimizer) -> list[torch.Tensor]:
     return [state["step"] for state in optimizer.state.values() if "step" in state]
 
 
+def batch_host_tensors(batch: dict) -> list[torch.Tensor]:
+    """The tensors of a batch that stay on the host in a CUDA run (``batch.HOST_KEYS``)."""
+    out = []
+    for key in HOST_KEYS:
+        stack = list(batch.get(key, ()))
+        while stack:
+            value = stack.pop()
+            if torch.is_tensor(value):
+                out.append(value)
+            elif isinstance(value, (list, tuple)):
+                stack.extend(value)
+    return out
+
+
 def census_of_steps(trainer, batches, cuda_paths: bool) -> Census:
     """Census of ``trainer.train_step`` over ``batches`` (one warm-up step first, not counted)."""
     if cuda_paths:
@@ -201,8 +240,9 @@ def census_of_steps(trainer, batches, cuda_paths: bool) -> Census:
     trainer.train_step(batches[0])
     census = Census(steps=len(batches) - 1)
     device_type = None if cuda_paths else trainer.device.type
-    with CensusMode(census, device_type, optimizer_host_tensors(trainer.optimizer)
-                    if cuda_paths else ()):
+    host = optimizer_host_tensors(trainer.optimizer) + \
+        [t for batch in batches[1:] for t in batch_host_tensors(batch)] if cuda_paths else ()
+    with CensusMode(census, device_type, host):
         for batch in batches[1:]:
             trainer.train_step(batch)
     return census
