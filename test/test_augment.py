@@ -245,9 +245,11 @@ def test_augmentation_never_waits_for_the_device(flip_probability):
                for t, s in zip(o, b))
 
 
-def test_to_device_leaves_render_targets_on_the_host():
+def test_to_device_leaves_the_targets_on_the_host():
     from odg_ros.data.batch import collate, to_device
     batch = collate([make_batch(0)])
     moved = to_device(batch, "meta")
-    assert moved["images"].device.type == "meta"
+    assert moved["images"].device.type == "meta" and moved["ego2img"].device.type == "meta"
     assert moved["render_targets"][0][0] is batch["render_targets"][0][0]
+    for key in ("occ_semantics", "occ_mask_camera", "gt_boxes", "gt_labels"):
+        assert moved[key] is batch[key], key

@@ -14,12 +14,13 @@ from odg_ros.train.census import census_of_steps
 from odg_ros.train.trainer import Trainer, TrainOptions
 
 MAX_OPS = 12_000
-MAX_SYNCS_OUTSIDE_RENDERER = 6
+# Outside the renderer: the criterion's two finiteness reads and the Hungarian cost matrices'
+# one copy. The augmentation and the GT checks wait for nothing (the targets stay on the host).
+MAX_SYNCS_OUTSIDE_RENDERER = 3
 # One renderer call draws all six layers. It still waits for the device to size its work:
 # the projection's candidates, one read of every size and check before compositing, and one
-# compaction per depth batch (one batch here). The augmentation waits for nothing (its render
-# targets stay on the host). Pinned where it is, so that it can only go down.
-MAX_SYNCS = 9
+# compaction per depth batch (one batch here). Pinned where it is, so that it can only go down.
+MAX_SYNCS = 6
 
 
 @pytest.fixture(scope="module")

@@ -37,8 +37,9 @@ Model-ready sample (``OccDataset.__getitem__``), T frames (0 = current, then old
     has_occ         bool                     False when the keyframe has no GT file (all free)
 ``collate`` stacks the tensors into a leading batch dim B and keeps the rest as lists;
 ``to_device`` uploads a batch and normalises its images there (preprocess.normalize). The
-render targets stay on the host: their number per camera changes with every augmentation, and
-the render loss uploads only the pixels it draws from them.
+targets (``HOST_KEYS``) stay on the host: the augmentation moves them there, and the losses
+check them and take the sizes that depend on them (occupied voxels, render pixels kept in
+view) without waiting for the device, then upload what they use.
 """
 from __future__ import annotations
 
@@ -52,8 +53,9 @@ CAMERA_NAMES = ("CAM_FRONT", "CAM_FRONT_RIGHT", "CAM_FRONT_LEFT",
 STACKED_KEYS = ("images", "ego2img", "ego_warp", "time_delta", "intrinsics", "cam_from_ego",
                 "occ_semantics", "occ_mask_camera", "occ_mask_lidar")
 
-# filtered and sampled on the host, where their sizes are known without waiting for the device
-HOST_KEYS = ("render_targets",)
+# checked, filtered and sampled on the host, where their sizes are known without waiting
+HOST_KEYS = ("occ_semantics", "occ_mask_camera", "occ_mask_lidar", "gt_boxes", "gt_labels",
+             "render_targets")
 
 
 def collate(samples: list[dict]) -> dict:
@@ -67,8 +69,8 @@ def collate(samples: list[dict]) -> dict:
 def to_device(batch: dict, device, non_blocking: bool = True) -> dict:
     """A collated batch on ``device``: tensors (and lists of them) copied, uint8 images
     normalised there (float images are taken as normalised already). Copies from pinned
-    memory do not block the host; nothing else is read back. ``render_targets`` stay where
-    they are (module docstring)."""
+    memory do not block the host; nothing else is read back. The targets (``HOST_KEYS``)
+    stay where they are (module docstring)."""
     out = {}
     for key, value in batch.items():
         if key in HOST_KEYS:

@@ -94,17 +94,18 @@ def match_layers(layers: Sequence[tuple[torch.Tensor, torch.Tensor]],
                  code_weights: Sequence[float] = BOX_CODE_WEIGHTS) -> list[list[BoxMatch]]:
     """Hungarian matches of every layer's (codes [B, D, 10], logits [B, D, C]) to the GT.
 
-    The GT is checked once, and every cost matrix comes to the host in one copy: the host
-    waits for the device once, not once per layer and sample.
+    The GT is checked once, where it is given, and every cost matrix comes to the host in one
+    copy: the host waits for the device once, not once per layer and sample.
     """
     codes0, logits0 = layers[0]
     num_classes, device = logits0.shape[-1], codes0.device
     dtype = codes0.dtype if codes0.dtype == torch.float64 else torch.float32
     gt_codes, labels = [], []
     for b in range(codes0.shape[0]):
+        # checked where the batch keeps the GT (the host in training): no wait for the device
+        check_gt_boxes(gt_boxes[b], gt_labels[b], num_classes)
         boxes = gt_boxes[b].to(device, dtype)
         labels.append(gt_labels[b].to(device).long())
-        check_gt_boxes(boxes, labels[b], num_classes)
         gt_codes.append(encode_boxes(boxes))
     parts = []
     with torch.no_grad():

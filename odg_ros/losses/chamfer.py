@@ -160,6 +160,11 @@ class OccupancyTarget:
     def num(self) -> int:
         return int(self.centres.shape[0])
 
+    def to(self, device) -> "OccupancyTarget":
+        """The same target with its tensors on ``device`` (its search structure not built)."""
+        return OccupancyTarget(self.centres.to(device), self.labels.to(device),
+                               self.visible.to(device), self.method)
+
     def nearest(self, points: torch.Tensor):
         """points [N, 3] -> (index [N], distance [N]) of each point's nearest occupied voxel.
         The search structure is built once and reused by every layer."""
@@ -175,6 +180,7 @@ def occupancy_target(semantics: torch.Tensor, mask_camera: torch.Tensor,
 
     semantics [X, Y, Z] int (free_label = free), mask_camera [X, Y, Z] bool, indexed [x, y, z];
     centre of voxel i along an axis = (i + 0.5) * voxel_size + pc_range[axis].
+    Computed where the grid is; on the host (as in training) nothing waits for a device.
     """
     if semantics.dim() != 3 or semantics.shape != mask_camera.shape:
         raise ValueError(f"semantics {tuple(semantics.shape)} and mask_camera "

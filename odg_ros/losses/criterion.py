@@ -66,9 +66,10 @@ class ODGCriterion:
         semantics, mask_camera = batch["occ_semantics"], batch["occ_mask_camera"]
         B = semantics.shape[0]
         device = output.init_means.device
-        targets = [occupancy_target(semantics[b].to(device), mask_camera[b].to(device),
-                                    cfg.pc_range, cfg.voxel_size, free_label=cfg.free_label,
-                                    method=self.nn_method)
+        # checked and extracted where the batch keeps the grids (the host in training, where
+        # the number of occupied voxels is known without waiting), then uploaded
+        targets = [occupancy_target(semantics[b], mask_camera[b], cfg.pc_range, cfg.voxel_size,
+                                    free_label=cfg.free_label, method=self.nn_method).to(device)
                    for b in range(B)]
         stats = {"samples_without_occ_gt": sum(t.num == 0 for t in targets),
                  "boxes_matched": 0, "nonfinite_match_costs": 0, "nonfinite_box_targets": 0,
