@@ -27,6 +27,7 @@ import torch
 import torch.nn.functional as F
 
 from ..preprocess import IMAGENET_MEAN, IMAGENET_STD
+from .batch import upload
 
 ZOOM = (0.9, 1.1)
 FLIP_PROBABILITY = 0.5
@@ -173,7 +174,8 @@ def photometric_distortion(images: torch.Tensor, generator=None) -> torch.Tensor
     def draw(low, high, identity):   # per image: a factor with probability 0.5, else identity
         on = torch.rand(n, generator=generator) < 0.5
         value = low + (high - low) * torch.rand(n, generator=generator)
-        return torch.where(on, value, torch.full_like(value, identity)).to(device).view(n, 1, 1, 1)
+        return upload(torch.where(on, value, torch.full_like(value, identity)),
+                      device).view(n, 1, 1, 1)
 
     rgb = rgb + draw(-BRIGHTNESS, BRIGHTNESS, 0.0)
     rgb = rgb * draw(*CONTRAST, 1.0)

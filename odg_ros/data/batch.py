@@ -66,6 +66,17 @@ def collate(samples: list[dict]) -> dict:
     return batch
 
 
+def upload(tensor: torch.Tensor, device, dtype: torch.dtype | None = None) -> torch.Tensor:
+    """``tensor`` on ``device`` (as ``dtype``), queued without making the host wait: a copy
+    from pageable host memory would wait for the stream, so a host tensor is pinned first."""
+    if dtype is not None:
+        tensor = tensor.to(dtype)                                   # where it is
+    if torch.device(device).type == "cuda" and tensor.device.type == "cpu" \
+            and not tensor.is_pinned():
+        tensor = tensor.pin_memory()
+    return tensor.to(device, non_blocking=True)
+
+
 def to_device(batch: dict, device, non_blocking: bool = True) -> dict:
     """A collated batch on ``device``: tensors (and lists of them) copied, uint8 images
     normalised there (float images are taken as normalised already). Copies from pinned

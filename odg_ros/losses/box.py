@@ -28,6 +28,7 @@ from typing import Sequence
 import torch
 import torch.distributed as dist
 
+from ..data.batch import upload
 from .focal import FOCAL_ALPHA, FOCAL_GAMMA, one_hot_targets, sigmoid_focal_loss
 from .matcher import box_match_cost, hungarian_match
 
@@ -104,8 +105,8 @@ def match_layers(layers: Sequence[tuple[torch.Tensor, torch.Tensor]],
     for b in range(codes0.shape[0]):
         # checked where the batch keeps the GT (the host in training): no wait for the device
         check_gt_boxes(gt_boxes[b], gt_labels[b], num_classes)
-        boxes = gt_boxes[b].to(device, dtype)
-        labels.append(gt_labels[b].to(device).long())
+        boxes = upload(gt_boxes[b], device, dtype)
+        labels.append(upload(gt_labels[b], device, torch.long))
         gt_codes.append(encode_boxes(boxes))
     parts = []
     with torch.no_grad():
@@ -167,8 +168,8 @@ def box_loss(codes: torch.Tensor, logits: torch.Tensor, gt_boxes: Sequence[torch
     for b, match in enumerate(matches):
         targets = torch.zeros_like(logits[b])
         if match.pred_index.numel():
-            boxes = gt_boxes[b].to(codes.device, codes.dtype)
-            labels = gt_labels[b].to(codes.device).long()
+            boxes = upload(gt_boxes[b], codes.device, codes.dtype)
+            labels = upload(gt_labels[b], codes.device, torch.long)
             pred_idx = match.pred_index.to(codes.device, non_blocking=True)
             gt_idx = match.gt_index.to(codes.device, non_blocking=True)
             matched_gt = encode_boxes(boxes)[gt_idx]

@@ -48,6 +48,7 @@ import torch.nn.functional as F
 from scipy.spatial import cKDTree
 
 from ..classes import FREE_LABEL, OCC_CLASS_WEIGHTS
+from ..data.batch import upload
 from .focal import FOCAL_ALPHA, FOCAL_GAMMA, one_hot_targets, sigmoid_focal_loss
 
 CHAMFER_BETA = 0.2         # SmoothL1 beta (m)
@@ -162,8 +163,8 @@ class OccupancyTarget:
 
     def to(self, device) -> "OccupancyTarget":
         """The same target with its tensors on ``device`` (its search structure not built)."""
-        return OccupancyTarget(self.centres.to(device), self.labels.to(device),
-                               self.visible.to(device), self.method)
+        return OccupancyTarget(upload(self.centres, device), upload(self.labels, device),
+                               upload(self.visible, device), self.method)
 
     def nearest(self, points: torch.Tensor):
         """points [N, 3] -> (index [N], distance [N]) of each point's nearest occupied voxel.

@@ -34,6 +34,8 @@ from typing import Callable, Sequence
 
 import torch
 
+from ..data.batch import upload
+
 RENDER_WEIGHT_OUTER = 0.05   # layers 1 and L
 RENDER_WEIGHT_INNER = 0.01   # the others
 SEMANTIC_EPS = 1e-6
@@ -58,7 +60,7 @@ def sample_render_targets(render_targets: Sequence[Sequence[torch.Tensor]], max_
                 raise ValueError(f"render targets must be [P, 4], got {tuple(t.shape)}")
             if 0 < max_pixels < t.shape[0]:
                 keep = torch.randperm(t.shape[0], generator=generator)[:max_pixels]
-                t = t[keep.sort().values.to(t.device)]
+                t = t[upload(keep.sort().values, t.device)]
             cams.append(t)
         out.append(cams)
     return out
@@ -128,7 +130,7 @@ def render_losses(layers: Sequence[Sequence[torch.Tensor]],
         if len(render_targets[b]) != N:
             raise ValueError(f"sample {b}: {len(render_targets[b])} render target sets for "
                              f"{N} cameras")
-        per_camera = [t.to(device, torch.float32) for t in render_targets[b]]
+        per_camera = [upload(t, device, torch.float32) for t in render_targets[b]]
         if any(t.dim() != 2 or t.shape[1] != 4 for t in per_camera):
             raise ValueError(f"sample {b}: render targets must be [P, 4] (u, v, depth, label)")
         targets.append(per_camera)

@@ -10,7 +10,8 @@ must wait for: ``.item()`` / ``bool()`` / ``float()`` reads, ``nonzero``, boolea
 tensors lived on the GPU, so the census of a GPU run can be taken on a CPU. What a CUDA run
 keeps on the host is told apart: ops drawing from a CPU generator (a CUDA op cannot), the
 batch's host keys (``batch.HOST_KEYS``), and whatever is computed from these alone; ``.to()``
-of such a tensor is its upload.
+of such a tensor is its upload, a host sync unless ``non_blocking`` (torch waits for the
+stream after a blocking copy to the GPU).
 """
 from __future__ import annotations
 
@@ -187,13 +188,15 @@ class CensusMode(TorchDispatchMode):
 
         def upload(tensor, *args, _original=self._originals["to"], **kwargs):
             out = _original(tensor, *args, **kwargs)
-            device = torch._C._nn._parse_to(*args, **kwargs)[0]
+            device, _, non_blocking, _ = torch._C._nn._parse_to(*args, **kwargs)
             if self.device_type is None and device is not None and self._on_host(tensor):
                 self._uploading = True                 # the copy is a launch; its result is
                 try:                                   # a device tensor
                     out = out.clone()
                 finally:
                     self._uploading = False
+                # a blocking upload waits for the stream (torch synchronises after the copy)
+                self.census.syncs[_where()] += not non_blocking
             return out
         torch.Tensor.to = upload
         return super().__enter__()
