@@ -107,18 +107,20 @@ def run_prefetcher(count, streams_for):
     for batch in DevicePrefetcher(host_batches(log, count), "cpu", upload, streams):
         log.append(f"step {int(batch['time_delta'][0, 0])}")
         assert batch["images"].dtype == torch.float32
-        if streams is not None:     # every tensor the step reads, nested ones too
+        if streams is not None:     # every device tensor the step reads
             assert {id(t) for t in batch_tensors(batch)} <= streams.kept
-            assert len(list(batch_tensors(batch))) == 3
+            assert len(list(batch_tensors(batch))) == 2
+            # the render targets stay on the host: no stream to keep them for
+            assert id(batch["render_targets"][0][0]) not in streams.kept
     return log
 
 
 def test_prefetcher_uploads_the_next_batch_before_the_current_step():
     """With streams: batch k+1 is fetched and its upload queued on the side stream before
-    step k; step k waits for batch k's event only, and every tensor of batch k (nested
-    render targets too) is marked as used by the current stream before the step."""
+    step k; step k waits for batch k's event only, and every device tensor of batch k is
+    marked as used by the current stream before the step."""
     log = run_prefetcher(3, RecordedStreams)
-    hand_over = lambda k: [f"wait event{k}", "keep", "keep", "keep", f"step {k}"]  # noqa: E731
+    hand_over = lambda k: [f"wait event{k}", "keep", "keep", f"step {k}"]  # noqa: E731
     assert log == (["fetch 0", "upload 0", "record event0", "fetch 1", "upload 1",
                     "record event1"] + hand_over(0)
                    + ["fetch 2", "upload 2", "record event2"] + hand_over(1) + hand_over(2))

@@ -6,9 +6,9 @@ the copy engine and the compute overlap, and the host has queued the next upload
 queues the next step. Two rules make this safe:
 - the current stream waits for an event recorded after batch k's upload (not for the whole
   side stream, which by then holds batch k+1's copies too);
-- every tensor of batch k is marked as used by the current stream (``record_stream``), so
-  the caching allocator does not give its memory to a later upload while the step still
-  reads it.
+- every device tensor of batch k is marked as used by the current stream
+  (``record_stream``), so the caching allocator does not give its memory to a later upload
+  while the step still reads it. The host keys (batch.HOST_KEYS) stay on the host.
 Elsewhere it uploads batch by batch, fetching nothing ahead: on the CPU the loader is read
 exactly when it was before (a resumed run's random draws stay where they were). On CUDA with
 ``workers=0`` the look-ahead loads a sample before the step ahead of it, so the history
@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import torch
 
-from .batch import to_device
+from .batch import HOST_KEYS, to_device
 
 
 class CudaStreams:
@@ -44,7 +44,11 @@ class CudaStreams:
 
 
 def batch_tensors(batch: dict):
-    for value in batch.values():
+    """The batch's tensors on the device: the host keys stay on the host (batch.to_device),
+    where there is no stream to keep them for."""
+    for key, value in batch.items():
+        if key in HOST_KEYS:
+            continue
         if torch.is_tensor(value):
             yield value
         elif isinstance(value, list):
