@@ -8,11 +8,8 @@ voxel along x + 3 % spurious cars; 8 origins x 14,040 LiDAR rays, prediction and
 together (what ``RayIoU.add`` casts per keyframe).
 """
 import argparse
-import importlib.util
 import inspect
-import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -20,6 +17,7 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+from revision import module_at  # noqa: E402
 
 from odg_ros.metrics.raycast import cast_rays, lidar_ray_directions, rays_in_voxel_units  # noqa
 
@@ -42,17 +40,6 @@ def world(rng):
     return (pred != FREE).astype(np.uint8) | ((g != FREE).astype(np.uint8) << 1)
 
 
-def load_revision(rev):
-    source = subprocess.run(["git", "-C", str(ROOT), "show", f"{rev}:odg_ros/metrics/raycast.py"],
-                            check=True, capture_output=True, text=True).stdout
-    path = Path(tempfile.mkdtemp()) / "raycast_before.py"
-    path.write_text(source)
-    spec = importlib.util.spec_from_file_location("raycast_before", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--against", default="main")
@@ -65,7 +52,7 @@ def main():
     o = np.repeat(origins, len(dirs), 0)
     d = np.tile(dirs, (len(origins), 1))
     start, end = rays_in_voxel_units(o, d, GRID_MIN, 0.4)
-    before = load_revision(args.against)
+    before = module_at(args.against, "odg_ros/metrics/raycast.py")
     if "directions" in inspect.signature(before.cast_rays).parameters:   # (origins, unit dirs)
         old_args = ((o - GRID_MIN) / 0.4, d / np.linalg.norm(d, axis=1, keepdims=True))
     else:

@@ -11,12 +11,9 @@ render loss renders its decoder layers): in one render_scenes call where the cod
 else in K render_cameras calls.
 """
 import argparse
-import importlib.util
 import math
 import statistics
-import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -24,22 +21,11 @@ import torch
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+from revision import module_at  # noqa: E402
 from odg_ros.render import splat  # noqa: E402
 from odg_ros.train.census import Census, CensusMode  # noqa: E402
 
 HEIGHT, WIDTH = 64, 176
-
-
-def splat_at(rev: str):
-    source = subprocess.run(["git", "-C", str(ROOT), "show", f"{rev}:odg_ros/render/splat.py"],
-                            check=True, capture_output=True, text=True).stdout
-    path = Path(tempfile.mkdtemp()) / "splat_before.py"
-    path.write_text(source)
-    # a name inside the package, so that its relative imports resolve
-    spec = importlib.util.spec_from_file_location("odg_ros.render.splat_before", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
 
 
 def scene(num_gaussians: int, num_pixels: int, num_cameras: int = 6, seed: int = 1):
@@ -89,7 +75,7 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=12)
     parser.add_argument("--scenes", type=int, default=1)
     args = parser.parse_args()
-    versions = {"before": splat_at(args.against), "this": splat}
+    versions = {"before": module_at(args.against, "odg_ros/render/splat.py"), "this": splat}
     seconds = {name: [] for name in versions}
     for name, module in versions.items():
         census = Census(steps=1)

@@ -9,10 +9,8 @@ batches in turn, one warm-up step each first. A step is timed with the read of i
 (this code reads them in ``fit`` every ``--log-every`` steps; here after every step).
 """
 import argparse
-import importlib.util
 import itertools
 import statistics
-import subprocess
 import sys
 import tempfile
 import time
@@ -22,22 +20,10 @@ import torch
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+from revision import module_at  # noqa: E402
 from odg_ros.config import load_preset  # noqa: E402
 from odg_ros.preprocess import normalize  # noqa: E402
 from odg_ros.train import trainer as current  # noqa: E402
-
-
-def trainer_at(rev: str):
-    source = subprocess.run(["git", "-C", str(ROOT), "show", f"{rev}:odg_ros/train/trainer.py"],
-                            check=True, capture_output=True, text=True).stdout
-    path = Path(tempfile.mkdtemp()) / "trainer_before.py"
-    path.write_text(source)
-    # a name inside the package, so that its relative imports resolve
-    spec = importlib.util.spec_from_file_location("odg_ros.train.trainer_before", path)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module           # its dataclasses look their module up
-    spec.loader.exec_module(module)
-    return module
 
 
 def main() -> int:
@@ -48,7 +34,7 @@ def main() -> int:
     parser.add_argument("--repeats", type=int, default=5)
     args = parser.parse_args()
     cfg = load_preset(args.preset)
-    before = trainer_at(args.against)
+    before = module_at(args.against, "odg_ros/train/trainer.py")
 
     def build(module, out):
         opts = module.TrainOptions(out_dir=out, workers=0, device="cpu", progress=False)

@@ -1,0 +1,24 @@
+"""A module of odg_ros as it was at a git revision, imported beside this code's own: the
+"before" side of the side-by-side benchmarks (bench_render, bench_raycast, bench_train_step)."""
+import importlib.util
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def module_at(rev: str, path: str):
+    """``path`` (e.g. "odg_ros/render/splat.py") at ``rev``, as module "<its name>_before"."""
+    source = subprocess.run(["git", "-C", str(ROOT), "show", f"{rev}:{path}"],
+                            check=True, capture_output=True, text=True).stdout
+    name = path.removesuffix(".py").replace("/", ".") + "_before"
+    file = Path(tempfile.mkdtemp()) / f"{name.rsplit('.', 1)[-1]}.py"
+    file.write_text(source)
+    # a name inside the package, so that its relative imports resolve
+    spec = importlib.util.spec_from_file_location(name, file)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module           # its dataclasses look their module up
+    spec.loader.exec_module(module)
+    return module
