@@ -4,6 +4,9 @@ in one process, interleaved, medians; and whether their loss terms are equal.
     python tools/bench_against_revision.py --data INFOS [--against main] [--preset odg_cpu]
         [--repeats 5] [--no-augment]
 
+Revisions older than the device-side augmentation train without it (compare with
+--no-augment), and those older than the uint8 loader take images normalised on the host.
+
 The revision's package is imported under another name, so the two trainers share nothing but
 torch. Both are built from the same seed (the same initial weights) and take the same batches
 in turn, the alternation reversed every step. Before each step the global random state is
@@ -11,6 +14,7 @@ set from the step index, so both draw the same augmentation and dropout: their l
 should then be equal, and they are compared term by term. One warm-up step is not timed.
 """
 import argparse
+import dataclasses
 import importlib
 import itertools
 import statistics
@@ -25,6 +29,7 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 from odg_ros.config import load_preset  # noqa: E402
+from odg_ros.preprocess import normalize  # noqa: E402
 from odg_ros.train import trainer as current  # noqa: E402
 
 OLD_NAME = "odg_before"
@@ -38,6 +43,11 @@ def package_at(rev: str, into: Path):
     (into / "odg_ros").rename(into / OLD_NAME)
     sys.path.insert(0, str(into))
     return importlib.import_module(f"{OLD_NAME}.train.trainer")
+
+
+def read(out):
+    """A step's loss terms: read from the device, or (older trainers) returned read."""
+    return out.read()[0] if hasattr(out, "read") else out[0]
 
 
 def main() -> int:
@@ -55,14 +65,23 @@ def main() -> int:
 
         def build(module, out):
             torch.manual_seed(0)
-            opts = module.TrainOptions(out_dir=out, workers=0, device="cpu", progress=False,
-                                       augment=not args.no_augment)
-            return module.Trainer(cfg, args.data, opts)
+            wanted = dict(out_dir=out, workers=0, device="cpu", progress=False,
+                          augment=not args.no_augment)
+            known = {f.name for f in dataclasses.fields(module.TrainOptions)}
+            return module.Trainer(cfg, args.data,
+                                  module.TrainOptions(**{k: v for k, v in wanted.items()
+                                                         if k in known}))
 
         trainers = {"before": build(before, Path(tmp) / "before"),
                     "this code": build(current, Path(tmp) / "now")}
         batches = list(itertools.islice(itertools.cycle(trainers["this code"].loader),
                                         args.repeats + 1))
+        # revisions before the uint8 loader took images normalised by the loader's workers
+        host_normalised = not hasattr(importlib.import_module(f"{OLD_NAME}.data.batch"),
+                                      "to_device")
+        inputs = {"before": (lambda b: dict(b, images=normalize(b["images"])))
+                  if host_normalised else (lambda b: b),
+                  "this code": lambda b: b}
         seconds = {name: [] for name in trainers}
         largest_difference = 0.0
         for index, batch in enumerate(batches):
@@ -71,7 +90,7 @@ def main() -> int:
             for name in order:
                 torch.manual_seed(1000 + index)
                 start = time.perf_counter()
-                terms[name] = trainers[name].train_step(batch).read()[0]
+                terms[name] = read(trainers[name].train_step(inputs[name](batch)))
                 elapsed = time.perf_counter() - start
                 if index:                                     # the first is a warm-up
                     seconds[name].append(elapsed)

@@ -1,5 +1,5 @@
 """A module of odg_ros as it was at a git revision, imported beside this code's own: the
-"before" side of the side-by-side benchmarks (bench_render, bench_raycast, bench_train_step)."""
+"before" side of the side-by-side benchmarks (bench_render, bench_raycast)."""
 import importlib.util
 import subprocess
 import sys
