@@ -117,7 +117,7 @@ def render_losses(layers: Sequence[Sequence[torch.Tensor]],
         raise ValueError("render_targets / cam_from_ego / intrinsics do not match the batch")
     for means, scales, rotations, opacities, logits in layers:
         G = means.shape[1] if means.ndim == 3 else -1
-        if (means.shape[0] != B or means.shape != (B, G, 3) or scales.shape != (B, G, 3)
+        if (means.shape != (B, G, 3) or scales.shape != (B, G, 3)
                 or rotations.shape != (B, G, 4) or opacities.shape != (B, G)
                 or logits.shape[:2] != (B, G)):
             raise ValueError("Gaussian attributes must be [B, G, ...] with the batch's B and "
