@@ -77,7 +77,7 @@ def upload(tensor: torch.Tensor, device, dtype: torch.dtype | None = None) -> to
     return tensor.to(device, non_blocking=True)
 
 
-def to_device(batch: dict, device, non_blocking: bool = True) -> dict:
+def to_device(batch: dict, device) -> dict:
     """A collated batch on ``device``: tensors (and lists of them) copied, uint8 images
     normalised there (float images are taken as normalised already). Copies from pinned
     memory do not block the host; nothing else is read back. The targets (``HOST_KEYS``)
@@ -87,11 +87,11 @@ def to_device(batch: dict, device, non_blocking: bool = True) -> dict:
         if key in HOST_KEYS:
             out[key] = value
         elif torch.is_tensor(value):
-            out[key] = value.to(device, non_blocking=non_blocking)
+            out[key] = value.to(device, non_blocking=True)
         elif isinstance(value, list) and value and torch.is_tensor(value[0]):
-            out[key] = [v.to(device, non_blocking=non_blocking) for v in value]
+            out[key] = [v.to(device, non_blocking=True) for v in value]
         elif isinstance(value, list) and value and isinstance(value[0], list):
-            out[key] = [[t.to(device, non_blocking=non_blocking) for t in v] for v in value]
+            out[key] = [[t.to(device, non_blocking=True) for t in v] for v in value]
         else:
             out[key] = value
     images = out.get("images")
