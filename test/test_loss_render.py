@@ -117,6 +117,19 @@ def test_bad_targets_raise():
                     renderer=half_of_first_gaussian)
 
 
+def test_gaussians_of_another_batch_size_raise():
+    means, scales, rotations, opacities, logits = gaussians(2, 3, requires_grad=False)
+    target = torch.tensor([[1.0, 2.0, 3.0, 4.0]])
+    with pytest.raises(ValueError, match="Gaussian attributes must be"):
+        render_loss(means[:1], scales, rotations, opacities, logits, [[target], [target]],
+                    CAM_FROM_EGO.expand(2, 1, 4, 4), K.expand(2, 1, 3, 3), (H, W),
+                    renderer=half_of_first_gaussian)
+    with pytest.raises(ValueError, match="Gaussian attributes must be"):
+        render_loss(means[:1], scales[:1], rotations[:1], opacities[:1], logits[:1],
+                    [[target], [target]], CAM_FROM_EGO.expand(2, 1, 4, 4),
+                    K.expand(2, 1, 3, 3), (H, W), renderer=half_of_first_gaussian)
+
+
 # --- the real renderer ------------------------------------------------------------------------
 
 def one_gaussian_scene(opacity=0.9, cls=4):
