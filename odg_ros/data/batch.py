@@ -66,6 +66,15 @@ def collate(samples: list[dict]) -> dict:
     return batch
 
 
+def tensors_in(value):
+    """The tensors in ``value``: a tensor, or lists and tuples of them nested to any depth."""
+    if torch.is_tensor(value):
+        yield value
+    elif isinstance(value, (list, tuple)):
+        for item in value:
+            yield from tensors_in(item)
+
+
 def upload(tensor: torch.Tensor, device, dtype: torch.dtype | None = None) -> torch.Tensor:
     """``tensor`` on ``device`` (as ``dtype``), queued without making the host wait: a copy
     from pageable host memory would wait for the stream, so a host tensor is pinned first."""

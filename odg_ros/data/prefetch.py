@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import torch
 
-from .batch import HOST_KEYS, to_device
+from .batch import HOST_KEYS, tensors_in, to_device
 
 
 class CudaStreams:
@@ -47,16 +47,8 @@ def batch_tensors(batch: dict):
     """The batch's tensors on the device: the host keys stay on the host (batch.to_device),
     where there is no stream to keep them for."""
     for key, value in batch.items():
-        if key in HOST_KEYS:
-            continue
-        if torch.is_tensor(value):
-            yield value
-        elif isinstance(value, list):
-            for item in value:
-                if torch.is_tensor(item):
-                    yield item
-                elif isinstance(item, list):
-                    yield from (t for t in item if torch.is_tensor(t))
+        if key not in HOST_KEYS:
+            yield from tensors_in(value)
 
 
 class DevicePrefetcher:

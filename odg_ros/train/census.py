@@ -24,7 +24,7 @@ from pathlib import Path
 import torch
 from torch.utils._python_dispatch import TorchDispatchMode
 
-from ..data.batch import HOST_KEYS
+from ..data.batch import HOST_KEYS, tensors_in
 
 aten = torch.ops.aten
 PHASES = ("data", "forward", "losses", "render", "backward", "optimizer")
@@ -224,16 +224,7 @@ def optimizer_host_tensors(optimizer) -> list[torch.Tensor]:
 
 def batch_host_tensors(batch: dict) -> list[torch.Tensor]:
     """The tensors of a batch that stay on the host in a CUDA run (``batch.HOST_KEYS``)."""
-    out = []
-    for key in HOST_KEYS:
-        stack = list(batch.get(key, ()))
-        while stack:
-            value = stack.pop()
-            if torch.is_tensor(value):
-                out.append(value)
-            elif isinstance(value, (list, tuple)):
-                stack.extend(value)
-    return out
+    return [t for key in HOST_KEYS for t in tensors_in(batch.get(key))]
 
 
 def census_of_steps(trainer, batches, cuda_paths: bool) -> Census:
