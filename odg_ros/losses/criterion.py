@@ -18,6 +18,7 @@ from typing import Callable
 import torch
 
 from ..config import ModelConfig
+from ..data.batch import upload
 from .box import box_loss, match_layers, matched_normaliser
 from .chamfer import occupancy_loss, occupancy_target
 from .render_loss import (NONFINITE_TARGET, render_layer_weights, render_losses,
@@ -95,6 +96,9 @@ class ODGCriterion:
                     raise ValueError(f"layer {l} has no boxes but cfg.dual_queries is True")
             matches = match_layers([(layer.boxes, layer.box_logits) for layer in output.layers],
                                    batch["gt_boxes"], batch["gt_labels"])
+            # uploaded once for the six layers' box losses (the matching reads the host copy)
+            gt_boxes = [upload(b, device) for b in batch["gt_boxes"]]
+            gt_labels = [upload(b, device) for b in batch["gt_labels"]]
 
         targets_finite = torch.ones((), dtype=torch.bool, device=device)
         if self.use_render:
@@ -126,8 +130,8 @@ class ODGCriterion:
             total = total + occ.chamfer + occ.focal
 
             if self.use_boxes:
-                box = box_loss(layer.boxes, layer.box_logits, batch["gt_boxes"],
-                               batch["gt_labels"], matches=matches[l - 1])
+                box = box_loss(layer.boxes, layer.box_logits, gt_boxes, gt_labels,
+                               matches=matches[l - 1])
                 losses[f"box_l1_l{l}"], losses[f"box_focal_l{l}"] = box.l1, box.focal
                 total = total + self.lambda_3d * (box.l1 + box.focal)
                 stats["boxes_matched"] += box.num_matched
