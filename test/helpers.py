@@ -47,3 +47,22 @@ def write_tiny_split(root, num_keyframes, yaw_rate=0.0):
     with open(path, "wb") as f:
         pickle.dump(build_world(root, num_keyframes=num_keyframes, yaw_rate=yaw_rate), f)
     return path
+
+
+def published_grid(output, cfg):
+    """Labels and confidence of a model output as the node publishes them: the batch's
+    grids, padded when cfg.occupancy_padding."""
+    from odg_ros.network.padding import pad_occupancy
+    from odg_ros.network.postprocess import occupancy_grid
+    grid, confidence = occupancy_grid(output, cfg)
+    if cfg.occupancy_padding:
+        grid, confidence = pad_occupancy(grid, confidence, cfg.num_classes, cfg.score_threshold)
+    return grid, confidence
+
+
+def assert_layers_close(layers, expected, tol):
+    """Every decoder layer's means, logits and boxes within ``tol`` (absolute and relative)."""
+    import torch
+    for a, b in zip(layers, expected, strict=True):
+        for name in ("means", "logits", "boxes"):
+            torch.testing.assert_close(getattr(a, name), getattr(b, name), atol=tol, rtol=tol)
