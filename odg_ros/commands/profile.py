@@ -91,13 +91,14 @@ def cuda_profile(trainer, batch) -> dict:
         trainer.train_step(batch)
         torch.cuda.synchronize()
         wall = time.perf_counter() - start
-    kernel = sum(e.self_device_time_total for e in prof.key_averages()) / 1e6
-    averages = sorted(prof.key_averages(), key=lambda e: -e.self_device_time_total)
-    table = prof.key_averages().table(sort_by="self_cuda_time_total", row_limit=10)
+    averages = prof.key_averages()
+    kernel = sum(e.self_device_time_total for e in averages) / 1e6
+    table = averages.table(sort_by="self_cuda_time_total", row_limit=10)
+    busiest = sorted(averages, key=lambda e: -e.self_device_time_total)[:10]
     return {"wall_s": round(wall, 4), "kernel_s": round(kernel, 4),
             "busy": round(kernel / wall, 3),
             "top_kernels": [{"name": e.key, "calls": e.count,
                              "seconds": round(e.self_device_time_total / 1e6, 5)}
-                            for e in averages[:10]],
+                            for e in busiest],
             "table": f"one step on the GPU: {wall:.3f} s wall, {kernel:.3f} s of kernels "
                      f"({100 * kernel / wall:.0f}% busy under the profiler)\n{table}"}
