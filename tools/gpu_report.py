@@ -174,22 +174,21 @@ def demo(out: Path) -> str:
     return table(keys, [[fmt(d.get(k)) for k in keys]])
 
 
-SECTIONS = [("Machine", "machine.json", machine), ("Tests", "tests*.xml", tests),
-            ("Training speed", "train_*.csv", None), ("GPU utilisation", "gpu_util_*.csv", gpu_util),
-            ("Training step on the GPU (odg profile train)", "profile_*.json", profile),
-            ("The node's step (odg bench --compile)", "node_*.json", node),
-            ("One online step, eager, per stage (odg bench)", "bench.json", bench),
-            ("The shipped checkpoint scored", "eval_*.json", scores),
-            ("odg demo end to end", "demo.json", demo)]
-
-
 def report(out: Path, skip_steps: int = 4) -> str:
+    sections = [("Machine", "machine.json", machine), ("Tests", "tests*.xml", tests),
+                ("Training speed", "train_*.csv", lambda out: train(out, skip_steps)),
+                ("GPU utilisation", "gpu_util_*.csv", gpu_util),
+                ("Training step on the GPU (odg profile train)", "profile_*.json", profile),
+                ("The node's step (odg bench --compile)", "node_*.json", node),
+                ("One online step, eager, per stage (odg bench)", "bench.json", bench),
+                ("The shipped checkpoint scored", "eval_*.json", scores),
+                ("odg demo end to end", "demo.json", demo)]
     parts = []
-    for title, pattern, make in SECTIONS:
+    for title, pattern, make in sections:
         if not any(out.glob(pattern)):
             continue
         try:
-            body = train(out, skip_steps) if make is None else make(out)
+            body = make(out)
         except (OSError, ValueError, KeyError, TypeError, ET.ParseError) as error:
             body = f"(not summarised: {pattern}: {type(error).__name__}: {error})"
         parts.append(f"### {title}\n\n{body}")
