@@ -108,7 +108,7 @@ def check_pytest(argv: list[str]) -> str | None:
     if missing:
         return f"no such test file {missing}"
     kept = []
-    skip_value = {"--timeout", "-p", "-k"}
+    skip_value = {"--timeout", "-p"}
     args = list(argv)
     i = 0
     while i < len(args):   # options that write or need plugins are left out; -k is kept
@@ -116,7 +116,7 @@ def check_pytest(argv: list[str]) -> str | None:
         if a.startswith("--junitxml"):
             i += 1
             continue
-        if a in skip_value and a != "-k":
+        if a in skip_value:
             i += 2
             continue
         kept.append(a)
