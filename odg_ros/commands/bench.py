@@ -15,7 +15,8 @@ import sys
 
 import torch
 
-from ..benchmark import PRECISIONS, bench_fast_paths, bench_online_step
+from ..benchmark import (PRECISIONS, bench_fast_paths, bench_node_step, bench_online_step,
+                         data_camera_sets)
 from ..config import load_preset
 from ..network.precision import slow_precision_warning
 from .common import (UserError, device, existing_file, infos_file, nonnegative_int,
@@ -154,7 +155,6 @@ def run(args) -> int:
 
 
 def run_compile_command(args) -> int:
-    from ..benchmark import bench_node_step
     from ..network.checkpoint import load_model
     from ..online.step import MODES
     modes = tuple(m.strip() for m in args.compile.split(",") if m.strip())
@@ -164,7 +164,6 @@ def run_compile_command(args) -> int:
                          f"comma-separated list of {MODES}")
     if "graphs" in modes and args.device != "cuda":
         raise SystemExit("odg bench --compile graphs: CUDA graphs need --device cuda")
-    from ..benchmark import data_camera_sets
     model, cfg = load_model(args.checkpoint, preset=args.preset, device=args.device)
     sets = None
     if args.data:
