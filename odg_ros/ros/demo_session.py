@@ -224,8 +224,8 @@ def run_session(bag: Path, checkpoint: Path, sets: CameraSets, out_dir: Path, ra
 
         # --- the node ---------------------------------------------------------------------
         start = time.monotonic()
-        node = ChildProcess("odg_node", node_command(checkpoint, precision, device), out_dir / "node.log",
-                            env)
+        node = ChildProcess("odg_node", node_command(checkpoint, precision, device),
+                            out_dir / "node.log", env)
         log(f"odg_node started (pid {node.process.pid}, log {node.log_path}); waiting for it "
             "to load the checkpoint")
         shown = start
