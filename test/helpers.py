@@ -66,3 +66,17 @@ def assert_layers_close(layers, expected, tol):
     for a, b in zip(layers, expected, strict=True):
         for name in ("means", "logits", "boxes"):
             torch.testing.assert_close(getattr(a, name), getattr(b, name), atol=tol, rtol=tol)
+
+
+def driving_scene(rng, shape=(200, 200, 16), free=17):
+    """A driving-like label grid: ground, 25 cars at random, walls on two sides."""
+    import numpy as np
+    g = np.full(shape, free, dtype=np.uint8)
+    g[:, :, :3] = 11
+    g[:, 130:, :3] = 13
+    for _ in range(25):
+        x, y = rng.integers(20, 180, 2)
+        g[x:x + 11, y:y + 5, 3:7] = rng.choice([4, 10, 3])
+    g[:, 175:, 3:14] = 15
+    g[:, :15, 3:12] = 16
+    return g

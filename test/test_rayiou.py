@@ -9,6 +9,7 @@ import math
 
 import numpy as np
 import pytest
+from helpers import driving_scene
 
 from odg_ros.metrics.raycast import (MAX_STEP, cast_rays, lidar_ray_directions,
                                      rays_in_voxel_units)
@@ -320,18 +321,6 @@ def test_scene_shifted_by_one_voxel_hand_computed():
         assert res[f"RayIoU@{t}"] == pytest.approx(0.375)
     assert res["RayIoU"] == pytest.approx(0.375)
     assert res["rays"] == 4 and res["samples"] == 1
-
-
-def driving_scene(rng):
-    g = np.full(SHAPE, FREE, dtype=np.uint8)
-    g[:, :, :3] = 11
-    g[:, 130:, :3] = 13
-    for _ in range(25):
-        x, y = rng.integers(20, 180, 2)
-        g[x:x + 11, y:y + 5, 3:7] = rng.choice([4, 10, 3])
-    g[:, 175:, 3:14] = 15
-    g[:, :15, 3:12] = 16
-    return g
 
 
 def test_perfect_and_all_free_predictions():

@@ -17,6 +17,8 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "test"))
+from helpers import driving_scene  # noqa: E402
 from revision import module_at  # noqa: E402
 
 from odg_ros.metrics.raycast import cast_rays, lidar_ray_directions, rays_in_voxel_units  # noqa
@@ -26,14 +28,7 @@ GRID_MIN = np.array([-40.0, -40.0, -1.0])
 
 
 def world(rng):
-    g = np.full(SHAPE, FREE, dtype=np.uint8)
-    g[:, :, :3] = 11
-    g[:, 130:, :3] = 13
-    for _ in range(25):
-        x, y = rng.integers(20, 180, 2)
-        g[x:x + 11, y:y + 5, 3:7] = rng.choice([4, 10, 3])
-    g[:, 175:, 3:14] = 15
-    g[:, :15, 3:12] = 16
+    g = driving_scene(rng, SHAPE, FREE)
     pred = np.full_like(g, FREE)
     pred[1:] = g[:-1]
     pred[rng.random(SHAPE) < 0.03] = 4
