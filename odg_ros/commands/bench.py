@@ -160,10 +160,10 @@ def run_compile_command(args) -> int:
     modes = tuple(m.strip() for m in args.compile.split(",") if m.strip())
     unknown = [m for m in modes if m not in MODES]
     if unknown or not modes:
-        raise SystemExit(f"odg bench --compile: unknown mode(s) {unknown}; expected a "
-                         f"comma-separated list of {MODES}")
+        raise UserError(f"--compile: unknown mode(s) {unknown}; expected a comma-separated "
+                        f"list of {MODES}")
     if "graphs" in modes and args.device != "cuda":
-        raise SystemExit("odg bench --compile graphs: CUDA graphs need --device cuda")
+        raise UserError("--compile graphs: CUDA graphs need --device cuda")
     model, cfg = load_model(args.checkpoint, preset=args.preset, device=args.device)
     sets = None
     if args.data:
