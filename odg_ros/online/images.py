@@ -13,6 +13,7 @@ is decoded: a small PNG of a huge blank image costs no memory.
 from __future__ import annotations
 
 import io
+from contextlib import nullcontext
 from dataclasses import dataclass
 
 import numpy as np
@@ -226,7 +227,7 @@ class DeviceJpegDecoder:
                 raise BadInput("corrupt_image", f"{camera}: corrupt JPEG header "
                                f"({len(image.data)} bytes): {error}") from None
         data = [torch.frombuffer(bytearray(i.data), dtype=torch.uint8) for i in images]
-        context = torch.cuda.stream(self.stream) if self.stream is not None else _nothing()
+        context = torch.cuda.stream(self.stream) if self.stream is not None else nullcontext()
         with context:
             try:
                 decoded = self._decode_jpeg(data, mode=self._rgb, device=self.device)
@@ -254,14 +255,6 @@ class DeviceJpegDecoder:
         except RuntimeError as error:
             raise BadInput("corrupt_image", f"{camera}: corrupt or truncated JPEG "
                            f"({len(data)} bytes): {error}") from None
-
-
-class _nothing:
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        return False
 
 
 def _is_jpeg(data: bytes) -> bool:
