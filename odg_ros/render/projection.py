@@ -121,15 +121,12 @@ def project_gaussians(means: torch.Tensor, scales: torch.Tensor, rotations: torc
     candidates, visible = project_candidates(means, scales, rotations, opacities, cam_from_ego,
                                              intrinsics, image_hw, near, gaussian_scene,
                                              cameras_per_scene)
-    with torch.no_grad():
-        keep = visible.nonzero(as_tuple=True)[0]
-        keep = keep[torch.argsort(candidates.depth[keep], stable=True)]
-    return candidates.take(keep)
+    return candidates.take(depth_order(candidates, visible)[:int(visible.sum())])
 
 
 def depth_order(candidates: Splats, visible: torch.Tensor) -> torch.Tensor:
     """Order of the candidates with the visible ones first, sorted by depth (stable), as
-    project_gaussians returns them: its splats are take(depth_order(...)[:visible.sum()])."""
+    project_gaussians returns them."""
     with torch.no_grad():
         return torch.argsort(torch.where(visible, candidates.depth,
                                          torch.full_like(candidates.depth, math.inf)), stable=True)
