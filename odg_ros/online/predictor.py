@@ -269,5 +269,5 @@ class OnlinePredictor:
         """The decoder's full output over the ring as the step just saw it (tests)."""
         ego2img, warps, deltas, frame_index, _ = self.layout.unpack(self._packed)
         with precision_context(self.precision, self.device):
-            return self.online_step.model._decode_stored(self.ring.all_levels(), ego2img, warps, deltas,
-                                             frame_index, False, None)
+            return self.online_step.model._decode_stored(self.ring.all_levels(), ego2img, warps,
+                                                         deltas, frame_index, False, None)
