@@ -91,7 +91,9 @@ PoseLookup = Callable[[float], np.ndarray]                  # stamp -> T_global_
 
 
 class OnlinePipeline:
-    """Thread-safe between the input callbacks and one worker calling ``next_set``/``process``.
+    """Thread-safe between the input callbacks and either one worker calling
+    ``next_set``/``process``, or ``start_decoding``'s thread and one worker calling
+    ``next_prepared``/``infer`` (the node).
 
     extrinsics: T_ego_from_cam per (camera name, CameraInfo frame id, stamp), e.g. from a rig
     file or TF; it raises BadInput('missing_extrinsics') when it has none.
