@@ -213,11 +213,11 @@ def _render_scenes(means, scales, rotations, opacities, features, gaussian_scene
     binned = grid.bin_pixels(pixel_uv, pixel_camera,
                              torch.ones(pixel_uv.shape[0], dtype=torch.bool,
                                         device=means.device))
-    keep, num_tile_pairs, first_batch = _visible_splats(candidates, visible, grid, binned[1],
-                                                        checks)
+    keep, boxes, num_tile_pairs, first_batch = _visible_splats(candidates, visible, grid,
+                                                               binned[1], checks)
     splats = candidates.take(keep)
     weights, pair_pixel, pair_splat = _composite(splats, pixel_uv, pixel_camera, grid, binned,
-                                                 num_tile_pairs, first_batch)
+                                                 boxes, num_tile_pairs, first_batch)
 
     # One weighted sum gives features, depth and accumulated alpha (a column of ones).
     values = torch.cat([features[splats.gaussian], splats.depth[:, None],
@@ -239,9 +239,9 @@ def _visible_splats(candidates: Splats, visible: torch.Tensor, grid: "_TileGrid"
     the input checks (raised here, before any size is used).
 
     tile_count [num_tiles]: requested pixels per tile. Returns (the candidates to keep: the
-    visible splats sorted by depth, as project_gaussians gives them; the number of their
-    (splat, tile) pairs; the first depth batch as (first pair past it, first splat past it,
-    its candidate pairs)).
+    visible splats sorted by depth, as project_gaussians gives them; their boxes of tiles
+    (row0, row1, col0, col1) [S] long; the number of their (splat, tile) pairs; the first
+    depth batch as (first pair past it, first splat past it, its candidate pairs)).
     """
     order = depth_order(candidates, visible)
     lo = candidates.mean2d - candidates.half_extent
@@ -268,7 +268,9 @@ def _visible_splats(candidates: Splats, visible: torch.Tensor, grid: "_TileGrid"
     if overflow:
         raise FloatingPointError("Gaussian projection overflowed (non-finite 2D mean or "
                                  "covariance); scales or positions are out of range")
-    return order[:num_visible], num_tile_pairs, (tile_pairs_before, last, num_candidates)
+    keep = order[:num_visible]
+    boxes = tuple(edge[keep] for edge in (row0, row1, col0, col1))
+    return keep, boxes, num_tile_pairs, (tile_pairs_before, last, num_candidates)
 
 
 def _pixels_in_boxes(grid: "_TileGrid", tile_count: torch.Tensor, camera: torch.Tensor,
@@ -289,10 +291,10 @@ def _pixels_in_boxes(grid: "_TileGrid", tile_count: torch.Tensor, camera: torch.
 
 
 def _composite(splats: Splats, pixel_uv: torch.Tensor, pixel_camera: torch.Tensor,
-               grid: "_TileGrid", binned, num_tile_pairs: int, first_batch):
+               grid: "_TileGrid", binned, boxes, num_tile_pairs: int, first_batch):
     """Compositing weights w = T alpha of every contributing (splat, pixel) pair.
 
-    binned: grid.bin_pixels of every pixel; num_tile_pairs and first_batch: from
+    binned: grid.bin_pixels of every pixel; boxes, num_tile_pairs and first_batch: from
     _visible_splats. Returns weight [M] (differentiable), pixel [M], splat [M] (long).
 
     Splats are processed front to back in depth batches of whole splats (about
@@ -313,7 +315,7 @@ def _composite(splats: Splats, pixel_uv: torch.Tensor, pixel_camera: torch.Tenso
                           splats.cov_yy, splats.det, splats.opacity], dim=-1)    # [S, 6]
     weights, pair_pixels, pair_splats = [], [], []
     if len(splats) and num_pixels:
-        st_splat, st_tile, boxes = _splat_tiles(splats, grid, num_tile_pairs)
+        st_splat, st_tile = _splat_tiles(splats, grid, boxes, num_tile_pairs)
         splat_first_st = torch.searchsorted(st_splat, torch.arange(len(splats) + 1, device=device))
         log_t = torch.zeros(num_pixels, dtype=torch.float64, device=device)  # running log T
         active = torch.ones(num_pixels, dtype=torch.bool, device=device)
@@ -424,16 +426,13 @@ class _TileGrid:
 
 
 @torch.no_grad()
-def _splat_tiles(splats: Splats, grid: _TileGrid, total: int):
+def _splat_tiles(splats: Splats, grid: _TileGrid, boxes, total: int):
     """Every (splat, tile) pair where the splat's alpha >= 1/255 box touches the tile,
-    sorted by splat; total = the number of those pairs (read by the caller).
-    -> st_splat [T] long, st_tile [T] long (global tile id), and each splat's box of tiles
-    (row0, row1, col0, col1) [S] long."""
+    sorted by splat; boxes: each splat's box of tiles (row0, row1, col0, col1) [S] long;
+    total = the number of those pairs (both from _visible_splats).
+    -> st_splat [T] long, st_tile [T] long (global tile id)."""
     device = splats.mean2d.device
-    lo = splats.mean2d.detach() - splats.half_extent
-    hi = splats.mean2d.detach() + splats.half_extent
-    col0, col1 = grid.column(lo[:, 0]), grid.column(hi[:, 0])
-    row0, row1 = grid.row(lo[:, 1]), grid.row(hi[:, 1])
+    row0, row1, col0, col1 = boxes
     span = col1 - col0 + 1
     tiles_of_splat = span * (row1 - row0 + 1)
     st_splat = torch.repeat_interleave(torch.arange(len(splats), device=device), tiles_of_splat,
@@ -443,7 +442,7 @@ def _splat_tiles(splats: Splats, grid: _TileGrid, total: int):
     st_tile = (splats.camera[st_splat] * grid.tiles_per_camera
                + (row0[st_splat] + local // span[st_splat]) * grid.tiles_x
                + col0[st_splat] + local % span[st_splat])
-    return st_splat, st_tile, (row0, row1, col0, col1)
+    return st_splat, st_tile
 
 
 def _candidate_pairs(st_splat, st_tile, pixels_by_tile, tile_count, tile_first, total):
