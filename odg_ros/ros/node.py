@@ -409,7 +409,8 @@ class OdgNode(Node):
         """Inside an ``except`` block of the decoding or the inference thread."""
         with self._error_lock:
             self.internal_errors += 1
-        self.get_logger().error(f"inference failed:\n{traceback.format_exc()}",
+        self.get_logger().error(f"{threading.current_thread().name} failed:\n"
+                                f"{traceback.format_exc()}",
                                 throttle_duration_sec=5.0)
 
     def publish(self, result) -> None:
