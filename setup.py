@@ -26,7 +26,7 @@ setup(
     tests_require=["pytest"],
     entry_points={
         "console_scripts": [
-            "odg = odg_ros.cli:main",
+            "odg = odg_ros.commands:main",
             "odg_node = odg_ros.ros.node:main",
         ],
     },

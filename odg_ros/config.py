@@ -10,7 +10,18 @@ import yaml
 from .classes import OccLabels, occ_labels
 from .resources import resource_path
 
-PRESET_NAMES = ("odg_t", "odg_l", "odg_cpu", "odg_waymo_t", "odg_waymo_cpu")
+
+def preset_names(dataset: str | None = None) -> tuple[str, ...]:
+    """The presets shipped in ``model/*.yaml`` (of one dataset's label set when given)."""
+    names = []
+    for path in sorted(resource_path("model").glob("*.yaml")):
+        values = yaml.safe_load(path.read_text()) or {}
+        if dataset is None or values.get("dataset", "nuscenes") == dataset:
+            names.append(path.stem)
+    return tuple(names)
+
+
+PRESET_NAMES = preset_names()
 
 
 @dataclass

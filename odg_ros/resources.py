@@ -29,3 +29,15 @@ def resource_path(relative: str) -> Path:
             return candidate
     searched = ", ".join(str(r) for r in _candidate_roots())
     raise FileNotFoundError(f"{relative} not found under any of: {searched}")
+
+
+SHIPPED_CHECKPOINT = "model/odg_cpu.pt"
+
+
+def shipped_checkpoint() -> Path:
+    """The checkpoint the package ships (``model/odg_cpu.pt``), wherever it is installed."""
+    try:
+        return resource_path(SHIPPED_CHECKPOINT)
+    except FileNotFoundError:
+        raise FileNotFoundError(f"the shipped checkpoint {SHIPPED_CHECKPOINT} is missing from "
+                                "this checkout or install") from None

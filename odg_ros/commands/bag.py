@@ -5,7 +5,7 @@
 
 One scene gives one bag at BAG. With several scenes selected (several --scene, or none given
 and the dataroot has several), each goes to BAG/<scene name>. Topics: see
-odg_ros/ros/bag_layout.py.
+odg_ros/bags/layout.py.
 """
 from __future__ import annotations
 
@@ -33,8 +33,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args) -> int:
-    from odg_ros.ros.bag import write_scene_bag
-    from odg_ros.ros.nuscenes_source import NuScenesSensorTables
+    from odg_ros.bags.writer import write_scene_bag
+    from odg_ros.bags.nuscenes_source import NuScenesSensorTables
 
     dataroot = args.world if args.source == "synth" else args.dataroot
     try:

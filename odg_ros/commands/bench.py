@@ -15,7 +15,7 @@ import sys
 
 import torch
 
-from ..benchmark import (PRECISIONS, bench_fast_paths, bench_node_step, bench_online_step,
+from ..bench.step import (PRECISIONS, bench_fast_paths, bench_node_step, bench_online_step,
                          data_camera_sets)
 from ..config import load_preset
 from ..network.precision import slow_precision_warning
@@ -58,7 +58,8 @@ def add_arguments(parser):
     parser.add_argument("--fast-paths", action="store_true",
                         help="compare each fast path with the plain path (random weights)")
     parser.add_argument("--sweep", action="store_true",
-                        help="speed vs error over configurations on a split (see sweep.py)")
+                        help="speed vs error over configurations on a split "
+                             "(odg_ros/bench/sweep.py)")
     parser.add_argument("--data", default=None, type=infos_file,
                         help="--sweep: infos of the split (required there); --compile: feed "
                              "the first scene's keyframes instead of random images "
@@ -199,7 +200,7 @@ def run_compile_command(args) -> int:
 
 
 def run_sweep_command(args) -> int:
-    from ..sweep import format_table, run_sweep, select_configs
+    from ..bench.sweep import format_table, run_sweep, select_configs
     if args.checkpoint is None:
         cfg = load_preset(args.preset)
     else:

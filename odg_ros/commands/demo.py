@@ -25,7 +25,7 @@ from pathlib import Path
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from odg_ros.demo import DEFAULT_OUT, DEFAULT_RATE, DEFAULT_SECONDS, DEFAULT_SEED
+    from odg_ros.demo.world import DEFAULT_OUT, DEFAULT_RATE, DEFAULT_SECONDS, DEFAULT_SEED
 
     from .common import device, existing_file, positive_float, positive_int
 
@@ -75,26 +75,30 @@ def _interrupt(signum, frame):
 
 
 def _run(args, log) -> int:
-    from odg_ros import demo
     from odg_ros.data.synth.generate import DEFAULT_IMAGE_HW
+    from odg_ros.demo import REFERENCE_CAMERA, DemoError
+    from odg_ros.demo.picture import draw_demo_png, pick_keyframe
+    from odg_ros.demo.records import bag_camera_sets
+    from odg_ros.demo.report import format_summary, score_keyframes, summarize_session, write_json
+    from odg_ros.demo.world import WorldSpec, build_demo_world, resolve_checkpoint
 
     started = time.monotonic()
     out = args.out
     timings = {}
     try:
-        checkpoint = demo.resolve_checkpoint(args.checkpoint)
-        spec = demo.WorldSpec(seed=args.seed, seconds=args.seconds,
+        checkpoint = resolve_checkpoint(args.checkpoint)
+        spec = WorldSpec(seed=args.seed, seconds=args.seconds,
                               image_hw=tuple(args.image_size or DEFAULT_IMAGE_HW))
-        world = demo.build_world(out, spec, log=log)
+        world = build_demo_world(out, spec, log=log)
         timings["world" + (" (reused)" if world.reused else "")] = world.seconds
-        sets = demo.bag_camera_sets(world.bag)
+        sets = bag_camera_sets(world.bag)
 
         try:                                                # rclpy from here on
             from odg_ros.ros.demo_session import run_session
             import odg_ros_msgs.msg  # noqa: F401
             import rclpy  # noqa: F401
         except ImportError as error:
-            raise demo.DemoError(f"the ROS 2 Python packages are not importable ({error}); "
+            raise DemoError(f"the ROS 2 Python packages are not importable ({error}); "
                                  "run `make setup`") from None
         record = run_session(world.bag, checkpoint, sets, out, args.rate, log=log,
                              precision=args.precision, device=args.device)
@@ -103,16 +107,16 @@ def _run(args, log) -> int:
         timings["drain"] = record.timings["drain"]
 
         if not record.grids:
-            raise demo.DemoError(f"the node published no occupancy grid (see {out}/node.log); "
+            raise DemoError(f"the node published no occupancy grid (see {out}/node.log); "
                                  f"its last diagnostics: {record.diagnostics_message!r}")
         start = time.monotonic()
         from odg_ros.metrics.score import load_infos
         meta = load_infos(world.infos)
         grids = {g.stamp_ns: g.labels for g in record.grids}
-        score, scored, per_keyframe = demo.score_keyframes(meta, grids)
+        score, scored, per_keyframe = score_keyframes(meta, grids)
         timings["scoring"] = time.monotonic() - start
 
-        report = demo.summarize(record, sets, meta, score, scored, args.rate)
+        report = summarize_session(record, sets, meta, score, scored, args.rate)
         report["checkpoint"] = str(checkpoint)
         report["precision"] = args.precision
         report["device"] = args.device
@@ -120,17 +124,17 @@ def _run(args, log) -> int:
         report["out"] = str(out)
         if scored:
             start = time.monotonic()
-            index = demo.pick_keyframe(scored, meta["infos"])
-            stamp = int(meta["infos"][index]["cams"][demo.REFERENCE_CAMERA]["timestamp"]) * 1000
-            demo.draw_demo_png(out / "demo.png", meta, index, grids[stamp], report,
+            index = pick_keyframe(scored, meta["infos"])
+            stamp = int(meta["infos"][index]["cams"][REFERENCE_CAMERA]["timestamp"]) * 1000
+            draw_demo_png(out / "demo.png", meta, index, grids[stamp], report,
                                per_keyframe[index])
             timings["picture"] = time.monotonic() - start
         else:
             report["warnings"].append("no keyframe grid arrived: nothing scored, no demo.png")
         timings["total"] = time.monotonic() - started
         report["timings_s"] = {k: round(v, 1) for k, v in timings.items()}
-        demo.write_json(report, out / "demo.json")
-    except demo.DemoError as error:
+        write_json(report, out / "demo.json")
+    except DemoError as error:
         log(f"odg demo: {error}")
         return 1
     except KeyboardInterrupt:
@@ -144,7 +148,7 @@ def _run(args, log) -> int:
         if score is not None:
             from odg_ros.metrics.score import format_table
             print(format_table(score) + "\n")
-        print(demo.format_summary(report))
+        print(format_summary(report))
         files = [out / "demo.json"] + ([out / "demo.png"] if scored else []) + [out / "node.log"]
         print("files: " + ", ".join(str(f) for f in files))
     return 0

@@ -3,10 +3,9 @@ from __future__ import annotations
 
 import json
 
-import torch
 from torch.utils.flop_counter import FlopCounterMode
 
-from ..benchmark import online_inputs
+from ..rig import online_inputs
 from ..config import PRESET_NAMES, load_preset
 from ..network import ODG
 from .common import preset

@@ -8,7 +8,7 @@ a pickle of ``{"version": str, "dataset": "nuscenes" | "waymo", "dataroot": str,
     ego_pose        4x4 T_global_from_ego at the LiDAR stamp
     lidar_path      path relative to dataroot; lidar2ego 4x4
     lidarseg_path   per-point labels (nuScenes-lidarseg) relative to dataroot, "" when none
-    cams            {CAM_NAME: camera}, the keyframe's set, CAM_NAME in CAMERA_NAMES order
+    cams            {CAM_NAME: camera}, the keyframe's set, in rig.CAMERA_NAMES order
     sweeps          [{CAM_NAME: camera}, ...] earlier camera sets, newest first (12 Hz sweeps)
     occ_path        labels.npz path relative to the occ root ("" when there is no GT)
     gt_boxes        float [M, 9] (cx, cy, cz, w, l, h, yaw, vx, vy) in this keyframe's ego frame
@@ -46,9 +46,6 @@ from __future__ import annotations
 import torch
 
 from ..preprocess import normalize
-
-CAMERA_NAMES = ("CAM_FRONT", "CAM_FRONT_RIGHT", "CAM_FRONT_LEFT",
-                "CAM_BACK", "CAM_BACK_LEFT", "CAM_BACK_RIGHT")
 
 STACKED_KEYS = ("images", "ego2img", "ego_warp", "time_delta", "intrinsics", "cam_from_ego",
                 "occ_semantics", "occ_mask_camera", "occ_mask_lidar")

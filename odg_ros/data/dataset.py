@@ -53,7 +53,7 @@ import torch
 from .. import geometry, preprocess
 from ..config import ModelConfig
 from . import lidar, occ_io
-from .batch import CAMERA_NAMES
+from ..rig import CAMERA_NAMES
 from .decode import read_image
 from .lidarseg import lidarseg_to_occ
 from .prepare import load_infos

@@ -21,7 +21,7 @@ import numpy as np
 from tqdm import tqdm
 
 from odg_ros.classes import BOX_CLASSES
-from odg_ros.data.batch import CAMERA_NAMES
+from odg_ros.rig import CAMERA_NAMES
 from odg_ros.data.nuscenes_tables import CATEGORY_TO_BOX_CLASS, NuScenesTables, pose_matrix
 from odg_ros.geometry import invert_transform, quaternion_to_matrix
 

@@ -38,7 +38,7 @@ from PIL import Image
 
 from odg_ros import geometry
 
-CAMERA_NAMES = ("FRONT", "FRONT_LEFT", "FRONT_RIGHT", "SIDE_LEFT", "SIDE_RIGHT")
+WAYMO_CAMERA_NAMES = ("FRONT", "FRONT_LEFT", "FRONT_RIGHT", "SIDE_LEFT", "SIDE_RIGHT")
 IMAGE_FOLDER_OF_POSE = (0, 1, 3, 2, 4)
 SPLITS = {  # split -> (pose file, GT folder, image-name prefix)
     "train": ("cam_infos.pkl", "training", 0),
@@ -90,13 +90,13 @@ def image_path(dataroot, folder: int, prefix: int, scene: int, frame: int) -> st
 
 def _camera_set(dataroot, pose_frame, prefix, scene, frame, stamp, sizes, notes) -> dict:
     cams = dict(_items(pose_frame))
-    if len(cams) != len(CAMERA_NAMES):
+    if len(cams) != len(WAYMO_CAMERA_NAMES):
         raise ValueError(f"scene {scene} frame {frame}: {len(cams)} cameras in the pose file, "
-                         f"expected {len(CAMERA_NAMES)}")
+                         f"expected {len(WAYMO_CAMERA_NAMES)}")
     out = {}
     for k, (_, cam) in enumerate(sorted(cams.items())):
         folder = IMAGE_FOLDER_OF_POSE[k]
-        name = CAMERA_NAMES[folder]
+        name = WAYMO_CAMERA_NAMES[folder]
         what = f"scene {scene} frame {frame} camera {k}"
         missing = [key for key in ("intrinsics", "sensor2ego", "ego2global") if key not in cam]
         if missing:
@@ -126,7 +126,7 @@ def _camera_set(dataroot, pose_frame, prefix, scene, frame, stamp, sizes, notes)
         out[name] = {"data_path": rel, "timestamp": stamp, "intrinsics": K,
                      "sensor2ego": sensor2ego, "ego_pose": ego_pose, "image_hw": sizes[name],
                      "token": f"{prefix}{scene:03d}{frame:03d}_{name}"}
-    return {name: out[name] for name in CAMERA_NAMES}
+    return {name: out[name] for name in WAYMO_CAMERA_NAMES}
 
 
 def build_waymo_infos(dataroot, occ_root=None, split="train", keyframe_interval: int = 1,
@@ -164,7 +164,7 @@ def build_waymo_infos(dataroot, occ_root=None, split="train", keyframe_interval:
                 "token": f"{prefix}{scene:03d}{frame:03d}", "scene_token": f"{split}-{scene:03d}",
                 "scene_name": f"{gt_folder}/{scene:03d}", "timestamp": stamp,
                 "frame_index": frame_index // keyframe_interval,
-                "ego_pose": cams[CAMERA_NAMES[0]]["ego_pose"],
+                "ego_pose": cams[WAYMO_CAMERA_NAMES[0]]["ego_pose"],
                 "lidar_path": "", "lidar2ego": LIDAR_TOP_IN_EGO.copy(), "lidarseg_path": "",
                 "cams": cams, "sweeps": pending[::-1],
                 "occ_path": occ_rel if os.path.exists(os.path.join(occ_root, occ_rel)) else "",

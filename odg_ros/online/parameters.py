@@ -12,6 +12,7 @@ from pathlib import Path
 
 import yaml
 
+from ..config import preset_names
 from ..resources import resource_path
 
 SCHEMA = "config/odg_node.schema.yaml"
@@ -81,7 +82,10 @@ def load_schema(path: str | Path | None = None) -> dict[str, Parameter]:
             raise ValueError(f"{path}: parameter {name}: needs type (one of {list(TYPES)}), "
                              f"default, description and group (one of {list(GROUPS)}); "
                              f"unknown keys: {sorted(unknown)}")
-        enum = tuple(entry["enum"]) if "enum" in entry else None
+        enum = entry.get("enum")
+        if enum == "nuscenes_presets":       # the presets of model/*.yaml the node's rig fits
+            enum = preset_names("nuscenes")
+        enum = tuple(enum) if enum is not None else None
         parameter = Parameter(name=name, type=entry["type"], default=entry["default"],
                               description=" ".join(str(entry["description"]).split()),
                               group=entry["group"], enum=enum, minimum=entry.get("minimum"),

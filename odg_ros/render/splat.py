@@ -33,7 +33,7 @@ independent scenes (the render loss: every decoder layer of every sample) in one
 those reads are paid once for all of them.
 
 The code is device-agnostic PyTorch but has only been run on CPU; on CUDA, gsplat_backend.py
-renders the same with gsplat's rasteriser. test/test_render_gsplat.py checks this renderer
+renders the same with gsplat's rasteriser. test/render/test_render_gsplat.py checks this renderer
 against gsplat's own pure-PyTorch projection composited with its CUDA kernel's rules, at every
 pixel. The one difference is deliberate: gsplat caps alpha at 0.999, we cap it at 0.99
 (ALPHA_MAX) as the original 3D Gaussian splatting does.

@@ -1,5 +1,5 @@
 """The ROS half of ``odg demo``: odg_node and odg replay in processes of their own, and a
-planner stand-in in this one that receives every output (odg_ros/demo.py defines the numbers).
+planner stand-in in this one that receives every output (odg_ros/demo/ defines the numbers).
 
     odg_node --ros-args --params-file config/odg.yaml -p checkpoint:=CKPT -p use_sim_time:=true
     odg replay BAG --clock --rate R --wait-for-subscribers S
@@ -27,9 +27,10 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from odg_ros.demo import CameraSets, DemoError, ReceivedGrid, SessionRecord
+from odg_ros.demo import DemoError
+from odg_ros.demo.records import CameraSets, ReceivedGrid, SessionRecord
 from odg_ros.resources import resource_path
-from odg_ros.ros import bag_layout as layout
+from odg_ros.bags import layout
 from odg_ros.ros.dds import localhost_dds_env, use_localhost_dds
 
 NODE_NAME = "odg_node"                 # pinned on the node's command line (-r __node:=...)
@@ -99,7 +100,7 @@ def node_command(checkpoint: Path, precision: str = "fp32", device: str = "auto"
 
 
 def replay_command(bag: Path, rate: float) -> list[str]:
-    return [sys.executable, "-m", "odg_ros.cli", "replay", str(bag), "--clock", "--quiet",
+    return [sys.executable, "-m", "odg_ros.commands", "replay", str(bag), "--clock", "--quiet",
             "--rate", repr(float(rate)),
             "--wait-for-subscribers", str(int(REPLAY_START_TIMEOUT_S / 2))]
 
@@ -110,7 +111,7 @@ def _stamp_ns(stamp) -> int:
 
 class PlannerStandIn:
     """Subscribes to the node's outputs like a planner would and records them (no ROS types
-    leave this class: see odg_ros.demo.SessionRecord)."""
+    leave this class: see odg_ros.demo.records.SessionRecord)."""
 
     def __init__(self, context, record: SessionRecord):
         import rclpy

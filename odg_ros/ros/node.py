@@ -53,7 +53,6 @@ from visualization_msgs.msg import Marker, MarkerArray
 
 from odg_ros_msgs.msg import DynamicObject, DynamicObjectArray, SemanticVoxelGrid
 
-from ..data.batch import CAMERA_NAMES
 from ..network.checkpoint import load_model
 from ..network.precision import slow_precision_warning
 from ..online import packing
@@ -67,10 +66,9 @@ from ..online.predictor import OnlinePredictor
 from ..online.rig import IntrinsicsRange, load_rig
 from ..online.sync import stamp_to_seconds
 from ..online.transforms import TransformBuffer
-from ..resources import resource_path
+from ..resources import resource_path, shipped_checkpoint
 
 NODE_NAME = "odg_node"
-SHIPPED_CHECKPOINT = "model/odg_cpu.pt"
 
 # The parameters' types, defaults, ranges and descriptions: config/odg_node.schema.yaml.
 _PARAMETER_TYPES = {"bool": ParameterType.PARAMETER_BOOL,
@@ -163,15 +161,6 @@ def resolve_device(name: str) -> str:
     if name != "cpu" and not name.startswith("cuda"):
         raise ValueError(f"device must be auto, cpu, cuda or cuda:N, not {name!r}")
     return name
-
-
-def shipped_checkpoint():
-    """The packaged checkpoint (model/odg_cpu.pt), wherever the package is installed."""
-    try:
-        return resource_path(SHIPPED_CHECKPOINT)
-    except FileNotFoundError:
-        raise FileNotFoundError(f"checkpoint shipped: {SHIPPED_CHECKPOINT} is not installed; "
-                                "set the checkpoint parameter to a path (or random)") from None
 
 
 class OdgNode(Node):

@@ -3,7 +3,7 @@
 Messages go out as the raw CDR bytes stored in the bag (``Publisher.publish`` accepts
 serialized bytes), with the message types named in the bag, so nothing is deserialized.
 Inter-message timing follows the bag's log times divided by ``rate``. QoS per topic is that of
-``bag_layout.topic_qos``: ``/tf_static`` reliable + transient local (late joiners still get the
+``odg_ros.bags.layout.topic_qos``: ``/tf_static`` reliable + transient local (late joiners still get the
 sensor frames), camera images, camera infos and point clouds best effort (sensor data), the rest
 reliable. With ``clock``, ``/clock`` carries the bag time of every message just before it.
 """
@@ -19,8 +19,8 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from odg_ros.ros import bag_layout as layout
-from odg_ros.ros.bag import bag_topics, iter_bag
+from odg_ros.bags import layout
+from odg_ros.bags.reader import bag_topics, iter_bag
 
 
 def message_class(msgtype: str):

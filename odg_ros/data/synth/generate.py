@@ -23,7 +23,7 @@ import numpy as np
 from PIL import Image
 from tqdm import tqdm
 
-from odg_ros.data.batch import CAMERA_NAMES
+from odg_ros.rig import CAMERA_NAMES
 from odg_ros.data.synth import occupancy, pictures, rig, sensors, shading
 from odg_ros.data.synth.city import build_world
 from odg_ros.data.synth.tables import Tables, link_chain, quaternion_yaw, save_npz, token, visibility_token

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from odg_ros.data.batch import CAMERA_NAMES
+from odg_ros.rig import CAMERA_NAMES
 from odg_ros.geometry import make_transform
 
 NUSCENES_IMAGE_HW = (900, 1600)

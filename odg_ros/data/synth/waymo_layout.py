@@ -23,7 +23,7 @@ import numpy as np
 from odg_ros.classes import OCC_CLASSES, WAYMO_OCC_CLASSES
 from odg_ros.data import occ_io
 from odg_ros.data.prepare import build_infos
-from odg_ros.data.prepare_waymo import CAMERA_NAMES, SPLITS
+from odg_ros.data.prepare_waymo import WAYMO_CAMERA_NAMES, SPLITS
 from odg_ros.geometry import invert_transform
 
 # Waymo camera (image folder order) <- synthetic nuScenes camera.
@@ -38,7 +38,7 @@ _NUSCENES_TO_WAYMO_NAME = {
     "sidewalk": "walkable", "terrain": "walkable", "manmade": "building",
     "vegetation": "vegetation",
 }
-# The release's pose files list the cameras in this order (the image folders in CAMERA_NAMES'
+# The release's pose files list the cameras in this order (the image folders in WAYMO_CAMERA_NAMES'
 # order); written out here on its own so that prepare's pairing is checked, not copied.
 POSE_FILE_ORDER = ("FRONT", "FRONT_LEFT", "SIDE_LEFT", "FRONT_RIGHT", "SIDE_RIGHT")
 # nuScenes label (0..17) -> label in a released Occ3D-Waymo file (0..14, free 23)
@@ -94,12 +94,12 @@ def write_waymo_layout(source_infos: dict, out: str) -> dict:
                 # camera -> global transform, and one ego pose per frame as the GT needs.
                 key_pose = np.asarray(info["ego_pose"], np.float64)
                 cams = {}
-                for w in CAMERA_NAMES:
+                for w in WAYMO_CAMERA_NAMES:
                     c = info["cams"][SOURCE_CAMERA[w]]
                     cams[w] = {**c, "ego_pose": key_pose, "sensor2ego": invert_transform(key_pose)
                                @ np.asarray(c["ego_pose"]) @ np.asarray(c["sensor2ego"])}
                 stem = f"{prefix}{scene:03d}{frame:03d}"
-                for folder, w in enumerate(CAMERA_NAMES):
+                for folder, w in enumerate(WAYMO_CAMERA_NAMES):
                     _place_image(os.path.join(src_root, cams[w]["data_path"]),
                                  os.path.join(out, "training", f"image_{folder}", stem + ".jpg"))
                 frames[frame] = {k: {"ego2global": cams[w]["ego_pose"],

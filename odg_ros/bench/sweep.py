@@ -41,8 +41,8 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from .benchmark import DecoderHooks, OnlineStep, StageTimer, peak_memory_mb, summarise
-from .train.evaluate import add_box_sample, dynamic_class_miou
+from .step import DecoderHooks, TimedOnlineStep, StageTimer, peak_memory_mb, summarise
+from ..train.evaluate import add_box_sample, dynamic_class_miou
 
 # Pruning thresholds relative to the checkpoint's own occupancy score threshold: at 1.0 a
 # static query is dropped when none of its points would reach the grid at that layer (a
@@ -144,7 +144,7 @@ def select_configs(spec: str | None, num_frames: int, device: str = "cpu",
 def query_budget(model, cfg, fraction: float):
     """A model that keeps an evenly spaced ``fraction`` of the learned dynamic and static
     queries (at least one of each kind the model has); every other weight is shared."""
-    from .network import ODG
+    from ..network import ODG
 
     D, S = cfg.dynamic_queries, cfg.static_queries
     d = max(1, round(D * fraction)) if D else 0
@@ -170,7 +170,7 @@ def is_checkpoint(model: str) -> bool:
 
 def prepare_model(checkpoint, preset: str, device: str, config: SweepConfig):
     """-> (model on device in eval mode, its config) for one configuration."""
-    from .network.checkpoint import load_model
+    from ..network.checkpoint import load_model
 
     if config.model is not None:
         checkpoint, preset = (config.model, preset) if is_checkpoint(config.model) else \
@@ -194,8 +194,8 @@ def prepare_model(checkpoint, preset: str, device: str, config: SweepConfig):
 # ------------------------------------------------------------------------ the split
 def scene_load(infos_path, cfg, occ_root, indices) -> list[dict]:
     """Per sample: occupied GT voxels inside the camera mask, all occupied voxels, GT boxes."""
-    from .data.dataset import OccDataset
-    from .data.occ_io import free_label_of
+    from ..data.dataset import OccDataset
+    from ..data.occ_io import free_label_of
 
     dataset = OccDataset(infos_path, cfg, occ_root=occ_root)
     rows = []
@@ -233,9 +233,9 @@ class ConfigRun:
     """One configuration during the measurement: its model, online step, timers, scores."""
 
     def __init__(self, config: SweepConfig, job: dict):
-        from .metrics.detection import DetectionScore
-        from .metrics.score import OccScore
-        from .network.decoder import PruneRule
+        from ..metrics.detection import DetectionScore
+        from ..metrics.score import OccScore
+        from ..network.decoder import PruneRule
 
         self.config, self.device = config, job["device"]
         self.model, self.cfg = prepare_model(job["checkpoint"], job["preset"], self.device,
@@ -244,7 +244,7 @@ class ConfigRun:
         self.random_weights = (config.model is None and job["checkpoint"] is None) or (
             config.model is not None and not is_checkpoint(config.model))
         prune = PruneRule(config.prune, config.prune_after) if config.prune is not None else None
-        self.step = OnlineStep(self.model, self.cfg, self.device, ring=config.ring,
+        self.step = TimedOnlineStep(self.model, self.cfg, self.device, ring=config.ring,
                                prune=prune, precision=config.precision)
         self.scores = {name: OccScore(job["dataset"], rayiou=job.get("rayiou", True))
                        for name in SUBSETS}
@@ -315,9 +315,9 @@ def measure_interleaved(configs: list[SweepConfig], job: dict) -> list[dict]:
     """Time and score every configuration in one process, interleaved: for each sample and
     repeat the configurations take turns (in a random order), so a machine that gets
     busier or quieter during the sweep slows every configuration alike."""
-    from .data.batch import collate, to_device
-    from .data.dataset import OccDataset
-    from .metrics.rayiou import LidarOrigins
+    from ..data.batch import collate, to_device
+    from ..data.dataset import OccDataset
+    from ..metrics.rayiou import LidarOrigins
 
     device = job["device"]
     members = {"all": set(job["indices"]), "quiet": set(job["quiet"]),
@@ -383,8 +383,8 @@ def failure(config: SweepConfig, error: Exception) -> dict:
 def probe_memory(job: dict) -> dict:
     """Peak memory of one configuration: model, the first sample, its cached history,
     ``warmup`` + 1 steps -- run in a fresh process (``isolate``) so the figure is its own."""
-    from .data.batch import collate, to_device
-    from .data.dataset import OccDataset
+    from ..data.batch import collate, to_device
+    from ..data.dataset import OccDataset
 
     if job.get("threads"):
         torch.set_num_threads(job["threads"])
@@ -529,8 +529,8 @@ def run_sweep(data, checkpoint=None, preset: str = "odg_cpu", device: str = "cpu
     """Measure every configuration; write ``<out>/bench_<cpu|cuda>.json`` and ``.png`` when
     ``out`` is given. checkpoint None: random weights of ``preset`` (scores meaningless,
     flagged in the JSON and on the plot)."""
-    from .config import load_preset
-    from .data.dataset import load_infos_file
+    from ..config import load_preset
+    from ..data.dataset import load_infos_file
 
     if torch.device(device).type == "cuda" and not torch.cuda.is_available():
         raise SystemExit("odg bench --sweep: --device cuda but CUDA is not available here")
@@ -539,7 +539,7 @@ def run_sweep(data, checkpoint=None, preset: str = "odg_cpu", device: str = "cpu
     if checkpoint is None:
         cfg = load_preset(preset)
     else:
-        from .config import ModelConfig
+        from ..config import ModelConfig
         payload = torch.load(checkpoint, map_location="cpu", weights_only=False)
         cfg = ModelConfig(**payload["config"])
     configs = configs or default_configs(cfg.num_frames, device, cfg.score_threshold)

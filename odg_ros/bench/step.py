@@ -20,29 +20,17 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from .config import ModelConfig
-from .network import ODG
-from .network.feature_ring import FeatureRing
-from .network.postprocess import box_list, occupancy_grid
-from .network.precision import PRECISIONS, precision_context  # noqa: F401 (re-exported)
-from .rig import ring_ego2img
+from ..config import ModelConfig
+from ..network import ODG
+from ..network.feature_ring import FeatureRing
+from ..network.postprocess import box_list, occupancy_grid
+from ..network.precision import PRECISIONS, precision_context  # noqa: F401 (re-exported)
+from ..rig import online_inputs, ring_ego2img
 
 STAGES = ("backbone", "decoder", "postprocess", "total")
 # the parts of a decoder layer, in execution order (attributes of decoder.DecoderLayer)
 LAYER_PARTS = ("position", "box_position", "attention", "sampling", "mixing", "ffn", "points",
                "boxes")
-
-
-def online_inputs(cfg: ModelConfig, frames: int, device, seed: int = 0):
-    """Random current images and geometry of a car driving 10 m/s straight ahead."""
-    g = torch.Generator().manual_seed(seed)
-    H, W = cfg.image_size
-    images = torch.randn(1, cfg.num_cams, 3, H, W, generator=g).to(device)
-    ego2img = ring_ego2img(cfg.image_size, frames, cfg.num_cams).to(device)
-    time_delta = torch.arange(frames, dtype=torch.float32, device=device)[None] * 0.5
-    ego_warp = torch.eye(4, device=device).repeat(1, frames, 1, 1)
-    ego_warp[0, :, 0, 3] = 10.0 * time_delta[0]  # the past ego was behind: x_past = x + v dt
-    return images, ego2img, ego_warp, time_delta
 
 
 class StageTimer:
@@ -143,7 +131,7 @@ def peak_memory_mb(device) -> tuple[float, str]:
     return (rss / 2 ** 20 if sys.platform == "darwin" else rss / 2 ** 10), "process ru_maxrss"
 
 
-class OnlineStep:
+class TimedOnlineStep:
     """One online step as the node runs it: the backbone on the newest camera set, its
     features written into the ring (``ring=True``, ``ODG.decode_ring``) or kept in a list
     (``ODG.decode``), the decoder over the cached history, then the grid and the box list.
@@ -218,7 +206,7 @@ def bench_online_step(cfg: ModelConfig, device="cpu", frames: int | None = None,
         raise ValueError(f"--frames must be in 1..{cfg.num_frames} for {cfg.name}")
     model = (model or ODG(cfg)).to(device).eval()
     images, ego2img, ego_warp, time_delta = online_inputs(cfg, frames, device)
-    step = OnlineStep(model, cfg, device, ring=ring, prune=prune, precision=precision)
+    step = TimedOnlineStep(model, cfg, device, ring=ring, prune=prune, precision=precision)
     cached = step.features(images)  # stands in for the k-1 cached history frames
     cuda = torch.device(device).type == "cuda"
     timer = StageTimer(device)
@@ -262,7 +250,7 @@ def bench_fast_paths(cfg: ModelConfig, device="cpu", iters: int = 5, warmup: int
     for name in variants:
         fast, ring, precision = FAST_PATH_VARIANTS[name]
         model.fast_sampling = fast
-        steps[name] = OnlineStep(model, cfg, device, ring=ring, precision=precision)
+        steps[name] = TimedOnlineStep(model, cfg, device, ring=ring, precision=precision)
         timers[name] = StageTimer(device)
     history = None
     for i in tqdm(range(warmup + iters), desc=f"fast paths {cfg.name}", disable=not progress):
@@ -312,7 +300,7 @@ def node_inputs(cfg: ModelConfig, num_sets: int, seed: int = 0):
 def data_camera_sets(infos_path, cfg: ModelConfig, num_sets: int):
     """The first ``num_sets`` keyframes of the first scene of an infos file as the node feeds
     its predictor (network-input uint8 images, ego2img, pose, stamp), 0.5 s apart."""
-    from .data.dataset import OccDataset
+    from ..data.dataset import OccDataset
     dataset = OccDataset(infos_path, cfg)
     scene = dataset.infos[0]["scene_token"]
     infos = [info for info in dataset.infos if info["scene_token"] == scene][:num_sets]
@@ -333,7 +321,7 @@ def output_differences(output, reference, cfg: ModelConfig) -> dict:
     """The last decoder layer of ``output`` against ``reference``'s: max |logit difference|,
     and for the boxes valid in either, whether the valid sets agree and the largest centre
     (m), size (m) and score differences among the boxes valid in both (matched by query)."""
-    from .network.postprocess import decode_box_code
+    from ..network.postprocess import decode_box_code
     a, b = output.last, reference.last
     result = {"logits": float((a.logits.float() - b.logits.float()).abs().max())}
     if a.boxes is None:
@@ -368,7 +356,7 @@ def bench_node_step(cfg: ModelConfig, device="cpu", modes=("eager", "compiled"),
     (``output_differences``). A variant is named by its mode, plus its precision where
     several are asked for. ``compiled_step``: a .pt2 of ``odg export --aoti`` that the
     compiled and graphs variants run instead of compiling."""
-    from .online.predictor import OnlinePredictor
+    from ..online.predictor import OnlinePredictor
     model = (model or ODG(cfg)).to(device).eval()
     variants = {(mode if len(precisions) == 1 else f"{mode}-{precision}"): (mode, precision)
                 for precision in precisions for mode in modes}

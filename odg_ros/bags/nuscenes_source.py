@@ -17,7 +17,8 @@ from pathlib import Path
 import numpy as np
 
 from odg_ros import geometry
-from odg_ros.ros.bag_layout import CAMERA_NAMES, LIDAR_NAME
+from odg_ros.bags.layout import LIDAR_NAME
+from odg_ros.rig import CAMERA_NAMES
 
 LIDAR_CHANNEL = LIDAR_NAME
 TABLES = ("scene", "sample", "sample_data", "ego_pose", "calibrated_sensor", "sensor")

@@ -19,10 +19,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-# The nuScenes rig, in odg_ros.data.batch.CAMERA_NAMES order (repeated here so that the bag
-# and replay tools do not import torch; a test checks that the two agree).
-CAMERA_NAMES = ("CAM_FRONT", "CAM_FRONT_RIGHT", "CAM_FRONT_LEFT",
-                "CAM_BACK", "CAM_BACK_LEFT", "CAM_BACK_RIGHT")
+from odg_ros.rig import CAMERA_NAMES
 
 MAP_FRAME = "map"
 BASE_FRAME = "base_link"

@@ -1,6 +1,6 @@
 """The paper's Table 4 on our data: variants side by side, against the full model's seed spread.
 
-``python -m odg_ros.ablation --out docs/results/ablation full=runs/a/eval.json full=runs/b/eval.json
+``odg ablation --out docs/results/ablation full=runs/a/eval.json full=runs/b/eval.json
 no_render=runs/c/eval.json ...`` reads ``odg eval --json`` results (a name may repeat: one
 file per training seed), writes ``<out>.json``, ``<out>.md`` (one row per variant: the mean
 over its seeds, the change against the first variant's mean) and ``<out>.png`` (the changes,
@@ -9,7 +9,6 @@ it says anything).
 """
 from __future__ import annotations
 
-import argparse
 import json
 import math
 from pathlib import Path
@@ -31,7 +30,7 @@ def _mean(values: list) -> float | None:
     return sum(present) / len(present) if present else None
 
 
-def summarize(runs: list[tuple[str, dict]]) -> dict:
+def summarize_ablation(runs: list[tuple[str, dict]]) -> dict:
     """runs: (variant, eval result) in order, the first variant is the reference. ->
     {"reference", "variants": [{"name", "seeds", "mean": {metric}, "delta": {metric},
     "range": {metric: [min, max]}}]}; a variant's delta is its mean minus the reference's."""
@@ -56,7 +55,7 @@ def summarize(runs: list[tuple[str, dict]]) -> dict:
     return {"reference": reference["name"], "variants": variants}
 
 
-def markdown_table(summary: dict) -> str:
+def ablation_table(summary: dict) -> str:
     cell = lambda v: "-" if v is None else f"{v:.2f}"  # noqa: E731
     signed = lambda v: "" if v is None else f" ({v:+.2f})"  # noqa: E731
     lines = ["| variant | seeds | " + " | ".join(label for _, label in METRICS) + " |",
@@ -75,7 +74,7 @@ def markdown_table(summary: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-def plot(summary: dict, path: Path) -> None:
+def plot_ablation(summary: dict, path: Path) -> None:
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -103,27 +102,9 @@ def plot(summary: dict, path: Path) -> None:
     plt.close(fig)
 
 
-def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("runs", nargs="+", metavar="NAME=EVAL_JSON",
-                        help="the first name is the reference; repeat a name for its seeds")
-    parser.add_argument("--out", required=True, help="output stem: writes .json, .md, .png")
-    args = parser.parse_args(argv)
-    runs = []
-    for item in args.runs:
-        name, sep, path = item.partition("=")
-        if not sep or not name or not path:
-            parser.error(f"expected NAME=EVAL_JSON, got {item!r}")
-        runs.append((name, json.loads(Path(path).read_text())))
-    summary = summarize(runs)
-    out = Path(args.out)
+def write_ablation(summary: dict, out: Path) -> None:
+    """``<out>.json``, ``<out>.md`` and ``<out>.png`` of a summary."""
     out.parent.mkdir(parents=True, exist_ok=True)
     out.with_suffix(".json").write_text(json.dumps(summary, indent=2) + "\n")
-    out.with_suffix(".md").write_text(markdown_table(summary))
-    plot(summary, out.with_suffix(".png"))
-    print(markdown_table(summary), end="")
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())
+    out.with_suffix(".md").write_text(ablation_table(summary))
+    plot_ablation(summary, out.with_suffix(".png"))
