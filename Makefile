@@ -23,7 +23,7 @@ $(VENV)/.setup-done: Makefile setup.py package.xml tools/build_msgs.sh msg/CMake
 	# torch: the local CPU build only; never let pip resolve a CUDA build from the registry.
 	$(PY) -c "import torch" 2>/dev/null || $(PIP) install -q torch==2.13.0
 	$(PIP) install -q $(PY_DEPS) $(ROS_WHEELS) $(ROSIDL_WHEELS)
-	# gsplat for its pure-PyTorch reference projection only (test/test_render_gsplat.py checks our
+	# gsplat for its pure-PyTorch reference projection only (test/render/test_render_gsplat.py checks our
 	# renderer against it); --no-deps so pip never resolves a torch of its own. Its CUDA kernels
 	# are never built here.
 	$(PIP) install -q --no-deps gsplat==1.5.3

@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from odg_ros.cli import main as odg
+from odg_ros.commands import main as odg
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY_MODEL = ["--set", "backbone=resnet18", "--set", "image_size=[64,176]", "--set",
@@ -25,7 +25,7 @@ TINY_MODEL = ["--set", "backbone=resnet18", "--set", "image_size=[64,176]", "--s
 
 RUN = "run"
 COMMANDS = {
-    "make demo": "3 minutes; the same path at tiny sizes is test/ros/test_demo.py",
+    "make demo": "3 minutes; the same path at tiny sizes is test/demo/test_demo.py",
     "make test": "the whole test suite",
     "odg_node --help": RUN,
     "odg_node --ros-args --params-file config/odg.yaml -p device:=cpu":
@@ -43,9 +43,9 @@ COMMANDS = {
     "odg score --pred runs/odg_t/pred --data data/nuscenes/infos_val.pkl": RUN,
     "odg export --checkpoint runs/odg_t/final.pt --out runs/odg_t.pt --calibrate "
     "data/nuscenes/infos_train.pkl --limit 48": RUN,
-    "torchrun --standalone --nproc_per_node 8 -m odg_ros.cli train --preset odg_t --data "
+    "torchrun --standalone --nproc_per_node 8 -m odg_ros.commands train --preset odg_t --data "
     "data/nuscenes/infos_train.pkl --out runs/odg_t --backbone-weights "
-    "resnet50-0676ba61.pth": "needs GPUs; odg train under torchrun is test/test_train.py",
+    "resnet50-0676ba61.pth": "needs GPUs; odg train under torchrun is test/train/test_train.py",
     "odg bag nuscenes --dataroot data/nuscenes --version v1.0-mini --scene scene-0061 --out "
     "bags/scene-0061": RUN,
     "odg replay bags/scene-0061 --clock": RUN,
@@ -100,7 +100,7 @@ def tiny(command: str, tmp: Path) -> list[str]:
 
 def test_the_readme_commands_run_at_tiny_sizes(tmp_path, capsys):
     import torch
-    from helpers import tiny_config
+    from testing.helpers import tiny_config
     from odg_ros.network import ODG
 
     # nuScenes v1.0-mini stands in: a synthetic world in that layout (4 scenes: one is val)
@@ -120,7 +120,7 @@ def test_the_readme_commands_run_at_tiny_sizes(tmp_path, capsys):
             assert "parameters" in capsys.readouterr().out
         elif argv[:2] == ["odg", "replay"]:
             pytest.importorskip("rclpy", reason="odg replay needs rclpy")
-            result = subprocess.run([sys.executable, "-m", "odg_ros.cli", *argv[1:]],
+            result = subprocess.run([sys.executable, "-m", "odg_ros.commands", *argv[1:]],
                                     capture_output=True, text=True, timeout=120,
                                     env=dict(os.environ, PYTHONPATH=str(ROOT)))
             assert result.returncode == 0, (command, result.stderr[-2000:])

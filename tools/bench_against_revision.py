@@ -1,7 +1,7 @@
 """One training step of this code against the whole odg_ros package of an earlier revision,
 in one process, interleaved, medians; and whether their loss terms are equal.
 
-    python tools/bench_against_revision.py --data INFOS [--against main] [--preset odg_cpu]
+    python -m tools.bench_against_revision --data INFOS [--against main] [--preset odg_cpu]
         [--repeats 5] [--no-augment]
 
 Revisions older than the device-side augmentation train without it (compare with
@@ -16,6 +16,7 @@ should then be equal, and they are compared term by term. One warm-up step is no
 import argparse
 import dataclasses
 import importlib
+import importlib.util
 import itertools
 import statistics
 import subprocess
@@ -26,12 +27,11 @@ from pathlib import Path
 
 import torch
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-from odg_ros.config import load_preset  # noqa: E402
-from odg_ros.preprocess import normalize  # noqa: E402
-from odg_ros.train import trainer as current  # noqa: E402
+from odg_ros.config import load_preset
+from odg_ros.preprocess import normalize
+from odg_ros.train import trainer as current
 
+ROOT = Path(__file__).resolve().parents[1]
 OLD_NAME = "odg_before"
 
 
@@ -41,7 +41,13 @@ def package_at(rev: str, into: Path):
                              check=True, capture_output=True).stdout
     subprocess.run(["tar", "-x", "-C", str(into)], input=archive, check=True)
     (into / "odg_ros").rename(into / OLD_NAME)
-    sys.path.insert(0, str(into))
+    # the package itself goes into sys.modules; its submodules are then found in its folder
+    spec = importlib.util.spec_from_file_location(
+        OLD_NAME, into / OLD_NAME / "__init__.py",
+        submodule_search_locations=[str(into / OLD_NAME)])
+    package = importlib.util.module_from_spec(spec)
+    sys.modules[OLD_NAME] = package
+    spec.loader.exec_module(package)
     return importlib.import_module(f"{OLD_NAME}.train.trainer")
 
 

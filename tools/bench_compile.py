@@ -2,7 +2,7 @@
 the compiled and the eager trainer interleaved in one process (medians), and how far the
 first step's loss terms are apart.
 
-    OMP_NUM_THREADS=1 python tools/bench_compile.py [--backend inductor] [--repeats 5]
+    OMP_NUM_THREADS=1 python -m tools.bench_compile [--backend inductor] [--repeats 5]
         [--fallback-random]
 
 Model: the tests' tiny ODG (ResNet-18, 64 x 176, 2 frames) on their hand-made dataroot, no
@@ -13,19 +13,15 @@ masks. Backends: inductor (what --compile uses), aot_eager or eager (graph captu
 import argparse
 import functools
 import statistics
-import sys
 import tempfile
 import time
 from pathlib import Path
 
 import torch
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "test"))
-from helpers import tiny_config, write_tiny_split  # noqa: E402
-from odg_ros.data.batch import collate  # noqa: E402
-from odg_ros.train.trainer import Trainer, TrainOptions  # noqa: E402
+from testing.helpers import tiny_config, write_tiny_split
+from odg_ros.data.batch import collate
+from odg_ros.train.trainer import Trainer, TrainOptions
 
 
 def main():

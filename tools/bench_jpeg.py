@@ -1,7 +1,7 @@
 """JPEG decoders that install from PyPI, side by side on one nuScenes-sized (1600 x 900, 4:2:0)
 JPEG, in one process, interleaved, medians; each one's pixels against Pillow's.
 
-    OMP_NUM_THREADS=1 python tools/bench_jpeg.py [--repeats 30] [--image FILE.jpg]
+    OMP_NUM_THREADS=1 python -m tools.bench_jpeg [--repeats 30] [--image FILE.jpg]
 
 Rows: the full-size decode, and the loader's work for a network input (reduced-scale decode
 as preprocess.jpeg_reduction allows, then preprocess.resize_crop). Decoders: Pillow (the
@@ -13,16 +13,13 @@ sample (what the loader's workers did before they shipped uint8).
 import argparse
 import io
 import statistics
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 from PIL import Image
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-from odg_ros import preprocess  # noqa: E402
+from odg_ros import preprocess
 
 SIZES = {"full 900x1600": None, "input 128x352": (128, 352), "input 256x704": (256, 704)}
 

@@ -1,7 +1,7 @@
 """Time RayIoU's ray casting per sample against an earlier revision of the caster, in one
 process, interleaved, medians.
 
-    python tools/bench_raycast.py [--against main] [--repeats 5]
+    python -m tools.bench_raycast [--against main] [--repeats 5]
 
 World: a driving-like 200 x 200 x 16 grid (ground, 25 cars, walls); prediction = GT shifted one
 voxel along x + 3 % spurious cars; 8 origins x 14,040 LiDAR rays, prediction and GT traversed
@@ -9,17 +9,12 @@ together (what ``RayIoU.add`` casts per keyframe).
 """
 import argparse
 import inspect
-import sys
 import time
-from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "test"))
-from helpers import driving_scene  # noqa: E402
-from revision import module_at  # noqa: E402
+from testing.helpers import driving_scene
+from tools.revision import module_at
 
 from odg_ros.metrics.raycast import cast_rays, lidar_ray_directions, rays_in_voxel_units  # noqa
 

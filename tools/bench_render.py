@@ -1,7 +1,7 @@
 """Host syncs and CPU time of one renderer call (forward + backward), this code against an
 earlier revision of odg_ros/render/splat.py, in one process, interleaved, medians.
 
-    python tools/bench_render.py [--against main] [--gaussians 3000] [--pixels 400]
+    python -m tools.bench_render [--against main] [--gaussians 3000] [--pixels 400]
         [--chunk 1000000] [--repeats 12] [--scenes 1]
 
 Scene: six cameras around the ego, random Gaussians in a 20 x 20 x 4 m box, random pixels.
@@ -13,17 +13,13 @@ else in K render_cameras calls.
 import argparse
 import math
 import statistics
-import sys
 import time
-from pathlib import Path
 
 import torch
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-from revision import module_at  # noqa: E402
-from odg_ros.render import splat  # noqa: E402
-from odg_ros.train.census import Census, CensusMode  # noqa: E402
+from tools.revision import module_at
+from odg_ros.render import splat
+from odg_ros.train.census import Census, CensusMode
 
 HEIGHT, WIDTH = 64, 176
 

@@ -37,18 +37,18 @@
 #   aoti     odg export --aoti of the shipped odg_cpu on CUDA, and its load time against the
 #            compile (odg bench --compiled-step)
 #   node     the node end to end (odg demo --device cuda: needs ROS 2's Python packages) and
-#            the node's own overhead per set (tools/measure_node_overhead.py)
+#            the node's own overhead per set (python -m tools.measure_node_overhead)
 #   bench    one online step of ODG-T and ODG-L at paper resolution, eager, per stage
 #   sweep    speed against error of the shipped checkpoint (odg bench --sweep)
 #   presets  the same for ODG-T and ODG-L at paper resolution (random weights: timing only)
 # Every part makes what it needs (the one-scene world, random ResNet-50 weights for the
 # frozen presets) unless an earlier part on the machine did. Results: JSON, CSV, logs and
 # PNGs in OUT (default out/gpu), and the whole output in OUT/gpu_checks.log;
-# `python tools/gpu_report.py OUT` turns them into the tables of a report.
+# `python -m tools.gpu_report OUT` turns them into the tables of a report.
 # DEVICE=cpu runs the same commands on the CPU (the CUDA tests skip): how this script is
 # checked without a GPU. CHECK=parse runs nothing: each command line is recorded, and at the
 # end its options are parsed by the command's own parser (pytest lines: collected, at least one
-# test selected), so that the script is checked in seconds (test/test_gpu_checks.py).
+# test selected), so that the script is checked in seconds (test/tools/test_gpu_checks.py).
 set -uo pipefail
 cd "$(dirname "$0")/.."
 PART=${1:-all}
@@ -76,10 +76,10 @@ record() {  # CHECK=parse: keep the command line (one JSON list a line) instead 
     $PY -c 'import json, sys; print(json.dumps(sys.argv[1:]))' "$@" >> "$COMMANDS"
 }
 odg() {
-    if [ "$CHECK" = parse ]; then record odg "$@"; else $PY -m odg_ros.cli "$@"; fi
+    if [ "$CHECK" = parse ]; then record odg "$@"; else $PY -m odg_ros.commands "$@"; fi
 }
-tool() {  # tool tools/X.py ARGS...
-    if [ "$CHECK" = parse ]; then record "$@"; else $PY "$@"; fi
+tool() {  # tool tools.NAME ARGS...: python -m tools.NAME
+    if [ "$CHECK" = parse ]; then record "$@"; else $PY -m "$@"; fi
 }
 tests() {  # tests PYTEST-ARGS...
     if [ "$CHECK" = parse ]; then record pytest "$@"; else $PY -m pytest "$@"; fi
@@ -144,15 +144,15 @@ PYEOF
 
 part_tests() {
     step "CUDA tests" tests -q -p no:cacheprovider -rs --timeout 900 \
-        --junitxml="$OUT/tests.xml" test/test_render_gsplat.py test/test_render.py \
-        test/test_loss_render.py test/test_train.py -k "cuda or gsplat or render"
+        --junitxml="$OUT/tests.xml" test/render/test_render_gsplat.py test/render/test_render.py \
+        test/losses/test_loss_render.py test/train/test_train.py -k "cuda or gsplat or render"
     step "CUDA tests of the data path, --compile and the node's step" tests -q -p no:cacheprovider -rs \
-        --timeout 900 --junitxml="$OUT/tests_node.xml" test/test_online_images.py \
-        test/test_data_path.py test/test_train_options.py test/test_online_step.py \
-        test/test_online_predictor.py
+        --timeout 900 --junitxml="$OUT/tests_node.xml" test/online/test_online_images.py \
+        test/data/test_data_path.py test/train/test_train_options.py test/online/test_online_step.py \
+        test/online/test_online_predictor.py
     export ODG_AOTI_TEST=1
     step "AOTInductor file end to end (C++ compile)" tests -q -p no:cacheprovider -rs \
-        --timeout 900 --junitxml="$OUT/tests_aoti.xml" test/test_compiled_step.py
+        --timeout 900 --junitxml="$OUT/tests_aoti.xml" test/online/test_compiled_step.py
     unset ODG_AOTI_TEST
 }
 
@@ -307,7 +307,7 @@ part_node() {
     step "odg demo (the node on $DEVICE)" into "$OUT/demo.json" odg demo --out out/gpu_demo \
         --device "$DEVICE" --rate 1 --json
     [ "$CHECK" = run ] && cp out/gpu_demo/demo.png out/gpu_demo/node.log "$OUT/" 2>/dev/null
-    step "node overhead" into "$OUT/node_overhead.txt" tool tools/measure_node_overhead.py \
+    step "node overhead" into "$OUT/node_overhead.txt" tool tools.measure_node_overhead \
         --sets 30 --model-ms 15
 }
 
@@ -323,7 +323,7 @@ for part in ${PART//,/ }; do
     "part_$part"
 done
 if [ "$CHECK" = parse ]; then
-    step "command lines parse" $PY tools/gpu_checks_parse.py "$COMMANDS"
+    step "command lines parse" $PY -m tools.gpu_checks_parse "$COMMANDS"
 fi
 say "results in $OUT: $(ls "$OUT" | tr '\n' ' ')"
 exit $failed

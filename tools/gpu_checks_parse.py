@@ -1,7 +1,7 @@
 """Check the command lines that ``CHECK=parse bash tools/gpu_checks.sh PART`` recorded, without
 running them: a typo in the GPU script then fails on the CPU, not in a GPU session.
 
-    python tools/gpu_checks_parse.py COMMANDS.jsonl
+    python -m tools.gpu_checks_parse COMMANDS.jsonl
 
 Each line is a JSON list: ``["odg", NAME, ARGS...]`` is parsed by ``odg NAME``'s own parser,
 ``["tools/X.py", ARGS...]`` by the script's (its ``main`` stops right after parsing), and
@@ -15,7 +15,7 @@ import argparse
 import contextlib
 import io
 import json
-import runpy
+import importlib
 import sys
 from pathlib import Path
 
@@ -65,7 +65,7 @@ def _parse_only():
 
 
 def check_odg(argv: list[str]) -> str | None:
-    from odg_ros.cli import SUBCOMMANDS, build_parser
+    from odg_ros.commands import SUBCOMMANDS, build_parser
     if not argv or argv[0] not in SUBCOMMANDS:
         return f"no odg command {argv[:1]}"
     _, parser = build_parser(argv[0])
@@ -73,13 +73,14 @@ def check_odg(argv: list[str]) -> str | None:
 
 
 def check_tool(argv: list[str]) -> str | None:
-    path = ROOT / argv[0]
-    if not path.is_file():
-        return f"no such script {argv[0]}"
-    module = runpy.run_path(str(path), run_name="gpu_checks_parse")
-    if "main" not in module:
+    """``tools.NAME ARGS``: the maintainer script's own parser takes ARGS."""
+    try:
+        module = importlib.import_module(argv[0])
+    except ImportError as error:
+        return f"no such script {argv[0]} ({error})"
+    if not hasattr(module, "main"):
         return f"{argv[0]} has no main(argv)"
-    return _parse(lambda: module["main"](argv[1:]))
+    return _parse(lambda: module.main(argv[1:]))
 
 
 def _parse(call) -> str | None:
@@ -132,7 +133,7 @@ def check_pytest(argv: list[str]) -> str | None:
 def main(argv=None) -> int:
     args = sys.argv[1:] if argv is None else argv
     if len(args) != 1:
-        print("usage: python tools/gpu_checks_parse.py COMMANDS.jsonl", file=sys.stderr)
+        print("usage: python -m tools.gpu_checks_parse COMMANDS.jsonl", file=sys.stderr)
         return 2
     lines = [json.loads(line) for line in Path(args[0]).read_text().splitlines() if line]
     original = _parse_only()

@@ -1,7 +1,7 @@
 """The markdown tables of a GPU report (docs/reports/YYYY-MM-DD-<device>.md) from the results
 of ``tools/gpu_checks.sh`` in OUT: paste them, then write what they say.
 
-    python tools/gpu_report.py OUT [--skip-steps 4] > tables.md
+    python -m tools.gpu_report OUT [--skip-steps 4] > tables.md
 
 Reads what is there (every part is optional): machine.json, tests*.xml, train_*.csv,
 gpu_util_*.csv, profile_*.json, node_*.json, bench.json, eval_*.json, demo.json. A file that cannot be

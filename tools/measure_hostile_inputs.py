@@ -11,7 +11,7 @@ process (peak RSS is per process), with and without the protections:
   transform (unprotected) or only the needed ones: microseconds per transform and the cores
   a 5,000 transforms/s tree costs.
 
-    python tools/measure_hostile_inputs.py            # all cases, one line each
+    python -m tools.measure_hostile_inputs            # all cases, one line each
 """
 from __future__ import annotations
 
@@ -41,7 +41,7 @@ def bomb(protected: bool) -> dict:
     data = buffer.getvalue()
     del buffer
     # the encoder's working memory raised the peak; measure in a child with only the bytes
-    code = ("import sys, json; sys.path.insert(0, '.');"
+    code = ("import sys, json; "
             "from tools.measure_hostile_inputs import _decode_child; _decode_child(%r)"
             % protected)
     out = subprocess.run([sys.executable, "-c", code], input=data, capture_output=True,

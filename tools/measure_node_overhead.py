@@ -10,8 +10,8 @@ once with the cloud, BEV and markers too (as if subscribed). The model is one re
 the preset (random weights, or --checkpoint) run once; its outputs are then replayed with
 ``--occupied`` voxels and ``--boxes`` boxes, so the model's time is left out.
 
-    python tools/measure_node_overhead.py                      # odg_cpu and odg_t, 30 sets
-    python tools/measure_node_overhead.py --preset odg_t --images 'cams/*.jpg' --model-ms 40
+    python -m tools.measure_node_overhead                      # odg_cpu and odg_t, 30 sets
+    python -m tools.measure_node_overhead --preset odg_t --images 'cams/*.jpg' --model-ms 40
 
 Prints medians per stage: wall time, and the CPU time of the calling thread (which other
 processes on a busy machine do not inflate). --model-ms also times sets per second with the
@@ -25,21 +25,19 @@ import glob
 import io
 import os
 import statistics
-import sys
 import time
 import types
 
 import numpy as np
 from PIL import Image
 
-sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-from odg_ros.geometry import make_transform                          # noqa: E402
-from odg_ros.online.images import EncodedImage                       # noqa: E402
-from odg_ros.online.pipeline import OnlinePipeline, PipelineSettings  # noqa: E402
-from odg_ros.online.predictor import OnlinePredictor                 # noqa: E402
-from odg_ros.online.rig import load_rig                              # noqa: E402
-from odg_ros.resources import resource_path                          # noqa: E402
+from odg_ros.geometry import make_transform                        
+from odg_ros.online.images import EncodedImage                     
+from odg_ros.online.pipeline import OnlinePipeline, PipelineSettings
+from odg_ros.online.predictor import OnlinePredictor               
+from odg_ros.online.rig import load_rig                            
+from odg_ros.resources import resource_path                        
 
 RIG = load_rig(resource_path("config/rig_nuscenes.yaml"))
 CAMS = tuple(RIG.cameras)

@@ -1,7 +1,7 @@
 """Write (or check) what is generated from the node's parameter schema.
 
-    python tools/node_parameters.py --write    # after editing config/odg_node.schema.yaml
-    python tools/node_parameters.py --check    # exit 1 when config/odg.yaml or README is stale
+    python -m tools.node_parameters --write    # after editing config/odg_node.schema.yaml
+    python -m tools.node_parameters --check    # exit 1 when config/odg.yaml or README is stale
 
 Writes config/odg.yaml (every parameter at its default), docs/parameters.md (the full table)
 and the README's summary of the parameters (between the parameters markers).
@@ -12,12 +12,10 @@ import argparse
 import sys
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
-
-from odg_ros.online.parameters import (load_schema, markdown_table, params_file_text,  # noqa: E402
+from odg_ros.online.parameters import (load_schema, markdown_table, params_file_text,
                                       summary_table)
 
+ROOT = Path(__file__).resolve().parent.parent
 BEGIN, END = "<!-- parameters:begin -->", "<!-- parameters:end -->"
 
 
@@ -30,7 +28,7 @@ def generated(root: Path = ROOT) -> dict[Path, str]:
     head, rest = readme.split(BEGIN)
     _, tail = rest.split(END)
     reference = ("# odg_node parameters\n\nWritten from `config/odg_node.schema.yaml` by "
-                 "`python tools/node_parameters.py --write`; `odg_node --help` prints the same. "
+                 "`python -m tools.node_parameters --write`; `odg_node --help` prints the same. "
                  "Every parameter is read at start-up.\n\n" + markdown_table(schema) + "\n")
     return {root / "config/odg.yaml": params_file_text(schema),
             root / "docs/parameters.md": reference,
@@ -47,7 +45,7 @@ def main(argv=None) -> int:
              if not path.exists() or path.read_text() != text]
     if args.check:
         for path in stale:
-            print(f"{path.relative_to(ROOT)} is stale: run python tools/node_parameters.py "
+            print(f"{path.relative_to(ROOT)} is stale: run python -m tools.node_parameters "
                   "--write", file=sys.stderr)
         return 1 if stale else 0
     for path, text in generated().items():

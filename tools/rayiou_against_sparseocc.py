@@ -1,7 +1,7 @@
 """Score a perturbed prediction with ``odg score`` and with the scalar transcription of
-SparseOcc's RayIoU (test/sparseocc_reference.py), and print both.
+SparseOcc's RayIoU (testing/sparseocc_reference.py), and print both.
 
-    python tools/rayiou_against_sparseocc.py --data INFOS.pkl [--out DIR] [--seed 0]
+    python -m tools.rayiou_against_sparseocc --data INFOS.pkl [--out DIR] [--seed 0]
 
 The prediction of every keyframe with GT is its GT shifted one voxel along +x with 3 % of the
 voxels relabelled at random (labels 0..17). The transcription casts ray by ray in pure Python:
@@ -17,13 +17,10 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "test"))
-
-from odg_ros.commands.score import score_split  # noqa: E402
-from odg_ros.data.occ_io import load_occ  # noqa: E402
-from odg_ros.metrics.score import load_infos, resolve_occ_root  # noqa: E402
-from sparseocc_reference import sparseocc_origins, sparseocc_rayiou  # noqa: E402
+from odg_ros.commands.score import score_split
+from odg_ros.data.occ_io import load_occ
+from odg_ros.metrics.score import load_infos, resolve_occ_root
+from testing.sparseocc_reference import sparseocc_origins, sparseocc_rayiou
 
 
 def perturbed(gt: np.ndarray, rng, free: int) -> np.ndarray:

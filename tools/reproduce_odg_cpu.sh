@@ -5,7 +5,7 @@
 # that was tried and not kept; blocks "stopped at step N" were stopped by hand at that step's
 # checkpoint, which a plain run of this file does not do (it trains their whole schedule).
 # CPU training is not bit-reproducible across machines and thread counts; the worlds are
-# (odg synth writes the same bytes for the same seed, test/test_synth.py pins them).
+# (odg synth writes the same bytes for the same seed, test/data/test_synth.py pins them).
 #
 #   bash tools/reproduce_odg_cpu.sh            # from the repository root, in the .venv
 set -euo pipefail
@@ -90,7 +90,7 @@ odg train --preset odg_cpu --data data/synth24/infos_train.pkl \
 export_int8 runs/cpu90/latest.pt runs/odg_cpu_stage9.pt
 # (10) the same 90 scenes, two processes of one thread each (DDP on gloo, batch 2), from the
 # (9) file
-OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.cli train --preset odg_cpu \
+OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.commands train --preset odg_cpu \
     --data data/synth24/infos_train.pkl data/synth24s{2,10,11}/infos_all.pkl \
     $DDP_OPTS --out runs/cpu90b_ddp --init runs/odg_cpu_stage9.pt \
     --steps 1500 --warmup 50
@@ -100,7 +100,7 @@ odg synth --out data/synth24s12 --scenes 24 --seconds 8 --seed 12
 odg synth --out data/synth24s13 --scenes 24 --seconds 8 --seed 13
 odg prepare --dataroot data/synth24s12 --out data/synth24s12/infos_all.pkl --split all
 odg prepare --dataroot data/synth24s13 --out data/synth24s13/infos_all.pkl --split all
-OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.cli train --preset odg_cpu \
+OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.commands train --preset odg_cpu \
     --data data/synth24/infos_train.pkl data/synth24s{2,10,11,12,13}/infos_all.pkl \
     $DDP_OPTS --out runs/cpu138 --init runs/odg_cpu_stage10.pt \
     --steps 1500 --warmup 50
@@ -111,14 +111,14 @@ odg synth --out data/synth24s14 --scenes 24 --seconds 8 --seed 14
 odg synth --out data/synth24s15 --scenes 24 --seconds 8 --seed 15
 odg prepare --dataroot data/synth24s14 --out data/synth24s14/infos_all.pkl --split all
 odg prepare --dataroot data/synth24s15 --out data/synth24s15/infos_all.pkl --split all
-OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.cli train --preset odg_cpu \
+OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.commands train --preset odg_cpu \
     --data data/synth24/infos_train.pkl data/synth24s{2,10,11,12,13,14,15}/infos_all.pkl \
     $DDP_OPTS --out runs/cpu186 --init runs/odg_cpu_stage11.pt \
     --steps 1500 --warmup 50
 export_int8 runs/cpu186/final.pt runs/odg_cpu_stage12.pt
 # (13) a second pass over the same 186 scenes, in another order, from the (12) file
 #
-OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.cli train --preset odg_cpu \
+OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.commands train --preset odg_cpu \
     --data data/synth24/infos_train.pkl data/synth24s{2,10,11,12,13,14,15}/infos_all.pkl \
     $DDP_OPTS --out runs/cpu186b --init runs/odg_cpu_stage12.pt \
     --steps 1200 --warmup 50 --seed 1
@@ -131,14 +131,14 @@ odg synth --out data/synth24s16 --scenes 24 --seconds 8 --seed 16
 odg synth --out data/synth24s17 --scenes 24 --seconds 8 --seed 17
 odg prepare --dataroot data/synth24s16 --out data/synth24s16/infos_all.pkl --split all
 odg prepare --dataroot data/synth24s17 --out data/synth24s17/infos_all.pkl --split all
-OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.cli train --preset odg_cpu \
+OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.commands train --preset odg_cpu \
     --data data/synth24/infos_train.pkl data/synth24s{2,10,11,12,13,14,15,16,17}/infos_all.pkl \
     $DDP_OPTS --out runs/cpu234 --init runs/odg_cpu_stage13.pt \
     --steps 1500 --warmup 50
 export_int8 runs/cpu234/final.pt runs/odg_cpu_stage15.pt
 # (16) a second pass over the 234 scenes, in another order, from the (15) file; stopped after step ~1,240, continued with the same
 # command plus --resume (from the step-1,200 checkpoint)
-OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.cli train --preset odg_cpu \
+OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.commands train --preset odg_cpu \
     --data data/synth24/infos_train.pkl data/synth24s{2,10,11,12,13,14,15,16,17}/infos_all.pkl \
     $DDP_OPTS --out runs/cpu234b --init runs/odg_cpu_stage15.pt \
     --steps 1500 --warmup 50 --seed 1
@@ -155,7 +155,7 @@ odg synth --out data/synth24s21 --scenes 24 --seconds 8 --seed 21
 odg prepare --dataroot data/synth24s19 --out data/synth24s19/infos_all.pkl --split all
 odg prepare --dataroot data/synth24s20 --out data/synth24s20/infos_all.pkl --split all
 odg prepare --dataroot data/synth24s21 --out data/synth24s21/infos_all.pkl --split all
-OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.cli train --preset odg_cpu \
+OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.commands train --preset odg_cpu \
     --data data/synth24/infos_train.pkl data/synth24s{19,20,21}/infos_all.pkl \
     $DDP_OPTS --out runs/cpu90n --init runs/odg_cpu_stage16.pt \
     --steps 1000 --warmup 50
@@ -163,21 +163,21 @@ export_int8 runs/cpu90n/final.pt runs/odg_cpu_stage17.pt
 # (18), not shipped alone ((19) starts from it): five of the earlier worlds regenerated
 # (seeds 2, 10-13, the commands of (5), (9) and (11) above) and added to (17)'s set,
 # from the (16) file
-OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.cli train --preset odg_cpu \
+OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.commands train --preset odg_cpu \
     --data data/synth24/infos_train.pkl data/synth24s{2,10,11,12,13,19,20,21}/infos_all.pkl \
     $DDP_OPTS --out runs/cpu210 --init runs/odg_cpu_stage16.pt \
     --steps 1100 --warmup 50
 export_int8 runs/cpu210/final.pt runs/odg_cpu_stage18.pt
 # (19), shipped until (20) (which starts from it): seeds 14 and 15 regenerated ((12)'s
 # commands) and added to (18)'s set, from the (18) file
-OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.cli train --preset odg_cpu \
+OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.commands train --preset odg_cpu \
     --data data/synth24/infos_train.pkl data/synth24s{2,10,11,12,13,14,15,19,20,21}/infos_all.pkl \
     $DDP_OPTS --out runs/cpu258 --init runs/odg_cpu_stage18.pt \
     --steps 1500 --warmup 50
 export_int8 runs/cpu258/final.pt runs/odg_cpu_stage19.pt
 # (20), shipped until (21) (which starts from it): seeds 16 and 17 regenerated ((15)'s
 # commands) and added to (19)'s set, all 306 scenes, from the (19) file
-OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.cli train --preset odg_cpu \
+OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.commands train --preset odg_cpu \
     --data data/synth24/infos_train.pkl data/synth24s{2,10,11,12,13,14,15,16,17,19,20,21}/infos_all.pkl \
     $DDP_OPTS --out runs/cpu306 --init runs/odg_cpu_stage19.pt \
     --steps 1300 --warmup 50
@@ -185,7 +185,7 @@ export_int8 runs/cpu306/final.pt runs/odg_cpu_stage20.pt
 # (21), shipped until (22) (which starts from it): a second pass over the 306 scenes in another
 # order, from the (20) file; stopped after
 # step 141, continued with the same command plus --resume (from the step-100 checkpoint)
-OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.cli train --preset odg_cpu \
+OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.commands train --preset odg_cpu \
     --data data/synth24/infos_train.pkl data/synth24s{2,10,11,12,13,14,15,16,17,19,20,21}/infos_all.pkl \
     $DDP_OPTS --out runs/cpu306b --init runs/odg_cpu_stage20.pt \
     --steps 1500 --warmup 50 --seed 1
@@ -197,14 +197,14 @@ odg synth --out data/synth24s22 --scenes 24 --seconds 8 --seed 22
 odg synth --out data/synth24s23 --scenes 24 --seconds 8 --seed 23
 odg prepare --dataroot data/synth24s22 --out data/synth24s22/infos_all.pkl --split all
 odg prepare --dataroot data/synth24s23 --out data/synth24s23/infos_all.pkl --split all
-OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.cli train --preset odg_cpu \
+OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.commands train --preset odg_cpu \
     --data data/synth24/infos_train.pkl data/synth24s{2,10,11,12,13,14,15,16,17,19,20,21,22,23}/infos_all.pkl \
     $DDP_OPTS --out runs/cpu354 --init runs/odg_cpu_stage21.pt \
     --steps 1500 --warmup 50
 export_int8 runs/cpu354/final.pt runs/odg_cpu_stage22.pt
 # (23), shipped until (24) (which starts from it): a second pass over the 354 scenes in another
 # order, from the (22) file
-OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.cli train --preset odg_cpu \
+OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.commands train --preset odg_cpu \
     --data data/synth24/infos_train.pkl data/synth24s{2,10,11,12,13,14,15,16,17,19,20,21,22,23}/infos_all.pkl \
     $DDP_OPTS --out runs/cpu354b --init runs/odg_cpu_stage22.pt \
     --steps 1200 --warmup 50 --seed 1
@@ -215,7 +215,7 @@ odg synth --out data/synth24s24 --scenes 24 --seconds 8 --seed 24
 odg synth --out data/synth24s25 --scenes 24 --seconds 8 --seed 25
 odg prepare --dataroot data/synth24s24 --out data/synth24s24/infos_all.pkl --split all
 odg prepare --dataroot data/synth24s25 --out data/synth24s25/infos_all.pkl --split all
-OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.cli train --preset odg_cpu \
+OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.commands train --preset odg_cpu \
     --data data/synth24/infos_train.pkl data/synth24s{2,10,11,12,13,14,15,16,17,19,20,21,22,23,24,25}/infos_all.pkl \
     $DDP_OPTS --out runs/cpu402 --init runs/odg_cpu_stage23.pt \
     --steps 1200 --warmup 50
@@ -224,7 +224,7 @@ export_int8 runs/cpu402/final.pt runs/odg_cpu_stage24.pt
 # (24) file
 #; stopped after step 901, continued with the same
 # command plus --resume (from the step-900 checkpoint)
-OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.cli train --preset odg_cpu \
+OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.commands train --preset odg_cpu \
     --data data/synth24/infos_train.pkl data/synth24s{2,10,11,12,13,14,15,16,17,19,20,21,22,23,24,25}/infos_all.pkl \
     $DDP_OPTS --out runs/cpu402b --init runs/odg_cpu_stage24.pt \
     --steps 1200 --warmup 50 --seed 1
@@ -235,7 +235,7 @@ odg synth --out data/synth24s26 --scenes 24 --seconds 8 --seed 26
 odg synth --out data/synth24s27 --scenes 24 --seconds 8 --seed 27
 odg prepare --dataroot data/synth24s26 --out data/synth24s26/infos_all.pkl --split all
 odg prepare --dataroot data/synth24s27 --out data/synth24s27/infos_all.pkl --split all
-OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.cli train --preset odg_cpu \
+OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.commands train --preset odg_cpu \
     --data data/synth24/infos_train.pkl data/synth24s{2,10,11,12,13,14,15,16,17,19,20,21,22,23,24,25,26,27}/infos_all.pkl \
     $DDP_OPTS --out runs/cpu450 --init runs/odg_cpu_stage25.pt \
     --steps 1200 --warmup 50
@@ -243,7 +243,7 @@ export_int8 runs/cpu450/final.pt runs/odg_cpu_stage26.pt
 # (27), shipped until (28): a second pass over the 450 scenes in another order, from the (26) file;
 # stopped after step 147, continued with the same command plus --resume (from the step-100
 # checkpoint)
-OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.cli train --preset odg_cpu \
+OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.commands train --preset odg_cpu \
     --data data/synth24/infos_train.pkl data/synth24s{2,10,11,12,13,14,15,16,17,19,20,21,22,23,24,25,26,27}/infos_all.pkl \
     $DDP_OPTS --out runs/cpu450b --init runs/odg_cpu_stage26.pt \
     --steps 1200 --warmup 50 --seed 1
@@ -254,7 +254,7 @@ odg synth --out data/synth24s28 --scenes 24 --seconds 8 --seed 28
 odg synth --out data/synth24s29 --scenes 24 --seconds 8 --seed 29
 odg prepare --dataroot data/synth24s28 --out data/synth24s28/infos_all.pkl --split all
 odg prepare --dataroot data/synth24s29 --out data/synth24s29/infos_all.pkl --split all
-OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.cli train --preset odg_cpu \
+OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.commands train --preset odg_cpu \
     --data data/synth24/infos_train.pkl data/synth24s{2,10,11,12,13,14,15,16,17,19,20,21,22,23,24,25,26,27,28,29}/infos_all.pkl \
     $DDP_OPTS --out runs/cpu498 --init runs/odg_cpu_stage27.pt \
     --steps 1200 --warmup 50
@@ -263,7 +263,7 @@ export_int8 runs/cpu498/final.pt runs/odg_cpu_stage28.pt
 # (the export above);
 # stopped after step 154, continued with the same command plus --resume (from the step-100
 # checkpoint)
-OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.cli train --preset odg_cpu \
+OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.commands train --preset odg_cpu \
     --data data/synth24/infos_train.pkl data/synth24s{2,10,11,12,13,14,15,16,17,19,20,21,22,23,24,25,26,27,28,29}/infos_all.pkl \
     $DDP_OPTS --out runs/cpu498b --init runs/odg_cpu_stage28.pt \
     --steps 1200 --warmup 50 --seed 1
@@ -274,7 +274,7 @@ odg synth --out data/synth24s30 --scenes 24 --seconds 8 --seed 30
 odg synth --out data/synth24s31 --scenes 24 --seconds 8 --seed 31
 odg prepare --dataroot data/synth24s30 --out data/synth24s30/infos_all.pkl --split all
 odg prepare --dataroot data/synth24s31 --out data/synth24s31/infos_all.pkl --split all
-OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.cli train --preset odg_cpu \
+OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.commands train --preset odg_cpu \
     --data data/synth24/infos_train.pkl data/synth24s{2,10,11,12,13,14,15,16,17,19,20,21,22,23,24,25,26,27,28,29,30,31}/infos_all.pkl \
     $DDP_OPTS --out runs/cpu546 --init runs/odg_cpu_stage29.pt \
     --steps 1200 --warmup 50
@@ -282,7 +282,7 @@ export_int8 runs/cpu546/final.pt runs/odg_cpu_stage30.pt
 # (31), shipped until (33): a second pass over the 546 scenes in another order, from the (30) file;
 # stopped after step ~190, continued with the same command plus --resume (from the step-100
 # checkpoint)
-OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.cli train --preset odg_cpu \
+OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.commands train --preset odg_cpu \
     --data data/synth24/infos_train.pkl data/synth24s{2,10,11,12,13,14,15,16,17,19,20,21,22,23,24,25,26,27,28,29,30,31}/infos_all.pkl \
     $DDP_OPTS --out runs/cpu546b --init runs/odg_cpu_stage30.pt \
     --steps 1200 --warmup 50 --seed 1
@@ -293,13 +293,13 @@ odg synth --out data/synth24s32 --scenes 24 --seconds 8 --seed 32
 odg synth --out data/synth24s33 --scenes 24 --seconds 8 --seed 33
 odg prepare --dataroot data/synth24s32 --out data/synth24s32/infos_all.pkl --split all
 odg prepare --dataroot data/synth24s33 --out data/synth24s33/infos_all.pkl --split all
-OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.cli train --preset odg_cpu \
+OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.commands train --preset odg_cpu \
     --data data/synth24/infos_train.pkl data/synth24s{2,10,11,12,13,14,15,16,17,19,20,21,22,23,24,25,26,27,28,29,30,31,32,33}/infos_all.pkl \
     $DDP_OPTS --out runs/cpu594 --init runs/odg_cpu_stage31.pt \
     --steps 1200 --warmup 50
 export_int8 runs/cpu594/final.pt runs/odg_cpu_stage32.pt
 # (33), shipped until (35): a second pass over the 594 scenes in another order, from the (32) file
-OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.cli train --preset odg_cpu \
+OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.commands train --preset odg_cpu \
     --data data/synth24/infos_train.pkl data/synth24s{2,10,11,12,13,14,15,16,17,19,20,21,22,23,24,25,26,27,28,29,30,31,32,33}/infos_all.pkl \
     $DDP_OPTS --out runs/cpu594b --init runs/odg_cpu_stage32.pt \
     --steps 1200 --warmup 50 --seed 1
@@ -311,13 +311,13 @@ odg synth --out data/synth24s34 --scenes 24 --seconds 8 --seed 34
 odg synth --out data/synth24s35 --scenes 24 --seconds 8 --seed 35
 odg prepare --dataroot data/synth24s34 --out data/synth24s34/infos_all.pkl --split all
 odg prepare --dataroot data/synth24s35 --out data/synth24s35/infos_all.pkl --split all
-OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.cli train --preset odg_cpu \
+OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.commands train --preset odg_cpu \
     --data data/synth24/infos_train.pkl data/synth24s{2,10,11,12,13,14,15,16,17,19,20,21,22,23,24,25,26,27,28,29,30,31,32,33,34,35}/infos_all.pkl \
     $DDP_OPTS --out runs/cpu642 --init runs/odg_cpu_stage33.pt \
     --steps 1200 --warmup 50
 export_int8 runs/cpu642/final.pt runs/odg_cpu_stage34.pt
 # (35), shipped until (37): a second pass over the 642 scenes in another order, from the (34) file
-OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.cli train --preset odg_cpu \
+OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.commands train --preset odg_cpu \
     --data data/synth24/infos_train.pkl data/synth24s{2,10,11,12,13,14,15,16,17,19,20,21,22,23,24,25,26,27,28,29,30,31,32,33,34,35}/infos_all.pkl \
     $DDP_OPTS --out runs/cpu642b --init runs/odg_cpu_stage34.pt \
     --steps 1200 --warmup 50 --seed 1
@@ -328,7 +328,7 @@ odg synth --out data/synth24s36 --scenes 24 --seconds 8 --seed 36
 odg synth --out data/synth24s37 --scenes 24 --seconds 8 --seed 37
 odg prepare --dataroot data/synth24s36 --out data/synth24s36/infos_all.pkl --split all
 odg prepare --dataroot data/synth24s37 --out data/synth24s37/infos_all.pkl --split all
-OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.cli train --preset odg_cpu \
+OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.commands train --preset odg_cpu \
     --data data/synth24/infos_train.pkl data/synth24s{2,10,11,12,13,14,15,16,17,19,20,21,22,23,24,25,26,27,28,29,30,31,32,33,34,35,36,37}/infos_all.pkl \
     $DDP_OPTS --out runs/cpu690 --init runs/odg_cpu_stage35.pt \
     --steps 1200 --warmup 50
@@ -336,7 +336,7 @@ export_int8 runs/cpu690/final.pt runs/odg_cpu_stage36.pt
 # (37), shipped: a second pass over the 690 scenes in another order, from the (36) file
 # (stopped after step 451, continued with the same command plus --resume from the step-400
 # checkpoint: the same run, bit for bit)
-OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.cli train --preset odg_cpu \
+OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.commands train --preset odg_cpu \
     --data data/synth24/infos_train.pkl data/synth24s{2,10,11,12,13,14,15,16,17,19,20,21,22,23,24,25,26,27,28,29,30,31,32,33,34,35,36,37}/infos_all.pkl \
     $DDP_OPTS --out runs/cpu690b --init runs/odg_cpu_stage36.pt \
     --steps 1200 --warmup 50 --seed 1

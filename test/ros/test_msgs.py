@@ -9,40 +9,9 @@ import time
 
 import numpy as np
 
-from ros_test_utils import RawRecorder, non_loopback, udp_local_addresses
-
-
-def voxel_grid(msgs_module, size=(200, 200, 16), seed=0):
-    from geometry_msgs.msg import Point, Pose, Quaternion
-    rng = np.random.default_rng(seed)
-    labels = rng.integers(0, 18, size=size, dtype=np.uint8)
-    msg = msgs_module.SemanticVoxelGrid()
-    msg.header.frame_id = "base_link"
-    msg.header.stamp.sec, msg.header.stamp.nanosec = 1_533_151_603, 547_590_000
-    msg.origin = Pose(position=Point(x=-40.0, y=-40.0, z=-1.0), orientation=Quaternion(w=1.0))
-    msg.resolution = float(np.float32(0.4))  # exactly representable as float32 on the wire
-    msg.size_x, msg.size_y, msg.size_z = size
-    msg.memory_order = msg.MEMORY_ORDER_XYZ_C
-    msg.free_label, msg.unknown_label = 17, 255
-    msg.labels = labels.tobytes()
-    msg.confidence = rng.integers(0, 256, size=labels.size, dtype=np.uint8).tobytes()
-    msg.observed = b""
-    msg.class_names = [f"class_{i}" for i in range(18)]
-    return msg, labels
-
-
-def object_array(msgs_module):
-    from geometry_msgs.msg import Twist, Vector3
-    array = msgs_module.DynamicObjectArray()
-    array.header.frame_id = "base_link"
-    for i in range(3):
-        obj = msgs_module.DynamicObject(class_id=i, class_name=["car", "truck", "bus"][i],
-                                        score=float(np.float32(0.5 + 0.1 * i)), id=100 + i)
-        obj.pose.position.x, obj.pose.orientation.z, obj.pose.orientation.w = 3.0 * i, 0.6, 0.8
-        obj.size = Vector3(x=4.5, y=1.9, z=1.6)
-        obj.velocity = Twist(linear=Vector3(x=1.0 * i, y=-0.5))
-        array.objects.append(obj)
-    return array
+from testing.ros import RawRecorder, non_loopback, udp_local_addresses
+from testing.ros import object_array, voxel_grid
+from testing import REPOSITORY
 
 
 def test_round_trips(rclpy_module):
@@ -89,9 +58,8 @@ PUBLISHER_SCRIPT = textwrap.dedent("""
     import os, sys, time
     import rclpy
     from rclpy.qos import QoSProfile, ReliabilityPolicy
-    sys.path.insert(0, {test_dir!r})
     import odg_ros_msgs.msg as m
-    from test_msgs import voxel_grid, object_array
+    from testing.ros import voxel_grid, object_array
     rclpy.init()
     node = rclpy.create_node("msgs_test_publisher")
     qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
@@ -106,7 +74,7 @@ PUBLISHER_SCRIPT = textwrap.dedent("""
         obj_pub.publish(object_array(m))
     grid_pub.wait_for_all_acked(rclpy.duration.Duration(seconds=10))
     obj_pub.wait_for_all_acked(rclpy.duration.Duration(seconds=10))
-    from ros_test_utils import udp_local_addresses
+    from testing.ros import udp_local_addresses
     print("SOCKETS", sorted(udp_local_addresses(os.getpid())))
     node.destroy_node()
     rclpy.shutdown()
@@ -125,9 +93,9 @@ def test_publish_in_another_process(ros_context, rclpy_module):
     qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
     recorder = RawRecorder(node, {"/test/occupancy": (m.SemanticVoxelGrid, qos),
                                   "/test/objects": (m.DynamicObjectArray, qos)})
-    script = PUBLISHER_SCRIPT.format(test_dir=os.path.dirname(__file__))
-    child = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE,
-                             stderr=subprocess.PIPE, text=True)
+    # from the repository root: `-c` puts it on the path, so testing/ imports
+    child = subprocess.Popen([sys.executable, "-c", PUBLISHER_SCRIPT], stdout=subprocess.PIPE,
+                             stderr=subprocess.PIPE, text=True, cwd=REPOSITORY)
     executor = rclpy_module.executors.SingleThreadedExecutor(context=ros_context)
     executor.add_node(node)
     deadline = time.monotonic() + 30

@@ -27,7 +27,7 @@ from odg_ros.geometry import ego_warp, make_transform
 from odg_ros.online.rig import load_rig, set_ego2img
 from odg_ros.preprocess import adjust_intrinsics, normalize, resize_crop
 from odg_ros.resources import resource_path
-from helpers import write_tiny_checkpoint  # test/helpers.py (test/ is on sys.path under pytest)
+from testing.helpers import write_tiny_checkpoint
 
 RIG = load_rig(resource_path("config/rig_nuscenes.yaml"))
 CAMS = tuple(RIG.cameras)

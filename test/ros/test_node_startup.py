@@ -8,7 +8,7 @@ import sys
 
 import pytest
 
-from helpers import write_tiny_checkpoint  # test/helpers.py (test/ is on sys.path under pytest)
+from testing.helpers import write_tiny_checkpoint
 
 
 def run_node(*args, timeout=120):

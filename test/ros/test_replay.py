@@ -9,11 +9,12 @@ import time
 
 import pytest
 
-import tiny_nuscenes
-from odg_ros.ros import bag_layout as layout
-from odg_ros.ros.bag import bag_topics, iter_bag, write_scene_bag
-from odg_ros.ros.nuscenes_source import NuScenesSensorTables
-from ros_test_utils import RawRecorder, non_loopback, udp_local_addresses
+from testing import tiny_nuscenes
+from odg_ros.bags import layout
+from odg_ros.bags.reader import bag_topics, iter_bag
+from odg_ros.bags.writer import write_scene_bag
+from odg_ros.bags.nuscenes_source import NuScenesSensorTables
+from testing.ros import RawRecorder, non_loopback, udp_local_addresses
 
 
 @pytest.fixture(scope="module")
@@ -26,7 +27,7 @@ def bag(tmp_path_factory):
 
 
 def start_replay(bag, *args):
-    return subprocess.Popen([sys.executable, "-m", "odg_ros.cli", "replay", str(bag), "--quiet",
+    return subprocess.Popen([sys.executable, "-m", "odg_ros.commands", "replay", str(bag), "--quiet",
                              *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 
@@ -146,9 +147,9 @@ def test_ctrl_c_stops_cleanly(rclpy_module, bag):
 
 
 def test_bad_arguments(rclpy_module, tmp_path, bag):
-    result = subprocess.run([sys.executable, "-m", "odg_ros.cli", "replay", str(tmp_path)],
+    result = subprocess.run([sys.executable, "-m", "odg_ros.commands", "replay", str(tmp_path)],
                             capture_output=True, text=True, timeout=60)
     assert result.returncode == 2 and "not a rosbag2 folder" in result.stderr
-    result = subprocess.run([sys.executable, "-m", "odg_ros.cli", "replay", str(bag),
+    result = subprocess.run([sys.executable, "-m", "odg_ros.commands", "replay", str(bag),
                              "--rate", "0"], capture_output=True, text=True, timeout=60)
     assert result.returncode == 2 and "--rate: must be > 0" in result.stderr

@@ -1,0 +1,317 @@
+"""``odg bench --sweep`` (odg_ros/bench/sweep.py): the Pareto front and the adaptive trade-off on
+hand-made numbers, query budgets, the never-empty pruning rule, and a whole sweep of a tiny
+random-weights checkpoint on a tiny hand-made world (JSON keys, PNG, scores equal to
+``evaluate``)."""
+import dataclasses
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from odg_ros.bench.step import LAYER_PARTS, bench_online_step
+from odg_ros.network import ODG
+from odg_ros.network.checkpoint import load_model
+from odg_ros.network.decoder import PruneRule
+from odg_ros.data.batch import collate, to_device
+from odg_ros.data.dataset import OccDataset
+from odg_ros.bench.sweep import (ConfigRun, SweepConfig, adaptive_tradeoff, pareto_front,
+                           prepare_model, query_budget, quiet_and_busy, run_sweep,
+                           select_configs, spread_indices)
+from odg_ros.train.evaluate import evaluate
+
+from testing.helpers import tiny_config, write_tiny_checkpoint, write_tiny_split
+
+
+def tiny_cfg():
+    return tiny_config(image_size=(32, 88), num_frames=3)
+
+
+# ------------------------------------------------------------------------ pure functions
+def test_pareto_front_on_hand_made_points():
+    points = [(1.0, 5.0), (2.0, 4.0), (3.0, 4.0), (0.5, 6.0), (2.0, 1.0), (3.0, 4.0),
+              (9.0, None), (4.0, float("nan")), (0.4, 6.0)]
+    # (2, 4) is beaten by (3, 4); (2, 1) by everything to its right; (0.4, 6) by (0.5, 6);
+    # the two equal (3, 4) both stay; None / NaN are out; sorted by FPS
+    assert pareto_front(points) == [3, 0, 2, 5]
+    assert pareto_front([]) == []
+    assert pareto_front([(1.0, 1.0)]) == [0]
+    # a slower path with 3e-4 more mIoU (float noise) is on the exact front, not on the
+    # front within a tolerance; nor with 3e-3 across a rounding boundary (10.163 / 10.166:
+    # the sweep of 2026-11-21, which 2-decimal rounding kept on the front)
+    noisy = [(4.17, 8.7142), (3.36, 8.7145)]
+    assert pareto_front(noisy) == [1, 0]
+    assert pareto_front(noisy, tolerance=0.02) == [0]
+    assert pareto_front([(3.65, 10.1627), (2.86, 10.1660)], tolerance=0.02) == [0]
+    # more than the tolerance better: both stay; within it, the faster one alone
+    assert pareto_front([(5.5, 10.15), (3.65, 10.20)], tolerance=0.02) == [1, 0]
+    assert pareto_front([(5.5, 10.151), (3.65, 10.163)], tolerance=0.02) == [0]
+
+
+def test_samples_are_spread_over_the_split():
+    assert spread_indices(100, 5) == [0, 25, 50, 74, 99]
+    assert spread_indices(3, 8) == [0, 1, 2]
+    assert spread_indices(10, 1) == [0]
+
+
+def test_quiet_and_busy_quarters():
+    load = [{"index": i, "has_occ": True, "occupied_camera": v, "boxes": b}
+            for i, (v, b) in enumerate([(50, 1), (10, 9), (30, 2), (90, 0), (10, 1), (70, 5),
+                                        (20, 3), (60, 1)])]
+    load.append({"index": 8, "has_occ": False, "occupied_camera": 0, "boxes": 0})
+    quiet, busy = quiet_and_busy(load)
+    assert quiet == [4, 1] and busy == [5, 3]          # ties on voxels: fewer boxes first
+    assert quiet_and_busy(load[:1]) == ([0], [0])
+    assert quiet_and_busy([]) == ([], [])
+
+
+def result(name, total, miou, prune=None, quiet=(0, 0), busy=(0, 0), frames=4):
+    config = {"name": name, "frames": frames, "prune": prune, "prune_after": 2,
+              "queries": 1.0, "precision": "fp32", "ring": True, "fast_sampling": True,
+              "compile": False}
+    return {"config": config, "fps": 1000 / total,
+            "scores": {"latency_ms": total, "decoder_ms": total / 2, "mIoU": miou,
+                       "RayIoU": miou / 2},
+            "quiet": {"latency_ms": quiet[0], "decoder_ms": 0, "mIoU": quiet[1], "RayIoU": None},
+            "busy": {"latency_ms": busy[0], "decoder_ms": 0, "mIoU": busy[1], "RayIoU": None}}
+
+
+def test_adaptive_tradeoff_is_points_lost_per_millisecond_saved():
+    rows = adaptive_tradeoff([
+        result("full", 100.0, 30.0, quiet=(90.0, 20.0), busy=(110.0, 40.0)),
+        result("p0.1", 80.0, 29.0, prune=0.1, quiet=(50.0, 20.0), busy=(105.0, 38.0)),
+        result("p0.2-h2", 60.0, 25.0, prune=0.2, frames=2),     # no full model at 2 frames
+        result("slower", 120.0, 30.0, prune=0.01),
+        {"config": {"name": "broken"}, "error": "RuntimeError: x"}])
+    assert [r["config"] for r in rows] == ["p0.1", "slower"]
+    p = rows[0]
+    assert p["full"] == "full" and p["threshold"] == 0.1
+    assert p["all"]["ms_saved"] == 20.0 and p["all"]["mIoU_lost"] == 1.0
+    assert p["all"]["decoder_ms_saved"] == 10.0
+    assert math.isclose(p["all"]["mIoU_lost_per_ms"], 0.05)
+    assert math.isclose(p["all"]["RayIoU_lost_per_ms"], 0.025)
+    assert p["quiet"]["ms_saved"] == 40.0 and p["quiet"]["mIoU_lost_per_ms"] == 0.0
+    assert p["busy"]["ms_saved"] == 5.0 and math.isclose(p["busy"]["mIoU_lost_per_ms"], 0.4)
+    assert "RayIoU_lost" not in p["quiet"]                  # None scores are not compared
+    assert rows[1]["all"]["ms_saved"] == -20.0 and rows[1]["all"]["mIoU_lost_per_ms"] is None
+
+
+def test_select_configs_by_name_and_from_json(tmp_path):
+    defaults = select_configs(None, 4)
+    names = [c.name for c in defaults]
+    assert names[:3] == ["full-h4", "full-h1", "full-h2"]
+    assert {"prune0.25-h4", "prune0.5-h4", "prune0.75-h4", "q50-h4", "q25-h4", "bf16-h4",
+            "plain-h4"} <= set(names)               # pruning relative to the threshold 0.5
+    assert "prune0.15-h4" in [c.name for c in select_configs(None, 4, score_threshold=0.3)]
+    assert not any("fp16" in n or "compile" in n for n in names)   # CUDA only
+    assert [c.name for c in select_configs("q25-h4,full-h1", 4)] == ["q25-h4", "full-h1"]
+    with pytest.raises(ValueError, match="unknown configurations"):
+        select_configs("full-h9", 4)
+    path = tmp_path / "c.json"
+    path.write_text(json.dumps([{"name": "mine", "frames": 2, "prune": 0.3}]))
+    assert select_configs(str(path), 4) == [SweepConfig("mine", frames=2, prune=0.3)]
+    path.write_text(json.dumps([{"name": "bad", "speed": 3}]))
+    with pytest.raises(ValueError, match="unknown keys"):
+        select_configs(str(path), 4)
+    with pytest.raises(ValueError):
+        SweepConfig("x", queries=0.0)
+
+
+def test_cuda_sweeps_compile_the_decoder_and_replay_it_as_cuda_graphs(tmp_path, monkeypatch):
+    names = [c.name for c in select_configs(None, 4, device="cuda")]
+    assert {"fp16-h4", "compile-h4", "compile-bf16-h4", "graphs-h4", "graphs-bf16-h4"} <= set(names)
+    checkpoint = write_tiny_checkpoint(tmp_path / "tiny.pt", image_size=(32, 88), num_frames=3)
+    modes = []
+    monkeypatch.setattr(torch, "compile", lambda module, mode=None: modes.append(mode) or module)
+    prepare_model(checkpoint, "odg_cpu", "cpu", SweepConfig("c", compile=True))
+    assert modes == ["default"]
+    with pytest.raises(ValueError, match="g: CUDA graphs need a CUDA device, not cpu"):
+        prepare_model(checkpoint, "odg_cpu", "cpu", SweepConfig("g", cuda_graphs=True))
+    assert modes == ["default"]
+
+
+# ------------------------------------------------------------------------ model variants
+def test_query_budget_keeps_evenly_spaced_learned_queries():
+    cfg = tiny_cfg()                      # 6 dynamic + 20 static queries
+    model = ODG(cfg).eval()
+    small, small_cfg = query_budget(model, cfg, 0.5)
+    assert (small_cfg.num_dynamic, small_cfg.num_static) == (3, 10)
+    q, s = model.queries.features.detach(), small.queries.features.detach()
+    torch.testing.assert_close(s[:3], q[[0, 2, 5]])          # linspace(0, 5, 3).round()
+    torch.testing.assert_close(s[3], q[6])
+    torch.testing.assert_close(s[-1], q[-1])
+    torch.testing.assert_close(small.queries.init_box.detach(),
+                               model.queries.init_box.detach()[[0, 2, 5]])
+    # every other weight is shared
+    torch.testing.assert_close(small.decoder.layers[3].mixing.generator.weight,
+                               model.decoder.layers[3].mixing.generator.weight)
+    tiny, tiny_c = query_budget(model, cfg, 0.01)            # never zero of a kind
+    assert (tiny_c.num_dynamic, tiny_c.num_static) == (1, 1)
+
+
+def test_pruning_above_every_score_keeps_the_best_query_and_runs():
+    cfg = tiny_cfg()
+    model = ODG(cfg).eval()
+    rule = PruneRule(threshold=1.1, after_layer=2)           # no score can pass
+    images = torch.randn(1, 3, 6, 3, *cfg.image_size)
+    from odg_ros.rig import ring_ego2img
+    e2i = ring_ego2img(cfg.image_size, 3, 6)
+    warp, dt = torch.eye(4).repeat(1, 3, 1, 1), torch.tensor([[0.0, 0.5, 1.0]])
+    with torch.no_grad():
+        out = model(images, e2i, warp, dt, prune=rule)
+    assert out.last.means.shape[1] == 1 and torch.isfinite(out.last.means).all()
+
+
+def test_bench_online_step_reports_layers_parts_and_memory():
+    cfg = tiny_cfg()
+    r = bench_online_step(cfg, iters=2, warmup=1, progress=False)
+    assert set(r["latency_ms"]) >= {"backbone", "decoder", "postprocess", "total"}
+    assert len(r["decoder_layers_ms"]) == cfg.num_layers
+    for row in r["decoder_layers_ms"]:
+        assert set(row["parts"]) <= set(LAYER_PARTS) and {"attention", "sampling",
+                                                           "mixing"} <= set(row["parts"])
+        assert row["total"] >= sum(row["parts"].values()) - 1e-6
+    assert sum(r["total"] for r in r["decoder_layers_ms"]) <= r["latency_ms"]["decoder"]
+    assert r["peak_memory_mb"] > 50 and r["memory_method"] == "process ru_maxrss"
+    assert r["fps"] > 0
+
+
+# ------------------------------------------------------------------------ a whole sweep
+@pytest.fixture(scope="module")
+def tiny_split(tmp_path_factory):
+    root = tmp_path_factory.mktemp("world")
+    checkpoint = write_tiny_checkpoint(root / "tiny.pt", image_size=(32, 88), num_frames=3)
+    return write_tiny_split(root, 3), checkpoint
+
+
+def test_sweep_writes_json_and_png_with_every_measure(tiny_split, tmp_path):
+    data, checkpoint = tiny_split
+    configs = [SweepConfig("full-h3", frames=3), SweepConfig("prune-h3", frames=3, prune=0.5),
+               SweepConfig("q50-h2", frames=2, queries=0.5)]
+    report = run_sweep(data, checkpoint, configs=configs, limit=2, repeats=1, warmup=0,
+                       isolate=False, out=tmp_path, progress=False)
+    saved = json.loads((tmp_path / "bench_cpu.json").read_text())
+    png = tmp_path / "bench_cpu.png"
+    assert png.stat().st_size > 10_000 and png.read_bytes()[:4] == b"\x89PNG"
+    assert set(saved) == {"meta", "configs", "pareto", "adaptive"}
+    meta = saved["meta"]
+    assert meta["random_weights"] is False and meta["checkpoint"] == str(checkpoint)
+    assert meta["samples"] == 2 and meta["commit"] and meta["date"]
+    assert len(meta["scene_load"]) == 2 and meta["quiet_samples"] and meta["busy_samples"]
+    assert [c["config"]["name"] for c in saved["configs"]] == ["full-h3", "prune-h3", "q50-h2"]
+    for c in saved["configs"]:
+        assert "error" not in c, c.get("traceback")
+        assert set(c["latency_ms"]) >= {"backbone", "decoder", "postprocess", "total"}
+        assert len(c["decoder_layers_ms"]) == 6 and c["fps"] > 0 and c["peak_memory_mb"] > 0
+        for key in ("mIoU", "RayIoU", "mIoU_dynamic", "IoU_geometry", "latency_ms", "box_mAP"):
+            assert key in c["scores"]
+        assert c["quiet"]["samples"] == 1 and c["busy"]["samples"] == 1
+        assert len(c["per_sample"]) == 2
+    full, pruned, budget = saved["configs"]
+    assert full["frames"] == 3 and budget["frames"] == 2 and budget["queries"] == 13
+    assert pruned["scores"]["queries_last_layer"] < full["scores"]["queries_last_layer"] == 26
+    assert saved["adaptive"][0]["config"] == "prune-h3" and "all" in saved["adaptive"][0]
+    assert set(saved["pareto"]) == {"mIoU", "RayIoU"} and saved["pareto"]["mIoU"]
+    assert report["files"] == [str(tmp_path / "bench_cpu.json"), str(png)]
+
+
+def test_sweep_scores_equal_offline_evaluation(tiny_split):
+    """The sweep scores the timed online step (cached history); it must match ``evaluate``
+    (the offline model over all frames) on the same samples."""
+    data, checkpoint = tiny_split
+    report = run_sweep(data, checkpoint, configs=[SweepConfig("full-h2", frames=2)], limit=3,
+                       repeats=1, warmup=0, isolate=False, progress=False)
+    model, cfg = load_model(checkpoint)
+    expected = evaluate(model, cfg, str(data), limit=3, frames=2, progress=False)
+    got = report["configs"][0]["scores"]
+    for key in ("mIoU", "RayIoU", "IoU_geometry"):
+        assert got[key] == expected[key], key
+    assert got["box_mAP"] == expected["boxes"]["mAP"]
+
+
+def test_sweep_in_a_fresh_process_reports_its_own_peak_memory(tiny_split):
+    data, checkpoint = tiny_split
+    report = run_sweep(data, checkpoint, configs=[SweepConfig("full-h1", frames=1)], limit=1,
+                       repeats=1, warmup=0, isolate=True, progress=False)
+    c = report["configs"][0]
+    assert "error" not in c, c.get("traceback")
+    assert report["meta"]["isolated_processes"] is True
+    # the child's peak covers torch + the model, and is at least its after-load figure
+    assert c["peak_memory_mb"] >= c["rss_after_load_mb"] > 50
+    assert np.isfinite(c["fps"])
+
+
+def test_another_model_in_the_sweep_is_flagged_and_kept_off_the_pareto_front(tiny_split,
+                                                                             tmp_path):
+    data, checkpoint = tiny_split
+    preset = tmp_path / "other.yaml"
+    values = {k: list(v) if isinstance(v, tuple) else v
+              for k, v in tiny_cfg().replace(name="other", num_static=10).to_dict().items()}
+    preset.write_text(json.dumps(values))            # JSON is YAML
+    report = run_sweep(data, checkpoint, configs=[SweepConfig("mine", frames=1),
+                                                  SweepConfig("other", frames=1,
+                                                              model=str(preset))],
+                       limit=1, repeats=1, warmup=0, isolate=False, progress=False)
+    mine, other = report["configs"]
+    assert mine["random_weights"] is False and other["random_weights"] is True
+    assert other["model"] == "other" and other["queries"] == 16
+    assert report["pareto"]["mIoU"] == ["mine"]
+
+
+class GraphReplayStandIn(torch.nn.Module):
+    """What a decoder compiled into CUDA graphs looks like to its caller, on a CPU: each call
+    copies its outputs into static buffers of one pool shared by every compiled module, so
+    the next call of any of them overwrites what this one returned."""
+    pool: dict = {}
+
+    def __init__(self, module, mode=None):
+        super().__init__()
+        self.inner = module
+
+    def forward(self, *args, **kwargs):
+        layers = self.inner(*args, **kwargs)
+        for i, layer in enumerate(layers):
+            for field in dataclasses.fields(layer):
+                value = getattr(layer, field.name)
+                if isinstance(value, torch.Tensor):
+                    key = (i, field.name, value.shape, value.dtype)
+                    static = self.pool.setdefault(key, torch.empty_like(value))
+                    setattr(layer, field.name, static.copy_(value))
+        return layers
+
+
+def test_a_compiled_step_keeps_its_output_while_other_configurations_run(tiny_split,
+                                                                         monkeypatch):
+    """The sweep scores a sample's boxes after every configuration has stepped; a compiled
+    configuration's output must still be its own then (on an H100 the CUDA-graph configs'
+    box mAP read 0.76 and 3.50 against 18.54 before their outputs were copied)."""
+    data, checkpoint = tiny_split
+    job = {"device": "cpu", "checkpoint": checkpoint, "preset": "odg_cpu",
+           "dataset": "nuscenes", "rayiou": False}
+    reference = ConfigRun(SweepConfig("eager-h2", frames=2), job)
+    monkeypatch.setattr(torch, "compile", GraphReplayStandIn)
+    monkeypatch.setattr(GraphReplayStandIn, "pool", {})
+    runs = [ConfigRun(SweepConfig(f"graphs-h{k}", frames=k, compile=True), job) for k in (2, 1)]
+    for run in [reference] + runs:
+        dataset = OccDataset(str(data), run.cfg.replace(num_frames=run.frames))
+        run.begin_sample(to_device(collate([dataset[2]]), "cpu"))
+        run.run_step()
+    ours, expected = runs[0].output.last, reference.output.last
+    overwritten = GraphReplayStandIn.pool[(len(runs[0].output.layers) - 1, "means",
+                                           ours.means.shape, ours.means.dtype)]
+    assert not torch.equal(overwritten, expected.means)   # the one-frame step replayed last
+    for name in ("means", "logits", "boxes", "box_logits"):
+        torch.testing.assert_close(getattr(ours, name), getattr(expected, name), msg=name)
+
+
+def test_a_failing_configuration_is_reported_not_fatal(tiny_split):
+    data, checkpoint = tiny_split
+    report = run_sweep(data, checkpoint, configs=[SweepConfig("ok", frames=1),
+                                                  SweepConfig("too-long", frames=9)],
+                       limit=1, repeats=1, warmup=0, isolate=False, progress=False)
+    assert "error" not in report["configs"][0]
+    assert "at most 3" in report["configs"][1]["error"]
+    with pytest.raises(RuntimeError, match="every sweep configuration failed"):
+        run_sweep(data, checkpoint, configs=[SweepConfig("too-long", frames=9)], limit=1,
+                  repeats=1, warmup=0, isolate=False, progress=False)

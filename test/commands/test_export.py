@@ -1,0 +1,193 @@
+"""``odg export`` / train.calibrate: the threshold table equals offline evaluation at each
+threshold, the chosen one is the best (ties: the higher), and the shipped file holds it and
+the compressed weights that were calibrated."""
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from odg_ros.commands import main
+from odg_ros.network.checkpoint import load_model, save_checkpoint
+from odg_ros.train.calibrate import calibrate_thresholds
+from odg_ros.train.evaluate import evaluate
+
+from testing.helpers import tiny_config, write_tiny_checkpoint, write_tiny_split
+
+
+@pytest.fixture(scope="module")
+def tiny_split(tmp_path_factory):
+    root = tmp_path_factory.mktemp("world")
+    checkpoint = write_tiny_checkpoint(root / "tiny.pt", image_size=(32, 88), num_frames=2)
+    return write_tiny_split(root, 3), checkpoint
+
+
+def test_threshold_table_equals_offline_evaluation(tiny_split):
+    data, checkpoint = tiny_split
+    model, cfg = load_model(checkpoint)
+    thresholds = (0.3, 0.45, 0.5, 0.55, 0.7)
+    found = calibrate_thresholds(model, cfg, str(data), thresholds, progress=False)
+    assert found["samples"] == 3
+    for t in thresholds:
+        expected = evaluate(model, cfg.replace(score_threshold=t), str(data), rayiou=False,
+                            progress=False)["mIoU"] or 0.0
+        assert found["mIoU"][t] == expected, t
+    best = max(found["mIoU"].values())
+    assert found["mIoU"][found["best"]] == best
+
+
+class OracleWithDecoys(torch.nn.Module):
+    """Call i -> keyframe i: a point at every occupied GT voxel with its class at score 0.95,
+    and decoys at free voxels inside the camera mask with the first GT class at 0.6.
+    Threshold 0.5 keeps the decoys, 0.7 and 0.9 only the right points (a tie: the higher,
+    0.9, wins), 0.97 nothing."""
+
+    def __init__(self, dataset, decoys=5, with_boxes=False):
+        super().__init__()
+        samples = [dataset[i] for i in range(len(dataset))]
+        self.gt_boxes = [s["gt_boxes"] for s in samples] if with_boxes else None
+        self.grids = [s["occ_semantics"] for s in samples]
+        self.masks = [s["occ_mask_camera"].bool() for s in samples]
+        self.decoys, self.calls, self.cfg = decoys, 0, dataset.cfg
+
+    def forward(self, images, *args, **kwargs):
+        from odg_ros.network.outputs import LayerOutput, ODGOutput
+        gt, mask = self.grids[self.calls], self.masks[self.calls]
+        self.calls += 1
+        right = (gt != 17).nonzero()
+        decoy = ((gt == 17) & mask).nonzero()[:self.decoys]
+        assert len(right) and len(decoy) == self.decoys
+        voxels = torch.cat([right, decoy])
+        labels = torch.cat([gt[tuple(right.T)].long(),
+                            gt[tuple(right[0])].long().repeat(len(decoy))])
+        scores = torch.cat([torch.full((len(right),), 0.95), torch.full((len(decoy),), 0.6)])
+        lo = torch.tensor(self.cfg.pc_range[:3])
+        means = (lo + (voxels.float() + 0.5) * self.cfg.voxel_size).view(1, -1, 1, 3)
+        logits = torch.full((1, len(voxels), 1, 17), -10.0)
+        logits[0, torch.arange(len(voxels)), 0, labels] = torch.logit(scores)
+        if self.gt_boxes is None:
+            return ODGOutput(means, [LayerOutput(means, logits, None, None, None)],
+                             num_dynamic=0)
+        # boxes: the GT car at score 0.9 and a car 20 m off at 0.2, one per dynamic query
+        from odg_ros.losses.box import encode_boxes
+        gt = self.gt_boxes[self.calls - 1]
+        boxes = torch.cat([gt, gt + torch.tensor([20.0] + [0.0] * 8)])[None]
+        box_logits = torch.full((1, 2 * len(gt), 10), -10.0)
+        box_logits[0, :len(gt), 0] = torch.logit(torch.tensor(0.9))
+        box_logits[0, len(gt):, 0] = torch.logit(torch.tensor(0.2))
+        return ODGOutput(means, [LayerOutput(means, logits, None, None, None,
+                                             encode_boxes(boxes), box_logits)],
+                         num_dynamic=2 * len(gt))
+
+
+def test_calibration_finds_the_threshold_that_drops_the_decoys(tiny_split):
+    from odg_ros.data.dataset import OccDataset
+    data, checkpoint = tiny_split
+    _, cfg = load_model(checkpoint)
+    oracle = OracleWithDecoys(OccDataset(str(data), cfg, train=False))
+    found = calibrate_thresholds(oracle, cfg, str(data), (0.5, 0.7, 0.9, 0.97),
+                                      progress=False)
+    table = found["mIoU"]
+    assert table[0.7] == table[0.9] == 100.0 > table[0.5] > table[0.97] == 0.0
+    assert found["best"] == 0.9
+
+
+def test_box_ap_and_box_threshold_from_an_oracle(tiny_split):
+    """GT boxes returned as predictions score AP 100 up to the nuScenes interpolation quirk
+    (a false positive after full recall gives the 100 % bin its precision, here 3/6); the
+    calibrated box threshold falls between the right boxes (0.9) and the decoys (0.2)."""
+    from odg_ros.data.dataset import OccDataset
+    data, checkpoint = tiny_split
+    _, cfg = load_model(checkpoint)
+    assert cfg.num_dynamic
+    oracle = lambda: OracleWithDecoys(OccDataset(str(data), cfg, train=False),  # noqa: E731
+                                      with_boxes=True)
+    result = evaluate(oracle(), cfg, str(data), rayiou=False, progress=False)["boxes"]
+    expected = round(100 * (89 + (0.5 - 0.1) / 0.9) / 90, 2)
+    assert result["mAP"] == result["per_class"]["car"]["AP@0.5"] == expected
+    assert result["per_class"]["truck"]["AP"] is None
+    assert (result["gt_boxes"], result["pred_boxes"]) == (3, 6)
+    # the boxes reach the score whole (centre, w l h, yaw, velocity in the GT's order): the
+    # true-positive errors of the GT returned as predictions are 0
+    errors = [result[k] for k in ("mATE", "mASE", "mAOE", "mAVE")]
+    assert errors == pytest.approx([0.0] * 4, abs=1e-4)
+    found = calibrate_thresholds(oracle(), cfg, str(data), (0.5,), progress=False)["box"]
+    assert found["threshold"] == pytest.approx(0.55)
+    assert (found["precision"], found["recall"], found["f1"]) == (1.0, 1.0, 1.0)
+
+
+def test_eval_command_reports_grid_and_boxes(tiny_split, capsys):
+    data, checkpoint = tiny_split
+    assert main(["eval", "--checkpoint", str(checkpoint), "--data", str(data),
+                 "--no-rayiou", "--json"]) == 0
+    result = json.loads(capsys.readouterr().out)
+    assert result["samples"] == 3 and "mIoU" in result and "mIoU_dynamic" in result
+    assert set(result["boxes"]) >= {"mAP", "AP@0.5", "AP@4", "mATE", "mAVE", "per_class",
+                                    "gt_boxes"}
+    assert result["boxes"]["gt_boxes"] == 3
+    assert main(["eval", "--checkpoint", str(checkpoint), "--data", str(data),
+                 "--no-rayiou"]) == 0
+    table = capsys.readouterr().out
+    assert "MEAN" in table and "boxes: mAP" in table
+
+
+def test_eval_overrides_reach_the_model(tiny_split, capsys, tmp_path):
+    data, checkpoint = tiny_split
+    args = ["eval", "--checkpoint", str(checkpoint), "--data", str(data), "--no-rayiou", "--json"]
+
+    def occupied_voxels(threshold):
+        out = tmp_path / str(threshold)
+        assert main(args + ["--save-pred", str(out), "--set", f"score_threshold={threshold}"]) == 0
+        capsys.readouterr()
+        return sum(int((np.load(f)["semantics"] != 17).sum()) for f in out.glob("*.npz"))
+
+    # every point inside the grid counts at threshold 0, none at 1.5
+    assert occupied_voxels(0.0) > 0 and occupied_voxels(1.5) == 0
+    # a knock-out of a trained component runs on the same weights
+    assert main(args + ["--set", "ego_compensation=false", "--set", "das_attention=false"]) == 0
+    assert json.loads(capsys.readouterr().out)["samples"] == 3
+
+
+def test_single_query_set_has_no_box_score(tmp_path):
+    """One query set (dual_queries false, its config still holding num_dynamic) has no box
+    head: eval reports no box mAP (not 0) and calibration picks no box threshold."""
+    from odg_ros.network import ODG
+    cfg = tiny_config(dual_queries=False)
+    assert cfg.num_dynamic and (cfg.dynamic_queries, cfg.static_queries) == (0, cfg.num_queries)
+    data = str(write_tiny_split(tmp_path / "split", 2))
+    model = ODG(cfg).eval()
+    result = evaluate(model, cfg, data, rayiou=False, progress=False)
+    assert "boxes" not in result and result["samples"] > 0
+    assert calibrate_thresholds(model, cfg, data, (0.5,), progress=False)["box"] is None
+
+
+def test_no_thresholds_is_an_error(tiny_split):
+    data, checkpoint = tiny_split
+    model, cfg = load_model(checkpoint)
+    with pytest.raises(ValueError, match="no thresholds"):
+        calibrate_thresholds(model, cfg, str(data), (), progress=False)
+
+
+def test_export_writes_the_calibrated_threshold_and_the_int8_weights(tiny_split, tmp_path,
+                                                                     capsys):
+    data, checkpoint = tiny_split
+    out = tmp_path / "shipped.pt"
+    assert main(["export", "--checkpoint", str(checkpoint), "--out", str(out),
+                 "--compress", "int8", "--calibrate", str(data),
+                 "--thresholds", "0.3", "0.5", "0.7"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    model, cfg = load_model(out)
+    assert cfg.score_threshold == report["score_threshold"] in (0.3, 0.5, 0.7)
+    assert cfg.box_score_threshold == report["box_score_threshold"] \
+        == report["box_f1"]["threshold"]
+    assert 0.0 <= cfg.box_score_threshold <= 1.0
+    table = report["mIoU_by_threshold"]
+    assert table[str(cfg.score_threshold)] == max(table.values())
+    assert torch.load(out, weights_only=False)["compression"] == "int8"
+    # the shipped weights are the int8 weights that were calibrated, not quantised twice
+    direct = tmp_path / "direct.pt"
+    save_checkpoint(direct, load_model(checkpoint)[0], compress="int8")
+    reference = load_model(direct)[0].state_dict()
+    for key, value in model.state_dict().items():
+        torch.testing.assert_close(value, reference[key], rtol=0, atol=1e-6, msg=key)
+    assert out.stat().st_size < checkpoint.stat().st_size / 2

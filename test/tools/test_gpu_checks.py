@@ -1,0 +1,118 @@
+"""tools/gpu_checks.sh, the one command a GPU machine runs: checked here on the CPU stand-in
+(DEVICE=cpu), whose commands are those of the GPU run with the device swapped."""
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+from testing import REPOSITORY
+
+ROOT = REPOSITORY
+
+
+def gpu_checks(part, out, **env):
+    return subprocess.run(["bash", str(ROOT / "tools/gpu_checks.sh"), part, str(out)],
+                          env=dict(os.environ, PYTHON=sys.executable, **env),
+                          capture_output=True, text=True, timeout=300)
+
+
+def test_build_part_describes_the_machine(tmp_path):
+    result = gpu_checks("build", tmp_path, DEVICE="cpu")
+    assert result.returncode == 0, result.stdout + result.stderr
+    machine = json.loads((tmp_path / "machine.json").read_text())
+    assert machine["torch"] == torch.__version__
+    assert machine["device"] is None and machine["gsplat"] == "1.5.3"
+
+
+def test_without_a_gpu_the_cuda_run_says_so(tmp_path):
+    if torch.cuda.is_available():
+        pytest.skip("this machine has a GPU")
+    result = gpu_checks("build", tmp_path, DEVICE="cuda")
+    assert result.returncode == 2
+    assert "no CUDA device for PyTorch here" in result.stdout
+
+
+def test_an_unknown_part_is_refused(tmp_path):
+    result = gpu_checks("benchmark", tmp_path, DEVICE="cpu")
+    assert result.returncode == 2
+    assert "unknown part 'benchmark'" in result.stdout
+
+
+def test_every_command_line_of_every_part_parses(tmp_path):
+    """CHECK=parse records each command of the GPU run (CUDA modes included) and has each
+    command's own parser check it, and pytest collect the tests: no typo reaches a GPU."""
+    result = gpu_checks("all", tmp_path, DEVICE="cpu", CHECK="parse")
+    assert result.returncode == 0, result.stdout + result.stderr
+    lines = [json.loads(line) for line in (tmp_path / "commands.jsonl").read_text().splitlines()]
+    commands = {" ".join(line[:2]) for line in lines}
+    for expected in ("odg train", "odg profile", "odg bench", "odg export", "odg demo",
+                     "tools/measure_node_overhead.py --sets", "pytest -q"):
+        assert expected in commands, expected
+    train = [line for line in lines if line[:2] == ["odg", "train"] and "odg_t" in line]
+    assert train and all("--backbone-weights" in line for line in train)
+    bench = [line for line in lines if line[:2] == ["odg", "bench"] and "--compile" in line]
+    assert bench and "eager,compiled,graphs" in bench[0] and "fp32,bf16" in bench[0]
+    assert "29 command lines, 0 refused" in result.stdout
+
+
+def test_a_typo_in_a_command_line_fails_the_parse_check(tmp_path):
+    script = (ROOT / "tools/gpu_checks.sh").read_text()
+    broken = tmp_path / "gpu_checks.sh"
+    broken.write_text(script.replace("--log-every 4", "--log-evry 4")
+                      .replace('cd "$(dirname "$0")/.."', f'cd "{ROOT}"'))
+    result = subprocess.run(["bash", str(broken), "speed", str(tmp_path / "out")],
+                            env=dict(os.environ, PYTHON=sys.executable, DEVICE="cpu",
+                                     CHECK="parse"),
+                            capture_output=True, text=True, timeout=300)
+    assert result.returncode == 1
+    assert "unrecognized arguments: --log-evry" in result.stdout
+
+
+def test_report_tables_from_the_results_of_a_run(tmp_path):
+    """tools/gpu_report.py: training seconds after the warm-up steps, samples/s from the batch
+    in the run's name, GPU utilisation, the profile and a real node bench result."""
+    from tools.gpu_report import report
+    from odg_ros.bench.step import bench_node_step
+    from testing.online import make_model
+
+    model, cfg = make_model()
+    bench = bench_node_step(cfg, "cpu", ("eager",), iters=1, warmup=0, model=model,
+                            progress=False, precisions=("fp32", "bf16"))
+    (tmp_path / "node_tiny.json").write_text(json.dumps(bench))
+    seconds = [9.0] * 4 + [0.5, 0.7, 0.6, 0.6, 0.8, 0.8, 0.8, 0.8]   # one read every 4 steps
+    rows = ["step,seconds,skipped_total"] + [f"{i + 1},{s},0" for i, s in enumerate(seconds)]
+    (tmp_path / "train_odg_t_b4.csv").write_text("\n".join(rows) + "\n")
+    (tmp_path / "gpu_util_speed.csv").write_text(
+        "timestamp, utilization.gpu [%], memory.used [MiB], power.draw [W]\n"
+        "2026/11/25 10:00:00.000, 0, 1024, 70\n2026/11/25 10:00:00.200, 80, 4096, 300\n"
+        "2026/11/25 10:00:00.400, 100, 2048, 310\n2026/11/25 10:00:00.6")   # cut off
+    (tmp_path / "profile_odg_t.json").write_text(json.dumps({
+        "preset": "odg_t", "image_size": [256, 704], "device": "cuda:0", "ops_per_step": 9000.0,
+        "syncs_per_step": 40.0, "by_phase": {"forward": {"ops": 5000.0, "syncs": 2.0}},
+        "gpu": {"wall_s": 0.5, "kernel_s": 0.4, "busy": 0.8,
+                "top_kernels": [{"name": "sm90_gemm", "calls": 300, "seconds": 0.1}]}}))
+    (tmp_path / "demo.json").write_text("{not json")
+    text = report(tmp_path)
+    # median of the steps after the first 4: 0.75 s a step of 4 samples
+    assert "| odg_t_b4 | 12 | 4 | 0.750 | 0.188 | 5.33 | 36.0 s | 0 skipped |" in text
+    assert "| speed | 3 | 60 | 90 | 4.0 |" in text
+    assert "| odg_t | 256 x 704 | cuda:0 | 9,000 | 40 | 0.500 | 0.400 | 80 |" in text
+    assert "| odg_t | sm90_gemm | 300 | 100.0 |" in text
+    for variant in ("eager-fp32", "eager-bf16"):
+        assert f"| tiny | {variant} | {cfg.image_size[0]} x {cfg.image_size[1]} |" in text
+    assert "| tiny | eager-bf16 | " in text.split("Largest differences")[1]
+    assert "(not summarised: demo.json: JSONDecodeError" in text
+
+
+def test_report_tables_of_the_first_h100_run_give_its_numbers():
+    """The committed results of the first H100 run give the numbers its report states."""
+    from tools.gpu_report import report
+    text = report(ROOT / "docs/reports/2026-11-25-h100", skip_steps=2)   # "from step 3 on"
+    assert "| odg_t_torch | 12 | 1 | 2.976 |" in text and "| odg_cpu_torch | 12 | 1 | 1.421 |" in text
+    assert "| odg_t-fp32 | 256 x 704 | 8 | 14.2 | 70.2 (11.4 / 56.0 / 2.5) | 1.5 |" in text
+    assert "| cuda | 26.46 | 33.25 | 52.93 | 18.54 |" in text
+    assert "| tests_first_run.xml | 46 | 1 | 0 | test_trains_on_cuda_with_the_gsplat_renderer |" in text

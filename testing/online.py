@@ -1,0 +1,73 @@
+"""The online tests' tiny model and camera sets: a tiny checkpoint-free model, random sets for
+the predictor, and the nuScenes rig at a reduced image size with PNG images fed to a pipeline
+camera by camera."""
+from __future__ import annotations
+
+import io
+
+import numpy as np
+import torch
+from PIL import Image
+
+from odg_ros.geometry import make_transform
+from odg_ros.network import ODG
+from odg_ros.online.images import EncodedImage
+from odg_ros.online.rig import load_rig, set_ego2img
+from odg_ros.preprocess import adjust_intrinsics
+from odg_ros.resources import resource_path
+from testing.helpers import tiny_config
+
+
+def make_model():
+    # thresholds 0: every point and box is kept, so the grids compared are not all free
+    cfg = tiny_config(score_threshold=0.0, box_score_threshold=0.0)
+    torch.manual_seed(0)
+    return ODG(cfg).eval(), cfg
+
+
+def make_sets(cfg, num_sets, seed=0):
+    """Random images and a car driving forward while turning, nuScenes rig."""
+    rng = np.random.default_rng(seed)
+    rig = load_rig(resource_path("config/rig_nuscenes.yaml"))
+    cams = list(rig.cameras.values())
+    K = np.stack([adjust_intrinsics(c.intrinsics, c.image_hw, cfg.image_size) for c in cams])
+    sensor2ego = np.stack([c.sensor2ego for c in cams])
+    sets = []
+    for k in range(num_sets):
+        stamp = 10.0 + 0.5 * k
+        pose = make_transform([np.cos(0.05 * k), 0, 0, np.sin(0.05 * k)], (4.0 * k, 0.3 * k, 0))
+        images = rng.integers(0, 256, (cfg.num_cams, *cfg.image_size, 3), dtype=np.uint8)
+        ego2img = set_ego2img(K, sensor2ego, [pose] * len(cams), pose)
+        sets.append((images, ego2img, pose, stamp))
+    return sets
+
+
+RIG = load_rig(resource_path("config/rig_nuscenes.yaml"))
+CAMS = tuple(RIG.cameras)
+HW = (144, 256)                                   # camera images (nuScenes / 6.25)
+OFFSETS = (0.0, 0.008, 0.017, 0.025, 0.033, 0.042)
+
+
+def scaled_K(name):
+    return adjust_intrinsics(RIG.cameras[name].intrinsics, (900, 1600), HW)
+
+
+def png(array):
+    buffer = io.BytesIO()
+    Image.fromarray(array).save(buffer, format="PNG")
+    return buffer.getvalue()
+
+
+def set_images(seed):
+    rng = np.random.default_rng(seed)
+    return [rng.integers(0, 256, (*HW, 3), dtype=np.uint8) for _ in CAMS]
+
+
+def feed_set(pipeline, start, images, now=None, encode=png):
+    completed = False
+    for name, offset, image in zip(CAMS, OFFSETS, images):
+        completed |= pipeline.on_image(name, start + offset, EncodedImage(True, "png",
+                                                                          encode(image)),
+                                       now=start + 0.1 if now is None else now,
+                                       header=("stamp", start + offset))
+    return completed
