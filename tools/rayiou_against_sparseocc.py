@@ -19,7 +19,7 @@ import numpy as np
 
 from odg_ros.commands.score import score_split
 from odg_ros.data.occ_io import load_occ
-from odg_ros.metrics.score import load_infos, resolve_occ_root
+from odg_ros.metrics.score import load_scoring_infos, resolve_occ_root
 from testing.sparseocc_reference import sparseocc_origins, sparseocc_rayiou
 
 
@@ -38,7 +38,7 @@ def main(argv=None) -> int:
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args(argv)
 
-    meta = load_infos(args.data)
+    meta = load_scoring_infos(args.data)
     infos, root = meta["infos"], resolve_occ_root(meta)
     free = 17 if meta["dataset"] == "nuscenes" else 15
     out = Path(args.out or tempfile.mkdtemp(prefix="rayiou_check_"))

@@ -550,26 +550,8 @@ def run_sweep(data, checkpoint=None, preset: str = "odg_cpu", device: str = "cpu
     indices = spread_indices(len(infos["infos"]), limit)
     load = scene_load(data, cfg, occ_root, indices)
     quiet, busy = quiet_and_busy(load)
-    meta = {"device": device, "device_name": device_name(device),
-            "date": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
-            "commit": git_commit(), "torch": torch.__version__,
-            "threads": threads or torch.get_num_threads(),
-            # libgomp's default busy-waiting makes 2 threads ~9x slower on a loaded 2-core CPU
-            "OMP_WAIT_POLICY": os.environ.get("OMP_WAIT_POLICY"),
-            "checkpoint": str(checkpoint) if checkpoint else None,
-            "random_weights": checkpoint is None, "preset": cfg.name,
-            "data": str(data), "samples": len(indices), "repeats": repeats, "warmup": warmup,
-            "isolated_processes": isolate, "load_average_before": list(os.getloadavg()),
-            "memory_method": ("torch.cuda.max_memory_allocated" if torch.device(device).type
-                              == "cuda" else "ru_maxrss (interpreter, torch, weights, data "
-                              "and inference together)")
-            + (" of a fresh process per configuration (model, first sample, its history, "
-               "warm-up + 1 step)" if isolate else
-               " of this process: a RUNNING MAXIMUM over the configurations, not their own"),
-            "latency": "median over samples x repeats of the online step (backbone on the "
-                       "newest set, decoder over the cached history, grid + boxes); the "
-                       "configurations take turns step by step in one process",
-            "scene_load": load, "quiet_samples": quiet, "busy_samples": busy}
+    meta = sweep_meta(device, threads, checkpoint, cfg, data, indices, repeats, warmup, isolate)
+    meta.update(scene_load=load, quiet_samples=quiet, busy_samples=busy)
     base = {"checkpoint": str(checkpoint) if checkpoint else None, "preset": preset,
             "dataset": infos["dataset"],
             "device": device, "data": str(data), "occ_root": occ_root, "indices": indices,
@@ -599,18 +581,47 @@ def run_sweep(data, checkpoint=None, preset: str = "odg_cpu", device: str = "cpu
     report = {"meta": meta, "configs": results, "pareto": pareto_report(results),
               "adaptive": adaptive_tradeoff(results)}
     if out is not None:
-        out = Path(out)
-        out.mkdir(parents=True, exist_ok=True)
-        stem = f"bench_{torch.device(device).type}"
-        with open(out / f"{stem}.json", "w") as f:
-            json.dump(report, f, indent=1)
-        plot_sweep(report, out / f"{stem}.png")
-        report["files"] = [str(out / f"{stem}.json"), str(out / f"{stem}.png")]
+        report["files"] = write_sweep(report, Path(out), device)
     return report
 
 
+def sweep_meta(device, threads, checkpoint, cfg, data, indices, repeats, warmup,
+               isolate) -> dict:
+    """What a sweep's numbers were measured on and how (the report's ``meta``)."""
+    return {"device": device, "device_name": device_name(device),
+            "date": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
+            "commit": git_commit(), "torch": torch.__version__,
+            "threads": threads or torch.get_num_threads(),
+            # libgomp's default busy-waiting makes 2 threads ~9x slower on a loaded 2-core CPU
+            "OMP_WAIT_POLICY": os.environ.get("OMP_WAIT_POLICY"),
+            "checkpoint": str(checkpoint) if checkpoint else None,
+            "random_weights": checkpoint is None, "preset": cfg.name,
+            "data": str(data), "samples": len(indices), "repeats": repeats, "warmup": warmup,
+            "isolated_processes": isolate, "load_average_before": list(os.getloadavg()),
+            "memory_method": ("torch.cuda.max_memory_allocated" if torch.device(device).type
+                              == "cuda" else "ru_maxrss (interpreter, torch, weights, data "
+                              "and inference together)")
+            + (" of a fresh process per configuration (model, first sample, its history, "
+               "warm-up + 1 step)" if isolate else
+               " of this process: a RUNNING MAXIMUM over the configurations, not their own"),
+            "latency": "median over samples x repeats of the online step (backbone on the "
+                       "newest set, decoder over the cached history, grid + boxes); the "
+                       "configurations take turns step by step in one process"}
+
+
+def write_sweep(report: dict, out: Path, device) -> list[str]:
+    """``<out>/bench_<cpu|cuda>.json`` and ``.png``; -> their paths."""
+    from .plots import plot_sweep
+    out.mkdir(parents=True, exist_ok=True)
+    stem = f"bench_{torch.device(device).type}"
+    with open(out / f"{stem}.json", "w") as f:
+        json.dump(report, f, indent=1)
+    plot_sweep(report, out / f"{stem}.png")
+    return [str(out / f"{stem}.json"), str(out / f"{stem}.png")]
+
+
 # ------------------------------------------------------------------------ report
-def format_table(report: dict) -> str:
+def format_sweep_table(report: dict) -> str:
     lines = [f"{'config':<16} {'FPS':>6} {'total':>8} {'backbone':>8} {'decoder':>8} "
              f"{'post':>6} {'mem MB':>7} {'mIoU':>6} {'RayIoU':>6} {'mIoU_dyn':>8} {'box mAP':>7} "
              f"{'quiet ms':>8} {'busy ms':>8} {'Q last':>6}"]
@@ -642,95 +653,3 @@ def format_table(report: dict) -> str:
                              f"{e.get('mIoU_lost_per_ms')} mIoU lost/ms")
         lines.append(f"{row['config']} vs {row['full']}: " + "; ".join(parts))
     return "\n".join(lines)
-
-
-def plot_sweep(report: dict, path) -> None:
-    """PNG: FPS against mIoU and against RayIoU (Pareto front as a line), and the latency
-    of each configuration split into backbone, decoder layers, decoder outside layers, post."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    meta = report["meta"]
-    ok = [r for r in report["configs"] if "error" not in r]
-    fig, axes = plt.subplots(1, 3, figsize=(19, 6.2),
-                             gridspec_kw={"width_ratios": [1, 1, 1.25]})
-    # one colour per configuration (a legend instead of labels next to the points: nearby
-    # configurations' labels overlap); the Pareto front gets a black edge and the line
-    # (tab20's dark shades first: 10 distinct hues before any light twin)
-    colours = {r["config"]["name"]: plt.get_cmap("tab20")((2 * i) % 20 + (i // 10) % 2)
-               for i, r in enumerate(ok)}
-    for ax, metric in zip(axes[:2], ("mIoU", "RayIoU")):
-        front = set(report["pareto"].get(metric, []))
-        xs, ys = [], []
-        for r in ok:
-            value = r["scores"].get(metric)
-            if value is None:
-                continue
-            name = r["config"]["name"]
-            on_front = name in front
-            marker = "*" if r["config"]["prune"] is not None else "o"
-            label = name + (" (Pareto front)" if on_front else "")
-            if r.get("random_weights") and not meta["random_weights"]:
-                marker, label = "x", label + " (random weights)"
-            ax.scatter(r["fps"], value, s=110 if on_front else 55, zorder=3, marker=marker,
-                       color=colours[name], edgecolors="black" if on_front else None,
-                       linewidths=1.2, label=label)
-            if on_front:
-                xs.append(r["fps"])
-                ys.append(value)
-        ax.margins(x=0.12, y=0.12)
-        if xs:
-            order = np.argsort(xs)
-            ax.plot(np.array(xs)[order], np.array(ys)[order], "--", color="tab:red",
-                    label="Pareto front", zorder=2)
-        ax.legend(loc="best", fontsize=7, ncol=2)
-        ax.set_xlabel("FPS (online step: backbone + decoder + post-processing)")
-        ax.set_ylabel(f"{metric} (%)")
-        ax.grid(alpha=0.3)
-        ax.set_title(f"FPS vs {metric} ({meta['samples']} samples; * = adaptive pruning)",
-                     fontsize=9)
-    ax = axes[2]
-    names = [r["config"]["name"] for r in ok]
-    left = np.zeros(len(ok))
-    segments = [("backbone", "tab:gray")]
-    num_layers = max((len(r["decoder_layers_ms"]) for r in ok), default=0)
-    cmap = plt.get_cmap("viridis")
-    for i in range(num_layers):
-        segments.append((f"layer{i + 1}", cmap(i / max(1, num_layers - 1))))
-    segments += [("decoder outside layers", "tab:orange"), ("postprocess", "tab:brown")]
-    for label, colour in segments:
-        widths = []
-        for r in ok:
-            lat = r["latency_ms"]
-            if label == "backbone":
-                widths.append(lat["backbone"])
-            elif label == "postprocess":
-                widths.append(lat["postprocess"])
-            elif label == "decoder outside layers":
-                widths.append(lat.get("decoder_outside_layers",
-                                      lat["decoder"] if not r["decoder_layers_ms"] else 0.0))
-            else:
-                index = int(label[5:])
-                row = next((x for x in r["decoder_layers_ms"] if x["layer"] == index), None)
-                widths.append(row["total"] if row else 0.0)
-        widths = np.maximum(np.array(widths), 0.0)
-        ax.barh(names, widths, left=left, color=colour, label=label, height=0.7)
-        left += widths
-    ax.invert_yaxis()
-    ax.set_xlabel("median latency per online step (ms)")
-    ax.legend(fontsize=7, ncol=5, loc="upper center", bbox_to_anchor=(0.5, -0.12))
-    ax.grid(axis="x", alpha=0.3)
-    ax.set_title("where the time goes (decoder per layer)", fontsize=9)
-    weights = ("RANDOM WEIGHTS (no trained checkpoint): the scores are meaningless"
-               if meta["random_weights"] else f"checkpoint {meta['checkpoint']}")
-    fig.suptitle(
-        f"odg bench --sweep: {meta['preset']} on {meta['device_name']}, "
-        f"{meta['threads']} threads, torch {meta['torch']} | {meta['date']} | "
-        f"commit {meta['commit']}\n{weights} | data {meta['data']} | median of "
-        f"{meta['repeats']} runs per sample after {meta['warmup']} warm-up | load average "
-        f"{meta['load_average_before'][0]:.1f} -> {meta['load_average_after'][0]:.1f}",
-        fontsize=9, color="darkred" if meta["random_weights"] else "black")
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)

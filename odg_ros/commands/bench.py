@@ -18,9 +18,9 @@ import torch
 from ..bench.step import (PRECISIONS, bench_fast_paths, bench_node_step, bench_online_step,
                          data_camera_sets)
 from ..config import load_preset
-from ..network.precision import slow_precision_warning
+from ..network.precision import resolve_device, slow_precision_warning
 from .common import (UserError, device, existing_file, infos_file, nonnegative_int,
-                     positive_int, preset, resolve_device)
+                     positive_int, preset)
 
 
 def add_arguments(parser):
@@ -200,7 +200,7 @@ def run_compile_command(args) -> int:
 
 
 def run_sweep_command(args) -> int:
-    from ..bench.sweep import format_table, run_sweep, select_configs
+    from ..bench.sweep import format_sweep_table, run_sweep, select_configs
     if args.checkpoint is None:
         cfg = load_preset(args.preset)
     else:
@@ -223,7 +223,7 @@ def run_sweep_command(args) -> int:
     if args.json:
         print(json.dumps(report, indent=1))
         return 0
-    print(format_table(report))
+    print(format_sweep_table(report))
     for path in report.get("files", []):
         print(f"wrote {path}")
     return 0

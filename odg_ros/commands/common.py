@@ -130,14 +130,6 @@ def device(text: str) -> str:
     return text
 
 
-def resolve_device(name: str) -> str:
-    """A parsed --device value as a torch device name (auto: cuda when there is one)."""
-    if name != "auto":
-        return name
-    import torch
-    return "cuda" if torch.cuda.is_available() else "cpu"
-
-
 def config_overrides(items: list[str] | None) -> dict:
     """``--set key=value`` items -> {key: YAML-typed value}; unknown keys are a UserError."""
     import dataclasses

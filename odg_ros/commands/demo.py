@@ -110,8 +110,8 @@ def _run(args, log) -> int:
             raise DemoError(f"the node published no occupancy grid (see {out}/node.log); "
                                  f"its last diagnostics: {record.diagnostics_message!r}")
         start = time.monotonic()
-        from odg_ros.metrics.score import load_infos
-        meta = load_infos(world.infos)
+        from odg_ros.metrics.score import load_scoring_infos
+        meta = load_scoring_infos(world.infos)
         grids = {g.stamp_ns: g.labels for g in record.grids}
         score, scored, per_keyframe = score_keyframes(meta, grids)
         timings["scoring"] = time.monotonic() - start

@@ -9,9 +9,10 @@ import json
 from ..metrics.detection import format_detection
 from ..metrics.score import format_table
 from ..network.checkpoint import load_model
+from ..network.precision import resolve_device
 from ..train.evaluate import evaluate
 from .common import (config_overrides, device, existing_dir, existing_file, infos_file,
-                     positive_int, resolve_device)
+                     positive_int)
 from .score import add_miou_convention
 
 

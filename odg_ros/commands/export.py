@@ -11,8 +11,8 @@ from pathlib import Path
 
 from ..network.checkpoint import compress_state, load_model, load_weights, save_checkpoint
 from ..train.calibrate import DEFAULT_THRESHOLDS, calibrate_thresholds
-from ..network.precision import PRECISIONS
-from .common import UserError, device, existing_file, infos_file, positive_int, resolve_device
+from ..network.precision import PRECISIONS, resolve_device
+from .common import UserError, device, existing_file, infos_file, positive_int
 
 
 def add_arguments(parser):

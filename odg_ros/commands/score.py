@@ -20,7 +20,7 @@ from tqdm import tqdm
 from ..data.occ_io import load_occ
 from ..metrics.miou import MIOU_CONVENTIONS
 from ..metrics.rayiou import LidarOrigins
-from ..metrics.score import (OccScore, format_table, load_infos, load_prediction,
+from ..metrics.score import (OccScore, format_table, load_scoring_infos, load_prediction,
                              plot_per_class, resolve_occ_root)
 
 
@@ -64,7 +64,7 @@ def run(args) -> int:
 
 def score_split(pred_dir, infos_path, occ_root=None, miou_convention="sparseocc") -> dict:
     """Score every keyframe with GT; returns ``OccScore.result()`` (+ "skipped_no_gt")."""
-    meta = load_infos(infos_path)
+    meta = load_scoring_infos(infos_path)
     infos, dataset = meta["infos"], meta["dataset"]
     root = resolve_occ_root(meta, occ_root)
     pred_dir = Path(pred_dir)

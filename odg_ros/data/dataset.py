@@ -241,7 +241,7 @@ class OccDataset(torch.utils.data.Dataset):
             hw = info["cams"][name]["image_hw"]
             _, crop_top, (resized_h, _) = preprocess.resize_crop_params(hw, self.image_size)
             valid_heights.append(resized_h - crop_top)
-        targets = lidar.project_to_cameras(points_ego, labels, ego2img0, self.image_size,
+        targets = lidar.lidar_render_targets(points_ego, labels, ego2img0, self.image_size,
                                            valid_heights, num_classes=self.cfg.num_classes)
         return [torch.from_numpy(t) for t in targets]
 

@@ -55,7 +55,7 @@ def transform_points(T, points_xyz) -> np.ndarray:
     return np.asarray(points_xyz, dtype=np.float64) @ T[:3, :3].T + T[:3, 3]
 
 
-def project_to_cameras(points_ego, labels, ego2img, image_hw, valid_heights=None,
+def lidar_render_targets(points_ego, labels, ego2img, image_hw, valid_heights=None,
                        num_classes: int = 17, min_depth: float = MIN_DEPTH) -> list[np.ndarray]:
     """Render targets of one frame.
 

@@ -22,7 +22,7 @@ def keyframes_by_stamp(infos: list[dict]) -> dict[int, int]:
 def score_keyframes(meta: dict, grids: dict[int, np.ndarray], progress: bool = True):
     """Score the received grids of keyframes against the Occ3D GT.
 
-    meta: the infos dict (``metrics.score.load_infos``); grids: stamp_ns -> uint8 [X, Y, Z].
+    meta: the infos dict (``metrics.score.load_scoring_infos``); grids: stamp_ns -> uint8 [X, Y, Z].
     Returns (OccScore.result() or None when no keyframe grid arrived, scored info indices,
     per-keyframe mIoU {info index: percent or None}).
     """
@@ -76,63 +76,30 @@ DROP_COUNTERS = ("stale_sets_dropped", "dropped_incomplete_sets")
 
 
 def summarize_session(record: SessionRecord, sets: CameraSets, meta: dict, score: dict | None,
-              scored: list[int], rate: float) -> dict:
-    """The demo's numbers (see the module docstring), JSON-ready (None where unmeasured)."""
+                      scored: list[int], rate: float) -> dict:
+    """The demo's numbers (see the package docstring), JSON-ready (None where unmeasured)."""
     from odg_ros.online.errors import BAD_INPUT_KINDS
 
     diag = record.diagnostics
-
-    def counter(key) -> int:
-        try:
-            return int(diag.get(key, "0"))
-        except ValueError:
-            return 0
-
-    reasons = {k: counter(k) for k in DROP_COUNTERS + BAD_INPUT_KINDS}
+    reasons = {k: _counter(diag, k) for k in DROP_COUNTERS + BAD_INPUT_KINDS}
     dropped = sum(reasons.values())
     frames_in = sets.num_complete
     frames_out = len(record.grids)
-    wall = [g.wall_s for g in record.grids]
-    fps = (frames_out - 1) / (wall[-1] - wall[0]) if frames_out >= 2 and wall[-1] > wall[0] \
-        else None
-    published = [record.clock_wall[int(c)] for c in sets.complete_ns
-                 if c >= 0 and int(c) in record.clock_wall]
-    input_fps = ((len(published) - 1) / (published[-1] - published[0])
-                 if len(published) >= 2 and published[-1] > published[0] else None)
-    stage_ms = {}
-    for key, value in diag.items():
-        if key.startswith("stage_") and key.endswith("_ms"):
-            try:
-                stage_ms[key[len("stage_"):-len("_ms")]] = float(value)
-            except ValueError:
-                pass       # "n/a" before the first output
-    step_ms = sum(stage_ms.values())
+    node = node_numbers(record)
+    step_ms = sum(node["stage_ms"].values())
     latencies = grid_latencies_ms(record, sets)
-    keyframes = keyframes_by_stamp(meta["infos"])
-    node_outputs = counter("outputs")
-
-    def node_float(key):
-        try:
-            return float(diag[key])
-        except (KeyError, ValueError):
-            return None
-
-    report = {
+    fps, input_fps = output_and_input_fps(record, sets)
+    node_outputs = _counter(diag, "outputs")
+    return {
         "frames_in": frames_in,
         "frames_out": frames_out,
         "dropped": dropped,
         "fps": fps,
         "latency_ms_p50": _percentile(latencies, 50),
         "latency_ms_p95": _percentile(latencies, 95),
-        "mIoU": score["mIoU"] if score else None,
-        "RayIoU": score.get("RayIoU") if score else None,
-        "RayIoU@1": score.get("RayIoU@1") if score else None,
-        "RayIoU@2": score.get("RayIoU@2") if score else None,
-        "RayIoU@4": score.get("RayIoU@4") if score else None,
-        "IoU_geometry": score["IoU_geometry"] if score else None,
-        "keyframes": len(keyframes),
+        **score_numbers(score),
+        "keyframes": len(keyframes_by_stamp(meta["infos"])),
         "keyframes_scored": len(scored),
-        "per_class": score["per_class"] if score else {},
         "dropped_by_reason": {k: v for k, v in reasons.items() if v},
         # outputs the node published that never reached the planner (reliable, keep-last 1)
         "lost_in_transport": max(0, node_outputs - frames_out) if diag else None,
@@ -147,21 +114,69 @@ def summarize_session(record: SessionRecord, sets: CameraSets, meta: dict, score
         "latency_samples": int(latencies.size),
         "objects_per_output": (float(np.mean([n for _, n in record.objects]))
                                if record.objects else None),
-        "node": {
-            "outputs": node_outputs if diag else None,
-            "fps_topic_median": (float(np.median([f for f in record.fps_samples if f > 0]))
-                                 if any(f > 0 for f in record.fps_samples) else None),
-            "stage_ms": stage_ms,
-            "latency_sim_ms": {"p50": node_float("latency_p50_ms"),
-                               "p95": node_float("latency_p95_ms")},
-            "counters": {k: v for k, v in diag.items()
-                         if k not in ("rate_hz", "latency_p50_ms", "latency_p95_ms")
-                         and not k.startswith("stage_")},
-            "status": record.diagnostics_message,
-        },
+        "node": node,
         "warnings": list(record.warnings),
     }
-    return report
+
+
+def _counter(diag: dict, key: str) -> int:
+    try:
+        return int(diag.get(key, "0"))
+    except ValueError:
+        return 0
+
+
+def output_and_input_fps(record: SessionRecord, sets: CameraSets):
+    """Grids received per wall second (first to last grid), and sets published per second."""
+    wall = [g.wall_s for g in record.grids]
+    fps = (len(wall) - 1) / (wall[-1] - wall[0]) if len(wall) >= 2 and wall[-1] > wall[0] \
+        else None
+    published = [record.clock_wall[int(c)] for c in sets.complete_ns
+                 if c >= 0 and int(c) in record.clock_wall]
+    input_fps = ((len(published) - 1) / (published[-1] - published[0])
+                 if len(published) >= 2 and published[-1] > published[0] else None)
+    return fps, input_fps
+
+
+def score_numbers(score: dict | None) -> dict:
+    """mIoU, RayIoU (and at 1, 2, 4 m), geometry IoU and per class; None without a score."""
+    score = score or {}
+    return {"mIoU": score.get("mIoU"), "RayIoU": score.get("RayIoU"),
+            "RayIoU@1": score.get("RayIoU@1"), "RayIoU@2": score.get("RayIoU@2"),
+            "RayIoU@4": score.get("RayIoU@4"), "IoU_geometry": score.get("IoU_geometry"),
+            "per_class": score.get("per_class", {})}
+
+
+def node_numbers(record: SessionRecord) -> dict:
+    """What the node said of itself: its outputs, ~/fps, stage times, latency on its clock,
+    every other counter of its final diagnostics, and its status message."""
+    diag = record.diagnostics
+    stage_ms = {}
+    for key, value in diag.items():
+        if key.startswith("stage_") and key.endswith("_ms"):
+            try:
+                stage_ms[key[len("stage_"):-len("_ms")]] = float(value)
+            except ValueError:
+                pass       # "n/a" before the first output
+
+    def node_float(key):
+        try:
+            return float(diag[key])
+        except (KeyError, ValueError):
+            return None
+
+    return {
+        "outputs": _counter(diag, "outputs") if diag else None,
+        "fps_topic_median": (float(np.median([f for f in record.fps_samples if f > 0]))
+                             if any(f > 0 for f in record.fps_samples) else None),
+        "stage_ms": stage_ms,
+        "latency_sim_ms": {"p50": node_float("latency_p50_ms"),
+                           "p95": node_float("latency_p95_ms")},
+        "counters": {k: v for k, v in diag.items()
+                     if k not in ("rate_hz", "latency_p50_ms", "latency_p95_ms")
+                     and not k.startswith("stage_")},
+        "status": record.diagnostics_message,
+    }
 
 
 def format_value(value, spec=".2f", none="-") -> str:

@@ -11,7 +11,8 @@ from pathlib import Path
 from . import DemoError
 
 DEFAULT_OUT = Path("out/demo")
-DEFAULT_SEED = 1000          # the shipped model trained on seed 1 (model/odg_cpu.md): a scene it never saw
+# the shipped model trained on seed 1 (model/odg_cpu.md): a scene it never saw
+DEFAULT_SEED = 1000
 DEFAULT_SECONDS = 8.0
 # 12 Hz camera sets played at 0.25 x real time arrive every 333 ms of wall time: the CPU
 # preset (~200 ms per set on an idle 2-core machine) keeps up with most of them.

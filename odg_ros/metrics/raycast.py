@@ -133,7 +133,11 @@ def cast_rays(occupied_bits: np.ndarray, origins: np.ndarray, endpoints: np.ndar
 def _march_from_inside(bits, num_bits, v, step, t_max, t_delta, moving):
     """Rays whose start voxel lies inside the grid: the same loop as ``_march_general``, on
     a copy of the grid with a one-voxel border marked OUTSIDE, so a ray carries one flat index
-    and learns it left the grid from the voxel it reads."""
+    and learns it left the grid from the voxel it reads.
+
+    Long because it is one vectorised loop that must take the reference kernel's steps in its
+    order (tie-breaking, ``tMax += tDelta``); split, its float32 steps could no longer be read
+    against the reference side by side."""
     R = v.shape[0]
     voxel_out = np.zeros((num_bits, R), dtype=np.int64)
     depth_out = np.full((num_bits, R), -1.0, dtype=np.float64)
@@ -225,7 +229,7 @@ def _march_from_inside(bits, num_bits, v, step, t_max, t_delta, moving):
 
 def _march_general(bits, num_bits, v, step, t_max, t_delta, moving):
     """Any start voxel, inside the grid or not: the loop of the module docstring, with the
-    grid bounds tested per axis."""
+    grid bounds tested per axis. Long for the reason ``_march_from_inside`` gives."""
     R = v.shape[0]
     voxel_out = np.zeros((num_bits, R), dtype=np.int64)
     depth_out = np.full((num_bits, R), -1.0, dtype=np.float64)

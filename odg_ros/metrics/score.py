@@ -37,7 +37,7 @@ def class_names(dataset: str) -> tuple[str, ...]:
     return DATASETS[dataset][:-1]
 
 
-def load_infos(path) -> dict:
+def load_scoring_infos(path) -> dict:
     """The infos pickle (``odg_ros/data/batch.py``), checked for the keys scoring needs."""
     path = Path(path)
     if not path.is_file():

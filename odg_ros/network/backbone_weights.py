@@ -59,7 +59,7 @@ def _examples(keys: list[str], count: int = 3) -> str:
     return ", ".join(keys[:count]) + (", ..." if len(keys) > count else "")
 
 
-def read_checkpoint(source) -> dict:
+def read_state_dict(source) -> dict:
     """A state dict from a path (``torch.load``) or a dict; unwraps the usual wrappers."""
     if isinstance(source, (str, Path)):
         path = Path(source)
@@ -100,7 +100,7 @@ def load_backbone_weights(backbone: nn.Module, source) -> BackboneLoadReport:
     """Load ResNet weights in any layout of the module docstring into ``backbone``.
 
     Raises ``BackboneWeightsError`` (one line) on a missing or mis-shaped key."""
-    state = read_checkpoint(source)
+    state = read_state_dict(source)
     own = backbone.state_dict()
     prefix, layout = backbone_keys(state)
     ours = {k[len(prefix):]: v for k, v in state.items() if k.startswith(prefix)}

@@ -1,5 +1,6 @@
-"""Inference precision: fp32, or bf16 / fp16 autocast (geometry stays float32 inside, see
-sampling.full_precision). Shared by the benchmark, the sweep and the online predictor."""
+"""Inference device and precision: fp32, or bf16 / fp16 autocast (geometry stays float32
+inside, see sampling.full_precision). Shared by the commands, the node, the benchmark, the
+sweep and the online predictor."""
 from __future__ import annotations
 
 import copy
@@ -9,6 +10,18 @@ import torch
 from torch import nn
 
 PRECISIONS = ("fp32", "bf16", "fp16")
+
+
+def resolve_device(name: str) -> str:
+    """auto (cuda where there is one, else cpu), cpu, cuda or cuda:N as a torch device name;
+    a CUDA device asked for where there is none is a ValueError."""
+    if name == "auto":
+        return "cuda" if torch.cuda.is_available() else "cpu"
+    if name.startswith("cuda") and not torch.cuda.is_available():
+        raise ValueError(f"device {name!r} requested but CUDA is not available")
+    if name != "cpu" and not name.startswith("cuda"):
+        raise ValueError(f"device must be auto, cpu, cuda or cuda:N, not {name!r}")
+    return name
 
 
 def precision_context(precision: str, device):

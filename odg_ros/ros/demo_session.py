@@ -222,87 +222,23 @@ def run_session(bag: Path, checkpoint: Path, sets: CameraSets, out_dir: Path, ra
     node = replay = planner = None
     try:
         planner = PlannerStandIn(context, record)
-
-        # --- the node ---------------------------------------------------------------------
         start = time.monotonic()
         node = ChildProcess("odg_node", node_command(checkpoint, precision, device),
                             out_dir / "node.log", env)
         log(f"odg_node started (pid {node.process.pid}, log {node.log_path}); waiting for it "
             "to load the checkpoint")
-        shown = start
-        with tqdm(desc="starting odg_node", bar_format="{desc}: {elapsed}",
-                  disable=not progress) as bar:
-            while not planner.node_is_up():
-                planner.spin()
-                if time.monotonic() - shown > 1.0:
-                    bar.refresh()
-                    shown = time.monotonic()
-                if node.poll() is not None:
-                    raise node.failure(f"odg_node exited with code {node.poll()} while starting")
-                if time.monotonic() - start > NODE_READY_TIMEOUT_S:
-                    raise node.failure(f"odg_node was not up after {NODE_READY_TIMEOUT_S:.0f} s")
+        _wait_until_up(planner, node, progress)
         record.timings["node_start"] = time.monotonic() - start
 
-        # --- the replay -------------------------------------------------------------------
         start = time.monotonic()
         replay = ChildProcess("odg replay", replay_command(bag, rate), out_dir / "replay.log",
                               env)
-        deadline = start + REPLAY_START_TIMEOUT_S + sets.duration_s() / rate * 1.5
-        references = sets.reference_ns
-        shown = start
-        bar = tqdm(total=len(references), desc=f"replay at {rate:g}x -> odg_node",
-                   unit="set", disable=not progress)
-        try:
-            while replay.poll() is None:
-                planner.spin()
-                if node.poll() is not None:
-                    raise node.failure(f"odg_node exited with code {node.poll()} during the "
-                                       "replay")
-                if time.monotonic() > deadline:
-                    raise replay.failure("the replay did not finish in time")
-                if planner.latest_clock_ns is not None and time.monotonic() - shown > 0.5:
-                    shown = time.monotonic()
-                    bar.n = int(np.searchsorted(references, planner.latest_clock_ns, "right"))
-                    bar.set_postfix_str(f"grids out {len(record.grids)}", refresh=False)
-                    bar.refresh()
-            record.replay_exit_code = replay.poll()
-            if record.replay_exit_code != 0:
-                raise replay.failure(f"odg replay exited with code {record.replay_exit_code}")
-            bar.n = len(references)
-            bar.refresh()
-        finally:
-            bar.close()
+        _follow_replay(planner, node, replay, sets, rate, progress)
         record.timings["replay"] = time.monotonic() - start
-        if replay.tail().find("no subscriber after") >= 0:
-            record.warnings.append("the replay started before every topic had a subscriber "
-                                   f"(see {replay.log_path})")
 
-        # --- the sets still in the node ----------------------------------------------------
         start = time.monotonic()
-        last = int(references[sets.complete_ns >= 0][-1]) if sets.num_complete else None
-        while (last is not None and not any(g.stamp_ns == last for g in record.grids)
-               and time.monotonic() - start < DRAIN_TIMEOUT_S):
-            planner.spin()
-            if node.poll() is not None:
-                raise node.failure(f"odg_node exited with code {node.poll()}")
-        if last is not None and not any(g.stamp_ns == last for g in record.grids):
-            record.warnings.append(f"no grid for the last camera set after "
-                                   f"{DRAIN_TIMEOUT_S:.0f} s")
-
-        # --- the node's final counters (see the module docstring) ---------------------------
-        final = time.monotonic()
-        clock_ns = planner.latest_clock_ns or int(references[-1])
-        seen = planner.diagnostics_received
-        while time.monotonic() - final < FINAL_DIAGNOSTICS_TIMEOUT_S:
-            clock_ns += 50_000_000
-            planner.publish_clock(clock_ns)
-            planner.spin(0.05)
-            if (planner.diagnostics_received > seen
-                    and int(record.diagnostics.get("outputs", "-1")) >= len(record.grids)):
-                break
-        else:
-            record.warnings.append("no diagnostics from the node after its last output; "
-                                   "the drop counters may miss the last sets")
+        _wait_for_last_set(planner, node, sets)
+        _collect_final_counters(planner, sets)
         record.timings["drain"] = time.monotonic() - start
         if node.poll() is not None:
             raise node.failure(f"odg_node exited with code {node.poll()}")
@@ -314,3 +250,87 @@ def run_session(bag: Path, checkpoint: Path, sets: CameraSets, out_dir: Path, ra
         if planner is not None:
             planner.destroy()
         context.try_shutdown()
+
+
+def _wait_until_up(planner: PlannerStandIn, node: ChildProcess, progress: bool) -> None:
+    """Until the node has loaded its checkpoint and subscribed (raises when it died or hung)."""
+    start = shown = time.monotonic()
+    with tqdm(desc="starting odg_node", bar_format="{desc}: {elapsed}",
+              disable=not progress) as bar:
+        while not planner.node_is_up():
+            planner.spin()
+            if time.monotonic() - shown > 1.0:
+                bar.refresh()
+                shown = time.monotonic()
+            if node.poll() is not None:
+                raise node.failure(f"odg_node exited with code {node.poll()} while starting")
+            if time.monotonic() - start > NODE_READY_TIMEOUT_S:
+                raise node.failure(f"odg_node was not up after {NODE_READY_TIMEOUT_S:.0f} s")
+
+
+def _follow_replay(planner: PlannerStandIn, node: ChildProcess, replay: ChildProcess,
+                   sets: CameraSets, rate: float, progress: bool) -> None:
+    """Receive the outputs while the replay runs, with the sets replayed so far as progress."""
+    record = planner.record
+    start = shown = time.monotonic()
+    deadline = start + REPLAY_START_TIMEOUT_S + sets.duration_s() / rate * 1.5
+    references = sets.reference_ns
+    bar = tqdm(total=len(references), desc=f"replay at {rate:g}x -> odg_node",
+               unit="set", disable=not progress)
+    try:
+        while replay.poll() is None:
+            planner.spin()
+            if node.poll() is not None:
+                raise node.failure(f"odg_node exited with code {node.poll()} during the "
+                                   "replay")
+            if time.monotonic() > deadline:
+                raise replay.failure("the replay did not finish in time")
+            if planner.latest_clock_ns is not None and time.monotonic() - shown > 0.5:
+                shown = time.monotonic()
+                bar.n = int(np.searchsorted(references, planner.latest_clock_ns, "right"))
+                bar.set_postfix_str(f"grids out {len(record.grids)}", refresh=False)
+                bar.refresh()
+        record.replay_exit_code = replay.poll()
+        if record.replay_exit_code != 0:
+            raise replay.failure(f"odg replay exited with code {record.replay_exit_code}")
+        bar.n = len(references)
+        bar.refresh()
+    finally:
+        bar.close()
+    if replay.tail().find("no subscriber after") >= 0:
+        record.warnings.append("the replay started before every topic had a subscriber "
+                               f"(see {replay.log_path})")
+
+
+def _wait_for_last_set(planner: PlannerStandIn, node: ChildProcess, sets: CameraSets) -> None:
+    """The sets still in the node when the replay ended: wait for the last one's grid."""
+    record = planner.record
+    start = time.monotonic()
+    references = sets.reference_ns
+    last = int(references[sets.complete_ns >= 0][-1]) if sets.num_complete else None
+    while (last is not None and not any(g.stamp_ns == last for g in record.grids)
+           and time.monotonic() - start < DRAIN_TIMEOUT_S):
+        planner.spin()
+        if node.poll() is not None:
+            raise node.failure(f"odg_node exited with code {node.poll()}")
+    if last is not None and not any(g.stamp_ns == last for g in record.grids):
+        record.warnings.append(f"no grid for the last camera set after "
+                               f"{DRAIN_TIMEOUT_S:.0f} s")
+
+
+def _collect_final_counters(planner: PlannerStandIn, sets: CameraSets) -> None:
+    """The node's diagnostics after its last output (see the module docstring): the clock is
+    advanced until one arrives that counts every output received."""
+    record = planner.record
+    final = time.monotonic()
+    clock_ns = planner.latest_clock_ns or int(sets.reference_ns[-1])
+    seen = planner.diagnostics_received
+    while time.monotonic() - final < FINAL_DIAGNOSTICS_TIMEOUT_S:
+        clock_ns += 50_000_000
+        planner.publish_clock(clock_ns)
+        planner.spin(0.05)
+        if (planner.diagnostics_received > seen
+                and int(record.diagnostics.get("outputs", "-1")) >= len(record.grids)):
+            return
+    record.warnings.append("no diagnostics from the node after its last output; "
+                           "the drop counters may miss the last sets")

@@ -35,7 +35,6 @@ import traceback
 
 import numpy as np
 import rclpy
-import torch
 from builtin_interfaces.msg import Time as TimeMsg
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import Point, Pose, Quaternion, Vector3
@@ -54,7 +53,7 @@ from visualization_msgs.msg import Marker, MarkerArray
 from odg_ros_msgs.msg import DynamicObject, DynamicObjectArray, SemanticVoxelGrid
 
 from ..network.checkpoint import load_model
-from ..network.precision import slow_precision_warning
+from ..network.precision import resolve_device, slow_precision_warning
 from ..online import packing
 from ..online.diagnostics import PipelineStats
 from ..online import parameters as node_parameters
@@ -151,16 +150,6 @@ def _pose_msg(position, orientation_wxyz=(1.0, 0.0, 0.0, 0.0)) -> Pose:
     return Pose(position=Point(x=float(position[0]), y=float(position[1]),
                                z=float(position[2])),
                 orientation=Quaternion(x=float(x), y=float(y), z=float(z), w=float(w)))
-
-
-def resolve_device(name: str) -> str:
-    if name == "auto":
-        return "cuda" if torch.cuda.is_available() else "cpu"
-    if name.startswith("cuda") and not torch.cuda.is_available():
-        raise ValueError(f"device {name!r} requested but CUDA is not available")
-    if name != "cpu" and not name.startswith("cuda"):
-        raise ValueError(f"device must be auto, cpu, cuda or cuda:N, not {name!r}")
-    return name
 
 
 class OdgNode(Node):

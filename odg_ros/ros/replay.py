@@ -98,58 +98,23 @@ def replay(bag, *, rate: float = 1.0, clock: bool = False, loop: bool = False,
     if threading.current_thread() is threading.main_thread():
         previous = {sig: signal.signal(sig, _raise_interrupted)
                     for sig in (signal.SIGINT, signal.SIGTERM)}
-    node = bar = None
+    node = None
     start = time.monotonic()
     try:
         node = rclpy.create_node(node_name, context=context)
-        publishers = {}
-        for name, info in topics.items():
-            try:
-                cls = message_class(info.msgtype)
-            except LookupError as error:
-                stats.skipped_topics[name] = str(error)
-                continue
-            qos = layout.topic_qos(name, info.msgtype)
-            if qos.transient_local:  # late joiners get every latched message of the bag
-                qos = layout.TopicQos(True, True, depth=max(1, min(info.count, 100)))
-            publishers[name] = node.create_publisher(cls, name, rclpy_qos(qos))
+        publishers = _create_publishers(node, bag, topics, stats)
         clock_pub = None
         if clock:
             from rosgraph_msgs.msg import Clock
             clock_pub = node.create_publisher(Clock, layout.CLOCK_TOPIC, 10)
-        if not publishers:
-            raise ValueError(f"{bag}: no topic has a message type rclpy knows")
-
         if wait_for_subscribers_s > 0:
-            deadline = time.monotonic() + wait_for_subscribers_s
-            while time.monotonic() < deadline and any(
-                    p.get_subscription_count() == 0 for p in publishers.values()):
-                time.sleep(0.02)
-            lonely = [t for t, p in publishers.items() if p.get_subscription_count() == 0]
-            if lonely:
-                node.get_logger().warning(
-                    f"no subscriber after {wait_for_subscribers_s:.1f} s on: {', '.join(lonely)}")
-
+            _wait_for_subscribers(node, publishers, wait_for_subscribers_s)
         total = sum(topics[t].count for t in publishers)
         while True:
             stats.loops += 1
-            bar = tqdm(total=total, desc=f"replay {bag.name}", unit="msg", disable=not progress)
-            wall0 = bag0 = None
-            last_clock_ns = None
-            for topic, stamp_ns, _, raw in iter_bag(bag, topics=publishers):
-                if bag0 is None:
-                    wall0, bag0 = time.monotonic(), stamp_ns
-                delay = wall0 + (stamp_ns - bag0) * 1e-9 / rate - time.monotonic()
-                if delay > 0:
-                    time.sleep(delay)
-                if clock_pub is not None and stamp_ns != last_clock_ns:
-                    clock_pub.publish(_clock_message(stamp_ns))
-                    last_clock_ns = stamp_ns
-                publishers[topic].publish(raw)
-                stats.published[topic] += 1
-                bar.update(1)
-            bar.close()
-            bar = None
+            _publish_once(bag, publishers, clock_pub, rate, stats,
+                          tqdm(total=total, desc=f"replay {bag.name}", unit="msg",
+                               disable=not progress))
             if not loop:
                 break
         # Reliable messages still in flight would be lost with the participant.
@@ -160,8 +125,6 @@ def replay(bag, *, rate: float = 1.0, clock: bool = False, loop: bool = False,
         stats.interrupted = True
     finally:
         stats.wall_s = time.monotonic() - start
-        if bar is not None:
-            bar.close()
         # A second Ctrl-C during clean-up must not leave the participant half destroyed.
         for sig in previous:
             signal.signal(sig, signal.SIG_IGN)
@@ -171,6 +134,59 @@ def replay(bag, *, rate: float = 1.0, clock: bool = False, loop: bool = False,
         for sig, handler in previous.items():
             signal.signal(sig, handler)
     return stats
+
+
+def _create_publishers(node, bag: Path, topics: dict, stats: ReplayStats) -> dict:
+    """topic -> publisher with the bag's QoS, for every topic whose type rclpy knows."""
+    publishers = {}
+    for name, info in topics.items():
+        try:
+            cls = message_class(info.msgtype)
+        except LookupError as error:
+            stats.skipped_topics[name] = str(error)
+            continue
+        qos = layout.topic_qos(name, info.msgtype)
+        if qos.transient_local:  # late joiners get every latched message of the bag
+            qos = layout.TopicQos(True, True, depth=max(1, min(info.count, 100)))
+        publishers[name] = node.create_publisher(cls, name, rclpy_qos(qos))
+    if not publishers:
+        raise ValueError(f"{bag}: no topic has a message type rclpy knows")
+    return publishers
+
+
+def _wait_for_subscribers(node, publishers: dict, seconds: float) -> None:
+    """Up to ``seconds`` until every topic has a subscriber; a warning names those without."""
+    deadline = time.monotonic() + seconds
+    while time.monotonic() < deadline and any(
+            p.get_subscription_count() == 0 for p in publishers.values()):
+        time.sleep(0.02)
+    lonely = [t for t, p in publishers.items() if p.get_subscription_count() == 0]
+    if lonely:
+        node.get_logger().warning(
+            f"no subscriber after {seconds:.1f} s on: {', '.join(lonely)}")
+
+
+def _publish_once(bag: Path, publishers: dict, clock_pub, rate: float, stats: ReplayStats,
+                  bar) -> None:
+    """One pass over the bag, each message at its log time scaled by ``rate`` (and /clock
+    before each new stamp when ``clock_pub``)."""
+    wall0 = bag0 = None
+    last_clock_ns = None
+    try:
+        for topic, stamp_ns, _, raw in iter_bag(bag, topics=publishers):
+            if bag0 is None:
+                wall0, bag0 = time.monotonic(), stamp_ns
+            delay = wall0 + (stamp_ns - bag0) * 1e-9 / rate - time.monotonic()
+            if delay > 0:
+                time.sleep(delay)
+            if clock_pub is not None and stamp_ns != last_clock_ns:
+                clock_pub.publish(_clock_message(stamp_ns))
+                last_clock_ns = stamp_ns
+            publishers[topic].publish(raw)
+            stats.published[topic] += 1
+            bar.update(1)
+    finally:
+        bar.close()
 
 
 def _clock_message(stamp_ns: int):

@@ -238,7 +238,7 @@ def test_missing_lidarseg_gives_empty_targets(world):
 
 
 def test_project_matches_bruteforce_reference():
-    """project_to_cameras vs a per-point float64 loop on random points and cameras."""
+    """lidar_render_targets vs a per-point float64 loop on random points and cameras."""
     rng = np.random.default_rng(0)
     pts = rng.uniform([-30, -30, -2], [30, 30, 4], (3000, 3))
     labels = rng.integers(0, 19, 3000).astype(np.uint8)   # 17, 18 are not classes
@@ -251,7 +251,7 @@ def test_project_matches_bruteforce_reference():
         ego2img.append(geometry.ego_to_image(K, T))
     ego2img = np.stack(ego2img)
     valid = [48, 40, 48]
-    got = lidar.project_to_cameras(pts, labels, ego2img, hw, valid, num_classes=17)
+    got = lidar.lidar_render_targets(pts, labels, ego2img, hw, valid, num_classes=17)
     for n in range(3):
         best = {}
         for p, lab in zip(pts, labels):

@@ -75,9 +75,9 @@ def test_grids_are_matched_to_their_keyframes_by_stamp(demo_run):
     """The GT itself, received under its keyframe's CAM_FRONT stamp, scores 100; under the
     neighbouring keyframe's stamp it does not."""
     from odg_ros.data.occ_io import load_occ
-    from odg_ros.metrics.score import load_infos, resolve_occ_root
+    from odg_ros.metrics.score import load_scoring_infos, resolve_occ_root
     out, _ = demo_run
-    meta = load_infos(out / "world" / "infos_all.pkl")
+    meta = load_scoring_infos(out / "world" / "infos_all.pkl")
     by_stamp = keyframes_by_stamp(meta["infos"])
     stamps = sorted(by_stamp)
     gts = {s: load_occ(resolve_occ_root(meta) / meta["infos"][by_stamp[s]]["occ_path"])[0]

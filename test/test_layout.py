@@ -1,0 +1,157 @@
+"""The package's layout as docs/architecture.md states it: imports go down the layers, the
+tools (bench, demo) are imported only by the commands and the demo session, no two public
+functions or classes share a name, and no function runs past ~80 lines without saying why.
+
+Each rule is checked by a function that takes the parsed package, so the tests below also
+plant a violation and see each rule catch it."""
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import pytest
+
+import odg_ros
+
+PACKAGE = Path(odg_ros.__file__).resolve().parent
+
+# Bottom to top; a module may import from its own subpackage and from the layers below.
+# Subpackages within a layer are siblings and import nothing from each other.
+LAYERS = (
+    ("base",),                                  # the modules at the package root
+    ("data", "network", "render", "metrics"),
+    ("losses",),
+    ("train", "online", "bags"),
+    ("bench", "demo"),                          # the tools
+    ("ros",),
+    ("commands",),
+)
+TOOLS = ("bench", "demo")
+TOOL_IMPORTERS = ("odg_ros.commands", "odg_ros.ros.demo_session")
+# the interface every command module has, and the two entry points (odg, odg_node)
+SHARED_NAMES = {"add_arguments", "run", "main"}
+LONGEST_FUNCTION = 80
+
+
+def parse_package(root: Path = PACKAGE) -> dict[str, ast.Module]:
+    """module name -> its syntax tree, for every module of the package."""
+    modules = {}
+    for path in sorted(root.rglob("*.py")):
+        parts = path.relative_to(root.parent).with_suffix("").parts
+        name = ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+        modules[name] = ast.parse(path.read_text(), filename=str(path))
+    return modules
+
+
+def imports_of(name: str, tree: ast.Module, is_package: bool) -> set[str]:
+    """The odg_ros modules ``name`` imports, at its top or inside functions."""
+    found = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            found |= {a.name for a in node.names if a.name.split(".")[0] == "odg_ros"}
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = name.split(".") if is_package else name.split(".")[:-1]
+                base = base[:len(base) - node.level + 1]
+                target = ".".join(base + ([node.module] if node.module else []))
+            else:
+                target = node.module or ""
+            if target.split(".")[0] == "odg_ros":
+                found.add(target)
+    return found
+
+
+SUBPACKAGES = {path.parent.name for path in PACKAGE.glob("*/__init__.py")}
+
+
+def group(module: str) -> str:
+    """The subpackage a module belongs to ('base' for the package root's modules)."""
+    parts = module.split(".")
+    return parts[1] if len(parts) > 1 and parts[1] in SUBPACKAGES else "base"
+
+
+def layer_of(module: str) -> int:
+    return next(i for i, layer in enumerate(LAYERS) if group(module) in layer)
+
+
+def import_edges(modules: dict[str, ast.Module]) -> set[tuple[str, str]]:
+    packages = {name for name in modules if (PACKAGE.parent / name.replace(".", "/")).is_dir()}
+    return {(name, target) for name, tree in modules.items()
+            for target in imports_of(name, tree, name in packages)}
+
+
+def layering_violations(edges) -> list[str]:
+    problems = []
+    for importer, imported in sorted(edges):
+        if group(importer) == group(imported):
+            continue
+        if layer_of(imported) >= layer_of(importer):
+            problems.append(f"{importer} imports {imported} (layer {layer_of(imported)} "
+                            f"from layer {layer_of(importer)})")
+        elif group(imported) in TOOLS and not importer.startswith(TOOL_IMPORTERS):
+            problems.append(f"{importer} imports the tool {imported}")
+    return problems
+
+
+def shared_public_names(modules: dict[str, ast.Module]) -> dict[str, list[str]]:
+    where: dict[str, list[str]] = {}
+    for name, tree in modules.items():
+        for node in tree.body:
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)) \
+                    and not node.name.startswith("_") and node.name not in SHARED_NAMES:
+                where.setdefault(node.name, []).append(name)
+    return {n: places for n, places in where.items() if len(places) > 1}
+
+
+def long_functions(modules: dict[str, ast.Module]) -> list[tuple[int, str]]:
+    """(lines, where) of every function longer than LONGEST_FUNCTION lines whose docstring
+    does not say why it is long ("Long because" / "Long for")."""
+    found = []
+    for name, tree in modules.items():
+        for node in ast.walk(tree):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                length = node.end_lineno - node.lineno + 1
+                reason = "Long because" in (ast.get_docstring(node) or "") \
+                    or "Long for" in (ast.get_docstring(node) or "")
+                if length > LONGEST_FUNCTION and not reason:
+                    found.append((length, f"{name}.{node.name} (line {node.lineno})"))
+    return sorted(found, reverse=True)
+
+
+@pytest.fixture(scope="module")
+def modules():
+    return parse_package()
+
+
+def test_every_subpackage_has_a_layer():
+    assert SUBPACKAGES | {"base"} == {name for layer in LAYERS for name in layer}
+
+
+def test_imports_go_down_the_layers(modules):
+    assert layering_violations(import_edges(modules)) == []
+
+
+def test_an_upward_import_or_a_library_import_of_a_tool_is_caught():
+    planted = {("odg_ros.network.decoder", "odg_ros.online.step"),      # up
+               ("odg_ros.train.trainer", "odg_ros.losses.criterion"),   # down: fine
+               ("odg_ros.data.dataset", "odg_ros.metrics.score"),       # sibling
+               ("odg_ros.ros.node", "odg_ros.bench.step"),              # a tool, not from the
+               ("odg_ros.geometry", "odg_ros.network.odg")}             # demo session; base up
+    problems = layering_violations(planted)
+    assert len(problems) == 4 and not any("train.trainer" in p for p in problems), problems
+
+
+def test_no_two_public_functions_or_classes_share_a_name(modules):
+    assert shared_public_names(modules) == {}
+    planted = dict(modules, **{"odg_ros.extra": ast.parse("def build_world():\n    pass\n"),
+                               "odg_ros.other": ast.parse("def build_world():\n    pass\n")})
+    assert list(shared_public_names(planted)) == ["build_world"]
+
+
+def test_no_function_is_long_without_saying_why(modules):
+    assert long_functions(modules) == []
+    body = "\n".join(f"    x{i} = {i}" for i in range(LONGEST_FUNCTION))
+    planted = {"odg_ros.extra": ast.parse(f"def long():\n{body}\n")}
+    assert len(long_functions(planted)) == 1
+    planted = {"odg_ros.extra": ast.parse(f'def long():\n    """Long because."""\n{body}\n')}
+    assert long_functions(planted) == []
