@@ -52,8 +52,8 @@ import torch
 
 from .. import geometry, preprocess
 from ..config import ModelConfig
-from . import lidar, occ_io
 from ..rig import CAMERA_NAMES
+from . import lidar, occ_io
 from .decode import read_image
 from .lidarseg import lidarseg_to_occ
 from .prepare import load_infos
@@ -242,7 +242,7 @@ class OccDataset(torch.utils.data.Dataset):
             _, crop_top, (resized_h, _) = preprocess.resize_crop_params(hw, self.image_size)
             valid_heights.append(resized_h - crop_top)
         targets = lidar.lidar_render_targets(points_ego, labels, ego2img0, self.image_size,
-                                           valid_heights, num_classes=self.cfg.num_classes)
+                                             valid_heights, num_classes=self.cfg.num_classes)
         return [torch.from_numpy(t) for t in targets]
 
     # ---------------------------------------------------------------- sample

@@ -3,9 +3,9 @@
 Messages go out as the raw CDR bytes stored in the bag (``Publisher.publish`` accepts
 serialized bytes), with the message types named in the bag, so nothing is deserialized.
 Inter-message timing follows the bag's log times divided by ``rate``. QoS per topic is that of
-``odg_ros.bags.layout.topic_qos``: ``/tf_static`` reliable + transient local (late joiners still get the
-sensor frames), camera images, camera infos and point clouds best effort (sensor data), the rest
-reliable. With ``clock``, ``/clock`` carries the bag time of every message just before it.
+``odg_ros.bags.layout.topic_qos``: ``/tf_static`` reliable + transient local (late joiners
+still get the sensor frames), camera images, camera infos and point clouds best effort (sensor
+data), the rest reliable. With ``clock``, ``/clock`` carries the bag time of every message just before it.
 """
 from __future__ import annotations
 
