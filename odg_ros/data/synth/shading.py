@@ -4,6 +4,8 @@ and a sensor model (exposure, vignetting, shot/read noise). All deterministic.
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from odg_ros.data.synth import materials as M
@@ -133,8 +135,27 @@ def _ground_albedo(mat, paint, x, y, seed):
     return alb
 
 
+@dataclass
+class _ObjectHits:
+    """Hits on object primitives in their local frames, and what the material textures share."""
+    lx: np.ndarray       # local coordinates (metres) [n]
+    ly: np.ndarray
+    lz: np.ndarray
+    n_local: np.ndarray  # local normals [n, 3]
+    half: np.ndarray     # the primitives' half extents [n, 3]
+    base: np.ndarray     # the primitives' base albedo [n, 3]
+    zb: np.ndarray       # height above the primitive's bottom
+    pid: np.ndarray      # per-primitive random number in [0, 1)
+    side_x: np.ndarray   # face normal along local x
+    top: np.ndarray      # face normal up
+    along: np.ndarray    # horizontal coordinate on a vertical face
+    dirt: np.ndarray     # grime noise in about [-0.5, 0.5]
+    seed: int
+
+
 def _object_albedo(prims: Primitives, idx, local, n_local, seed):
-    """Albedo [n, 3] of hits on primitives ``idx`` at local points (metres) with local normals."""
+    """Albedo [n, 3] of hits on primitives ``idx`` at local points (metres) with local normals:
+    the base colour, textured per material (``_TEXTURES``)."""
     mat = prims.material[idx]
     base = prims.color[idx].astype(np.float32)
     half = prims.half[idx].astype(np.float32)
@@ -147,113 +168,180 @@ def _object_albedo(prims: Primitives, idx, local, n_local, seed):
     top = n_local[:, 2] > 0.5
     along = np.where(side_x, ly, lx)              # horizontal coordinate on a vertical face
     dirt = fbm2(lx + 3 * ly, lz + ly, 1.5, 2, seed + 11)
-
-    def sel(m):
-        return np.flatnonzero(mat == m)
-
-    i = sel(M.FACADE)
-    if len(i):
-        floor_h = 3.0 + 0.6 * pid[i]
-        spacing = 2.4 + 1.8 * _frac(pid[i] * 7.3)
-        wx = _frac(along[i] / spacing)
-        wz = _frac((zb[i] - 0.3) / floor_h)
-        width = 0.35 + 0.3 * _frac(pid[i] * 13.1)
-        window = (np.abs(wx - 0.5) < width / 2) & (wz > 0.3) & (wz < 0.8) & (zb[i] > 1.0) & ~top[i]
-        shop = (zb[i] < 2.8) & (zb[i] > 0.3) & (np.abs(wx - 0.5) < 0.42) & (_frac(pid[i] * 3.7) < 0.5) & ~top[i]
-        lit = hash_cell(along[i] / spacing, zb[i] / floor_h, pid[i] * 1000, seed + 12)
-        glass = np.stack([0.12 + 0.1 * lit, 0.15 + 0.1 * lit, 0.2 + 0.12 * lit], -1).astype(np.float32)
-        a = alb[i] * (1 + 0.25 * dirt[i])[:, None]
-        a = np.where((window | shop)[:, None], glass, a)
-        roof_grain = 0.8 + 0.4 * value_noise2(lx[i], ly[i], seed + 13)
-        roof = np.array([0.32, 0.31, 0.3], np.float32)[None] * roof_grain[:, None]
-        alb[i] = np.where(top[i][:, None], roof, a)
-    i = sel(M.FOLIAGE)
-    if len(i):
-        leaf = value_noise(lx[i] * 4, ly[i] * 4, lz[i] * 4, seed + 14)
-        clump = value_noise(lx[i] * 0.8, ly[i] * 0.8, lz[i] * 0.8, seed + 15)
-        alb[i] *= (0.45 + 0.55 * leaf * 0.7 + 0.5 * clump * 0.6)[:, None]
-    i = sel(M.BARK)
-    if len(i):
-        ang = np.arctan2(ly[i], lx[i])
-        alb[i] *= (0.6 + 0.6 * value_noise2(ang * 6, zb[i] * 0.7, seed + 16))[:, None]
-    i = sel(M.SIGN)
-    if len(i):
-        border = (np.abs(ly[i]) > 0.82 * half[i, 1]) | (np.abs(lz[i]) > 0.82 * half[i, 2])
-        back = n_local[i, 0] < 0
-        alb[i] = np.where(border[:, None], 0.9, alb[i])
-        alb[i] = np.where(back[:, None], 0.5, alb[i])
-    i = sel(M.PAINT)
-    if len(i):
-        sill = (zb[i] < 0.12 * 2 * half[i, 2])
-        alb[i] *= np.where(sill, 0.45, 1.0)[:, None]
-        front = n_local[i, 0] > 0.7
-        rear = n_local[i, 0] < -0.7
-        upper = zb[i] > 1.0 * half[i, 2]
-        corner = np.abs(ly[i]) > 0.62 * half[i, 1]
-        grille = front & ~corner & ~upper
-        alb[i] = np.where((front & corner & upper)[:, None], np.array([0.95, 0.95, 0.9], np.float32), alb[i])
-        alb[i] = np.where((rear & corner & upper)[:, None], np.array([0.7, 0.05, 0.05], np.float32), alb[i])
-        alb[i] = np.where(grille[:, None], alb[i] * 0.35, alb[i])
-    i = sel(M.GLASS)
-    if len(i):
-        pillar = (np.abs(along[i]) > np.where(side_x[i], half[i, 1], half[i, 0]) - 0.12) | \
-                 (np.abs(_frac(along[i] / 1.3) - 0.5) < 0.04)
-        pane = np.array([0.07, 0.08, 0.1], np.float32)[None] * (1 + 0.6 * zb[i, None] / (2 * half[i, 2:3]))
-        a = np.where(pillar[:, None], base[i], pane)
-        alb[i] = np.where(top[i][:, None], base[i], a)
-    i = sel(M.TYRE)
-    if len(i):
-        rim = (np.abs(n_local[i, 1]) > 0.85) & (lx[i] ** 2 + (lz[i]) ** 2 < (0.55 * half[i, 0]) ** 2)
-        alb[i] = np.where(rim[:, None], np.array([0.45, 0.45, 0.47], np.float32), alb[i])
-    i = sel(M.CLOTH)
-    if len(i):
-        alb[i] *= (0.75 + 0.5 * value_noise(lx[i] * 6, ly[i] * 6, lz[i] * 6, seed + 17))[:, None]
-    i = sel(M.SKIN)
-    if len(i):
-        hair = (lz[i] > 0.35 * half[i, 2]) | ((lx[i] < -0.2 * half[i, 0]) & (lz[i] > -0.2 * half[i, 2]))
-        hair_color = np.where(_frac(pid[i] * 5.1) < 0.5, 0.08, 0.3)[:, None] * np.array([1.0, 0.8, 0.6], np.float32)
-        alb[i] = np.where(hair[:, None], hair_color, alb[i])
-    i = sel(M.CONCRETE)
-    if len(i):
-        alb[i] *= (1 + 0.3 * dirt[i])[:, None]
-    i = sel(M.CONE)
-    if len(i):
-        rel = zb[i] / (2 * half[i, 2])
-        band = ((rel > 0.55) & (rel < 0.68)) | ((rel > 0.3) & (rel < 0.4))
-        alb[i] = np.where(band[:, None], np.array([0.92, 0.92, 0.92], np.float32), alb[i])
-    i = sel(M.PLASTIC)
-    if len(i):
-        lid = zb[i] > 2 * half[i, 2] - 0.08
-        alb[i] *= np.where(lid, 0.6, 1.0)[:, None]
-    i = sel(M.BUS_BODY)
-    if len(i):
-        rel = zb[i] / (2 * half[i, 2])
-        band = (rel > 0.45) & (rel < 0.86) & (np.abs(_frac(along[i] / 1.6) - 0.5) > 0.05)
-        stripe = (rel > 0.3) & (rel < 0.36)
-        a = np.where(band[:, None], np.array([0.08, 0.1, 0.12], np.float32), alb[i])
-        alb[i] = np.where(stripe[:, None], a * 0.4, a)
-    i = sel(M.CARGO)
-    if len(i):
-        rib = _frac(along[i] / 0.6) < 0.1
-        alb[i] *= np.where(rib, 0.75, 1.0)[:, None] * (1 + 0.2 * dirt[i])[:, None]
-    i = sel(M.HAZARD)
-    if len(i):
-        rel = zb[i] / (2 * half[i, 2])
-        diag = (_frac((along[i] + zb[i]) / 0.5) < 0.5) & (rel < 0.3)
-        dirty = alb[i] * (1 + 0.3 * dirt[i])[:, None]
-        alb[i] = np.where(diag[:, None], np.array([0.08, 0.08, 0.08], np.float32), dirty)
-    i = sel(M.STRIPES)
-    if len(i):
-        white = _frac((along[i] + zb[i]) / 0.7) < 0.5
-        alb[i] = np.where(white[:, None], np.array([0.92, 0.92, 0.9], np.float32), alb[i])
-    i = sel(M.FENCE)
-    if len(i):
-        mesh = (_frac(along[i] / 0.12) < 0.3) | (_frac(zb[i] / 0.12) < 0.3)
-        alb[i] *= np.where(mesh, 1.0, 0.55)[:, None]
-    i = sel(M.METAL)
-    if len(i):
-        alb[i] *= (0.9 + 0.2 * value_noise2(zb[i] * 2, along[i] * 2, seed + 18))[:, None]
+    hits = _ObjectHits(lx, ly, lz, n_local, half, base, zb, pid, side_x, top, along, dirt, seed)
+    for material, texture in _TEXTURES.items():
+        i = np.flatnonzero(mat == material)
+        if len(i):
+            texture(alb, i, hits)
     return np.clip(alb, 0, 1)
+
+
+# Material textures: each rewrites alb[i], the albedo of its hits i (indices into ``hits``).
+
+def _facade_texture(alb, i, hits: _ObjectHits):
+    """Windows on every floor (panes of varying brightness), shop windows at street level,
+    grime; a grey roof."""
+    lx, ly, zb, pid, along, top, dirt, seed = (hits.lx, hits.ly, hits.zb, hits.pid, hits.along, hits.top,
+                                               hits.dirt, hits.seed)
+    floor_h = 3.0 + 0.6 * pid[i]
+    spacing = 2.4 + 1.8 * _frac(pid[i] * 7.3)
+    wx = _frac(along[i] / spacing)
+    wz = _frac((zb[i] - 0.3) / floor_h)
+    width = 0.35 + 0.3 * _frac(pid[i] * 13.1)
+    window = (np.abs(wx - 0.5) < width / 2) & (wz > 0.3) & (wz < 0.8) & (zb[i] > 1.0) & ~top[i]
+    shop = (zb[i] < 2.8) & (zb[i] > 0.3) & (np.abs(wx - 0.5) < 0.42) & (_frac(pid[i] * 3.7) < 0.5) & ~top[i]
+    lit = hash_cell(along[i] / spacing, zb[i] / floor_h, pid[i] * 1000, seed + 12)
+    glass = np.stack([0.12 + 0.1 * lit, 0.15 + 0.1 * lit, 0.2 + 0.12 * lit], -1).astype(np.float32)
+    a = alb[i] * (1 + 0.25 * dirt[i])[:, None]
+    a = np.where((window | shop)[:, None], glass, a)
+    roof_grain = 0.8 + 0.4 * value_noise2(lx[i], ly[i], seed + 13)
+    roof = np.array([0.32, 0.31, 0.3], np.float32)[None] * roof_grain[:, None]
+    alb[i] = np.where(top[i][:, None], roof, a)
+
+
+def _foliage_texture(alb, i, hits: _ObjectHits):
+    """Leaves and clumps."""
+    lx, ly, lz, seed = hits.lx, hits.ly, hits.lz, hits.seed
+    leaf = value_noise(lx[i] * 4, ly[i] * 4, lz[i] * 4, seed + 14)
+    clump = value_noise(lx[i] * 0.8, ly[i] * 0.8, lz[i] * 0.8, seed + 15)
+    alb[i] *= (0.45 + 0.55 * leaf * 0.7 + 0.5 * clump * 0.6)[:, None]
+
+
+def _bark_texture(alb, i, hits: _ObjectHits):
+    """Vertical streaks around the trunk."""
+    lx, ly, zb, seed = hits.lx, hits.ly, hits.zb, hits.seed
+    ang = np.arctan2(ly[i], lx[i])
+    alb[i] *= (0.6 + 0.6 * value_noise2(ang * 6, zb[i] * 0.7, seed + 16))[:, None]
+
+
+def _sign_texture(alb, i, hits: _ObjectHits):
+    """A light border on the face, a grey back."""
+    ly, lz, half, n_local = hits.ly, hits.lz, hits.half, hits.n_local
+    border = (np.abs(ly[i]) > 0.82 * half[i, 1]) | (np.abs(lz[i]) > 0.82 * half[i, 2])
+    back = n_local[i, 0] < 0
+    alb[i] = np.where(border[:, None], 0.9, alb[i])
+    alb[i] = np.where(back[:, None], 0.5, alb[i])
+
+
+def _paint_texture(alb, i, hits: _ObjectHits):
+    """Car body: dark sills, head and tail lights at the upper corners, a dark grille."""
+    ly, zb, half, n_local = hits.ly, hits.zb, hits.half, hits.n_local
+    sill = (zb[i] < 0.12 * 2 * half[i, 2])
+    alb[i] *= np.where(sill, 0.45, 1.0)[:, None]
+    front = n_local[i, 0] > 0.7
+    rear = n_local[i, 0] < -0.7
+    upper = zb[i] > 1.0 * half[i, 2]
+    corner = np.abs(ly[i]) > 0.62 * half[i, 1]
+    grille = front & ~corner & ~upper
+    alb[i] = np.where((front & corner & upper)[:, None], np.array([0.95, 0.95, 0.9], np.float32), alb[i])
+    alb[i] = np.where((rear & corner & upper)[:, None], np.array([0.7, 0.05, 0.05], np.float32), alb[i])
+    alb[i] = np.where(grille[:, None], alb[i] * 0.35, alb[i])
+
+
+def _glass_texture(alb, i, hits: _ObjectHits):
+    """Dark panes, lighter towards the top, between pillars in the base colour; base-coloured top."""
+    along, side_x, half, zb, base, top = hits.along, hits.side_x, hits.half, hits.zb, hits.base, hits.top
+    pillar = (np.abs(along[i]) > np.where(side_x[i], half[i, 1], half[i, 0]) - 0.12) | \
+             (np.abs(_frac(along[i] / 1.3) - 0.5) < 0.04)
+    pane = np.array([0.07, 0.08, 0.1], np.float32)[None] * (1 + 0.6 * zb[i, None] / (2 * half[i, 2:3]))
+    a = np.where(pillar[:, None], base[i], pane)
+    alb[i] = np.where(top[i][:, None], base[i], a)
+
+
+def _tyre_texture(alb, i, hits: _ObjectHits):
+    """A grey rim on the wheel's sides."""
+    lx, lz, half, n_local = hits.lx, hits.lz, hits.half, hits.n_local
+    rim = (np.abs(n_local[i, 1]) > 0.85) & (lx[i] ** 2 + (lz[i]) ** 2 < (0.55 * half[i, 0]) ** 2)
+    alb[i] = np.where(rim[:, None], np.array([0.45, 0.45, 0.47], np.float32), alb[i])
+
+
+def _cloth_texture(alb, i, hits: _ObjectHits):
+    """Fine folds."""
+    lx, ly, lz, seed = hits.lx, hits.ly, hits.lz, hits.seed
+    alb[i] *= (0.75 + 0.5 * value_noise(lx[i] * 6, ly[i] * 6, lz[i] * 6, seed + 17))[:, None]
+
+
+def _skin_texture(alb, i, hits: _ObjectHits):
+    """Dark or light hair on the top and back of the head."""
+    lx, lz, half, pid = hits.lx, hits.lz, hits.half, hits.pid
+    hair = (lz[i] > 0.35 * half[i, 2]) | ((lx[i] < -0.2 * half[i, 0]) & (lz[i] > -0.2 * half[i, 2]))
+    hair_color = np.where(_frac(pid[i] * 5.1) < 0.5, 0.08, 0.3)[:, None] * np.array([1.0, 0.8, 0.6], np.float32)
+    alb[i] = np.where(hair[:, None], hair_color, alb[i])
+
+
+def _concrete_texture(alb, i, hits: _ObjectHits):
+    """Grime."""
+    alb[i] *= (1 + 0.3 * hits.dirt[i])[:, None]
+
+
+def _cone_texture(alb, i, hits: _ObjectHits):
+    """Two white reflective bands."""
+    zb, half = hits.zb, hits.half
+    rel = zb[i] / (2 * half[i, 2])
+    band = ((rel > 0.55) & (rel < 0.68)) | ((rel > 0.3) & (rel < 0.4))
+    alb[i] = np.where(band[:, None], np.array([0.92, 0.92, 0.92], np.float32), alb[i])
+
+
+def _plastic_texture(alb, i, hits: _ObjectHits):
+    """A darker lid."""
+    zb, half = hits.zb, hits.half
+    lid = zb[i] > 2 * half[i, 2] - 0.08
+    alb[i] *= np.where(lid, 0.6, 1.0)[:, None]
+
+
+def _bus_body_texture(alb, i, hits: _ObjectHits):
+    """A band of dark windows between frames, a darker stripe below it."""
+    zb, half, along = hits.zb, hits.half, hits.along
+    rel = zb[i] / (2 * half[i, 2])
+    band = (rel > 0.45) & (rel < 0.86) & (np.abs(_frac(along[i] / 1.6) - 0.5) > 0.05)
+    stripe = (rel > 0.3) & (rel < 0.36)
+    a = np.where(band[:, None], np.array([0.08, 0.1, 0.12], np.float32), alb[i])
+    alb[i] = np.where(stripe[:, None], a * 0.4, a)
+
+
+def _cargo_texture(alb, i, hits: _ObjectHits):
+    """Ribbed sides with grime."""
+    along, dirt = hits.along, hits.dirt
+    rib = _frac(along[i] / 0.6) < 0.1
+    alb[i] *= np.where(rib, 0.75, 1.0)[:, None] * (1 + 0.2 * dirt[i])[:, None]
+
+
+def _hazard_texture(alb, i, hits: _ObjectHits):
+    """Black diagonal stripes along the bottom, grime."""
+    along, zb, half, dirt = hits.along, hits.zb, hits.half, hits.dirt
+    rel = zb[i] / (2 * half[i, 2])
+    diag = (_frac((along[i] + zb[i]) / 0.5) < 0.5) & (rel < 0.3)
+    dirty = alb[i] * (1 + 0.3 * dirt[i])[:, None]
+    alb[i] = np.where(diag[:, None], np.array([0.08, 0.08, 0.08], np.float32), dirty)
+
+
+def _stripes_texture(alb, i, hits: _ObjectHits):
+    """White diagonal stripes."""
+    along, zb = hits.along, hits.zb
+    white = _frac((along[i] + zb[i]) / 0.7) < 0.5
+    alb[i] = np.where(white[:, None], np.array([0.92, 0.92, 0.9], np.float32), alb[i])
+
+
+def _fence_texture(alb, i, hits: _ObjectHits):
+    """A wire mesh, darker between the wires."""
+    along, zb = hits.along, hits.zb
+    mesh = (_frac(along[i] / 0.12) < 0.3) | (_frac(zb[i] / 0.12) < 0.3)
+    alb[i] *= np.where(mesh, 1.0, 0.55)[:, None]
+
+
+def _metal_texture(alb, i, hits: _ObjectHits):
+    """Slight mottling."""
+    zb, along, seed = hits.zb, hits.along, hits.seed
+    alb[i] *= (0.9 + 0.2 * value_noise2(zb[i] * 2, along[i] * 2, seed + 18))[:, None]
+
+
+_TEXTURES = {
+    M.FACADE: _facade_texture, M.FOLIAGE: _foliage_texture, M.BARK: _bark_texture, M.SIGN: _sign_texture,
+    M.PAINT: _paint_texture, M.GLASS: _glass_texture, M.TYRE: _tyre_texture, M.CLOTH: _cloth_texture,
+    M.SKIN: _skin_texture, M.CONCRETE: _concrete_texture, M.CONE: _cone_texture, M.PLASTIC: _plastic_texture,
+    M.BUS_BODY: _bus_body_texture, M.CARGO: _cargo_texture, M.HAZARD: _hazard_texture,
+    M.STRIPES: _stripes_texture, M.FENCE: _fence_texture, M.METAL: _metal_texture,
+}   # M.LAMP keeps its base colour
 
 
 SPECULAR = {M.PAINT: (0.5, 60.0), M.GLASS: (0.8, 120.0), M.METAL: (0.3, 30.0), M.BUS_BODY: (0.35, 60.0),

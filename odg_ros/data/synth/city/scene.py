@@ -1,0 +1,65 @@
+"""``build_world``: one scene, section by section. All sections draw from one generator, so
+the order of the calls is part of every generated world."""
+from __future__ import annotations
+
+import numpy as np
+
+from odg_ros.data.synth.city.collisions import resolve_collisions
+from odg_ros.data.synth.city.ego import NearRoute, ego_route, ego_speed_profile
+from odg_ros.data.synth.city.furniture import fill_blocks, place_street_furniture
+from odg_ros.data.synth.city.layout import BORDER, Layout, plan_roads
+from odg_ros.data.synth.city.pedestrians import place_pedestrians
+from odg_ros.data.synth.city.roads import pave_roads
+from odg_ros.data.synth.city.traffic import place_construction_zones, place_traffic
+from odg_ros.data.synth.motion import Movers
+from odg_ros.data.synth.primitives import Primitives
+from odg_ros.data.synth.world import GroundMap, Lighting, Thing, World
+
+
+def build_world(seed_seq: np.random.SeedSequence, name: str, duration: float) -> World:
+    """Generate one scene of ``duration`` seconds, deterministic for ``seed_seq``."""
+    rng = np.random.default_rng(seed_seq)
+    # the ego's motion first: it decides how big the city must be
+    ego_speed, travel = ego_speed_profile(rng, duration)
+    layout, turn, turn_at = plan_roads(rng, travel)
+    ego_path = ego_route(rng, layout, turn, turn_at, travel)
+    near = NearRoute(ego_path)
+    ground = GroundMap(layout.x0 - BORDER, layout.y0 - BORDER, layout.x1 + BORDER, layout.y1 + BORDER, res=0.1)
+    fill_blocks(layout, ground, rng, near)
+    pave_roads(layout, ground, rng, near)
+    place_street_furniture(layout, rng, near)
+    place_construction_zones(layout, rng, travel, near)
+    span = duration + 1.0
+    place_traffic(layout, rng, span, near)
+    place_pedestrians(layout, rng, span, duration, near)
+    things = resolve_collisions(layout, ego_path, ego_speed, duration)
+    return _assemble(rng, name, duration, layout, ground, things, Movers([ego_path], [ego_speed], [0.0]))
+
+
+def _assemble(rng, name, duration, layout: Layout, ground, things, ego: Movers) -> World:
+    """The World of the kept things, with random lighting and a random placement of the city
+    in the global frame."""
+    movers = Movers([t[1] for t in things], [t[2] for t in things], [t[3] for t in things])
+    thing_list = [Thing(t[0], i, t[4]) for i, t in enumerate(things)]
+    lighting = _random_lighting(rng)
+    theta = rng.uniform(-np.pi, np.pi)
+    offset = rng.uniform(300, 1800, size=2)
+    static = Primitives.concat(layout.static)
+    return World(name, duration, theta, offset, ground, static, thing_list, movers, ego, lighting,
+                 texture_seed=int(rng.integers(1 << 30)))
+
+
+def _random_lighting(rng) -> Lighting:
+    """Sun direction, cloud cover (dimming the sun, greying the sky), haze and exposure."""
+    sun_el = np.deg2rad(rng.uniform(12, 65))
+    sun_az = rng.uniform(-np.pi, np.pi)
+    cloud = float(rng.choice([0.0, 0.2, 0.5, 0.9]))
+    sun = np.array([np.cos(sun_el) * np.cos(sun_az), np.cos(sun_el) * np.sin(sun_az), np.sin(sun_el)])
+    warm = rng.uniform(0.0, 0.25) * (1 - np.sin(sun_el))
+    return Lighting(
+        sun=sun, sun_color=(1 - 0.8 * cloud) * np.array([1.0, 0.95 - warm * 0.3, 0.88 - warm]) * 1.1,
+        ambient=np.array([0.42, 0.46, 0.55]) * (0.7 + 0.6 * cloud),
+        zenith=np.array([0.25, 0.45, 0.85]) * (1 - cloud) + np.array([0.6, 0.62, 0.66]) * cloud,
+        horizon=np.array([0.75, 0.82, 0.92]) * (1 - cloud) + np.array([0.78, 0.78, 0.8]) * cloud,
+        fog_distance=float(rng.uniform(180, 600) * (1 - 0.5 * cloud)), exposure=float(rng.uniform(0.85, 1.15)),
+        cloudiness=cloud)
