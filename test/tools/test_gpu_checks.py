@@ -50,7 +50,7 @@ def test_every_command_line_of_every_part_parses(tmp_path):
     lines = [json.loads(line) for line in (tmp_path / "commands.jsonl").read_text().splitlines()]
     commands = {" ".join(line[:2]) for line in lines}
     for expected in ("odg train", "odg profile", "odg bench", "odg export", "odg demo",
-                     "tools/measure_node_overhead.py --sets", "pytest -q"):
+                     "tools.measure_node_overhead --sets", "pytest -q"):
         assert expected in commands, expected
     train = [line for line in lines if line[:2] == ["odg", "train"] and "odg_t" in line]
     assert train and all("--backbone-weights" in line for line in train)
