@@ -94,7 +94,7 @@ def ros_publisher_self(cfg, stats):
     None where rclpy is not importable."""
     try:
         import rclpy
-        from odg_ros.ros import node as node_module
+        from odg_ros.ros import messages as messages_module, node as node_module
         from odg_ros.ros.dds import use_localhost_dds
     except ImportError as error:
         print(f"rclpy not importable ({error}): publish times packing only")
@@ -114,7 +114,7 @@ def ros_publisher_self(cfg, stats):
     fake = types.SimpleNamespace(
         cfg=cfg, output_frame="base_link", stats=stats, now_seconds=time.time,
         params={"bev_min_z": 0.0, "bev_max_z": 2.0},
-        messages=m.ReusedMessages(),
+        messages=messages_module.ReusedMessages(),
         pub_grid=publisher(m.SemanticVoxelGrid, "occupancy"),
         pub_cloud=publisher(m.PointCloud2, "occupancy/cloud"),
         pub_bev=publisher(m.OccupancyGrid, "occupancy/bev"),

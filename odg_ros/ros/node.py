@@ -26,7 +26,6 @@ diagnostics counter, and the set is skipped.
 """
 from __future__ import annotations
 
-import array
 import signal
 import sys
 import threading
@@ -36,8 +35,7 @@ import traceback
 import numpy as np
 import rclpy
 from builtin_interfaces.msg import Time as TimeMsg
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from geometry_msgs.msg import Point, Pose, Quaternion, Vector3
+from diagnostic_msgs.msg import DiagnosticArray
 from nav_msgs.msg import OccupancyGrid, Odometry
 from rcl_interfaces.msg import ParameterDescriptor, ParameterType
 from rclpy.exceptions import ParameterException
@@ -46,11 +44,11 @@ from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy,
                        qos_profile_sensor_data)
-from sensor_msgs.msg import CameraInfo, CompressedImage, Image, PointCloud2, PointField
-from std_msgs.msg import ColorRGBA, Float32, Header
-from visualization_msgs.msg import Marker, MarkerArray
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image, PointCloud2
+from std_msgs.msg import Float32, Header
+from visualization_msgs.msg import MarkerArray
 
-from odg_ros_msgs.msg import DynamicObject, DynamicObjectArray, SemanticVoxelGrid
+from odg_ros_msgs.msg import DynamicObjectArray, SemanticVoxelGrid
 
 from ..network.checkpoint import load_model
 from ..network.precision import resolve_device, slow_precision_warning
@@ -66,6 +64,7 @@ from ..online.rig import IntrinsicsRange, load_rig
 from ..online.sync import stamp_to_seconds
 from ..online.transforms import TransformBuffer
 from ..resources import resource_path, shipped_checkpoint
+from . import messages
 
 NODE_NAME = "odg_node"
 
@@ -91,67 +90,6 @@ def stamp_seconds(stamp) -> float:
     return stamp_to_seconds(stamp.sec, stamp.nanosec)
 
 
-def _u8(data) -> array.array:
-    """A uint8[] field value from bytes or a uint8 array (one memcpy)."""
-    out = array.array("B")
-    out.frombytes(data)
-    return out
-
-
-def _refilled_u8(field: array.array, values: np.ndarray) -> array.array:
-    """``field`` holding ``values`` (flat uint8): overwritten in place when the size is the
-    same, so a grid a set costs one memcpy and no allocation."""
-    if len(field) != values.size:
-        return _u8(values)
-    np.frombuffer(field, np.uint8)[:] = values
-    return field
-
-
-class ReusedMessages:
-    """The grid and object messages, refilled for each result instead of built anew: rclpy
-    serialises a message inside publish(), so it is free again once publish returns, and
-    building ~250 nested message objects a set (30 boxes) cost more than the rest of publish."""
-
-    def __init__(self):
-        self.grid = SemanticVoxelGrid()
-        self.objects: list[DynamicObject] = []
-
-    def grid_message(self, header: Header, fields: dict) -> SemanticVoxelGrid:
-        grid = self.grid
-        grid.header = header
-        grid.origin = _pose_msg(fields["origin_position"])
-        grid.resolution = fields["resolution"]
-        grid.size_x, grid.size_y, grid.size_z = \
-            fields["size_x"], fields["size_y"], fields["size_z"]
-        grid.memory_order = fields["memory_order"]
-        grid.free_label, grid.unknown_label = fields["free_label"], fields["unknown_label"]
-        grid.class_names = fields["class_names"]
-        grid.labels = _refilled_u8(grid.labels, fields["labels"])
-        grid.confidence = _refilled_u8(grid.confidence, fields["confidence"])
-        return grid
-
-    def object_array(self, header: Header, boxes: list[dict]) -> DynamicObjectArray:
-        while len(self.objects) < len(boxes):
-            self.objects.append(DynamicObject())
-        for box, obj in zip(boxes, self.objects):
-            o = packing.object_fields(box)
-            obj.class_id, obj.class_name, obj.score = o["class_id"], o["class_name"], o["score"]
-            position, orientation = obj.pose.position, obj.pose.orientation
-            position.x, position.y, position.z = o["position"]
-            orientation.w, orientation.x, orientation.y, orientation.z = o["orientation"]
-            obj.size.x, obj.size.y, obj.size.z = o["size"]
-            linear = obj.velocity.linear
-            linear.x, linear.y, linear.z = o["velocity"]
-        return DynamicObjectArray(header=header, objects=self.objects[:len(boxes)])
-
-
-def _pose_msg(position, orientation_wxyz=(1.0, 0.0, 0.0, 0.0)) -> Pose:
-    w, x, y, z = orientation_wxyz
-    return Pose(position=Point(x=float(position[0]), y=float(position[1]),
-                               z=float(position[2])),
-                orientation=Quaternion(x=float(x), y=float(y), z=float(z), w=float(w)))
-
-
 class OdgNode(Node):
     def __init__(self, **node_kwargs):
         super().__init__(NODE_NAME, **node_kwargs)
@@ -159,6 +97,41 @@ class OdgNode(Node):
         self._stop = threading.Event()
         self._worker = None
         self.pipeline = None
+        p = self.params = self._declare_parameters()
+        self.base_frame = p["base_frame"]
+        self.output_frame = p["output_frame"] or p["base_frame"]
+        cameras = list(p["camera_names"])
+        predictor = load_predictor(p, self.get_logger())
+        self.cfg = predictor.cfg
+        self.tf, pose_lookup, extrinsics = pose_sources(p, cameras)
+        # /tf frames looked up from: the ego frame, and each camera's CameraInfo frame
+        self._tf_base = {p["base_frame"]} if p["pose_source"] == "tf" else set()
+        self._tf_cameras: dict[str, str] = {}
+        self.tf.set_wanted(self._tf_base)
+        self.stats = PipelineStats(stale_after_s=float(p["no_output_timeout"]),
+                                   max_tf_rate=float(p["max_tf_rate"]))
+        self.internal_errors = 0
+        self._error_lock = threading.Lock()
+        self.pipeline = OnlinePipeline(predictor, pipeline_settings(p, cameras), extrinsics,
+                                       pose_lookup, self.stats)
+        self._bad_input_loggers = {}
+        self._create_publishers()
+        self._subscribe(p, cameras)
+
+        self.create_timer(float(p["diagnostics_period"]), self.publish_diagnostics)
+        # decoding runs ahead of the model: set n+1 decodes while the model runs on set n
+        self.get_logger().info(self.pipeline.jpeg_decoder_reason)
+        self.pipeline.start_decoding(self.warn_bad_input, self._internal_error)
+        self._worker = threading.Thread(target=self._work, name="odg_inference", daemon=True)
+        self._worker.start()
+        self.get_logger().info(
+            f"{self.cfg.name}: {len(cameras)} cameras ({p['image_transport']}), pose from "
+            f"{p['pose_source']}, extrinsics from {p['extrinsics_source']}, history "
+            f"{predictor.history.capacity} frames, outputs in {self.output_frame}")
+
+    # ------------------------------------------------------------------------ start-up
+    def _declare_parameters(self) -> dict:
+        """Every schema parameter declared (read-only) -> the validated values."""
         schema = node_parameters.load_schema()
         for name, parameter in schema.items():
             # read_only: every parameter is read once at start-up; a later change is refused
@@ -171,88 +144,11 @@ class OdgNode(Node):
                                              read_only=True,
                                              dynamic_typing=parameter.type == "float")
             self.declare_parameter(name, parameter.default, descriptor)
-        p = node_parameters.validate({name: self.get_parameter(name).value for name in schema},
-                                     schema)
-        self.params = p
-        self.base_frame = p["base_frame"]
-        self.output_frame = p["output_frame"] or p["base_frame"]
-        cameras = list(p["camera_names"])
+        return node_parameters.validate(
+            {name: self.get_parameter(name).value for name in schema}, schema)
 
-        # --- model ---------------------------------------------------------------------
-        device = resolve_device(p["device"])
-        thresholds = {k: float(p[k]) for k in ("score_threshold", "box_score_threshold")
-                      if float(p[k]) >= 0}
-        if not p["checkpoint"].strip():
-            raise ValueError("checkpoint is empty: give a path, shipped (the packaged "
-                             "model/odg_cpu.pt) or random (random weights, for tests)")
-        if p["checkpoint"] == "random":
-            model, cfg = load_model(None, p["preset"], device, **thresholds)
-            self.get_logger().warning(
-                f"checkpoint random: preset {p['preset']} with RANDOM WEIGHTS on {device}. "
-                "The published occupancy and objects are meaningless.")
-        else:
-            path = shipped_checkpoint() if p["checkpoint"] == "shipped" else p["checkpoint"]
-            model, cfg = load_model(path, device=device, **thresholds)
-            self.get_logger().info(f"loaded {path} ({cfg.name}) on {device}, "
-                                   f"precision {p['precision']}")
-        slow = slow_precision_warning(p["precision"], device)
-        if slow:
-            self.get_logger().warning(slow)
-        self.cfg = cfg
-        history = int(p["history_frames"]) or None
-        predictor = OnlinePredictor(model, cfg, device, max_gap=float(p["history_max_gap"]),
-                                    num_frames=history,
-                                    min_interval=float(p["history_interval"]),
-                                    precision=p["precision"], compile=p["compile"],
-                                    compiled_step=p["compiled_step"].strip() or None)
-        self.get_logger().info(f"online step: {predictor.mode} mode, start-up (compile, "
-                               f"capture) {predictor.startup_seconds:.1f} s")
-
-        # --- poses and extrinsics ---------------------------------------------------------
-        self.tf = TransformBuffer(max_extrapolation=float(p["max_pose_extrapolation"]),
-                                  cache_time=float(p["tf_cache_time"]),
-                                  max_speed=float(p["max_speed"]),
-                                  max_acceleration=float(p["max_acceleration"]))
-        # /tf frames looked up from: the ego frame, and each camera's CameraInfo frame
-        self._tf_base = {p["base_frame"]} if p["pose_source"] == "tf" else set()
-        self._tf_cameras: dict[str, str] = {}
-        self.tf.set_wanted(self._tf_base)
-        pose_lookup = None
-        if p["pose_source"] == "tf":
-            global_frame, base = p["global_frame"], p["base_frame"]
-            pose_lookup = lambda t: self.tf.lookup(global_frame, base, t, "pose_miss")  # noqa
-        if p["extrinsics_source"] == "rig":
-            rig = load_rig(p["rig_file"] or resource_path("config/rig_nuscenes.yaml"))
-            missing = [c for c in cameras if c not in rig.cameras]
-            if missing:
-                raise ValueError(f"cameras {missing} are not in the rig file "
-                                 f"(it has {list(rig.cameras)})")
-            extrinsics = lambda camera, frame_id, t: rig.cameras[camera].sensor2ego  # noqa
-        else:
-            base = p["base_frame"]
-            extrinsics = lambda camera, frame_id, t: self.tf.lookup(  # noqa
-                base, frame_id, t, "missing_extrinsics")
-
-        self.stats = PipelineStats(stale_after_s=float(p["no_output_timeout"]),
-                                   max_tf_rate=float(p["max_tf_rate"]))
-        self.internal_errors = 0
-        self._error_lock = threading.Lock()
-        self.pipeline = OnlinePipeline(
-            predictor,
-            PipelineSettings(cameras, slop=float(p["slop"]),
-                             max_future=float(p["max_future_stamp"]),
-                             pose_max_extrapolation=float(p["max_pose_extrapolation"]),
-                             intrinsics=IntrinsicsRange(
-                                 float(p["min_focal_length"]), float(p["max_focal_length"]),
-                                 float(p["max_principal_point_offset"])),
-                             max_speed=float(p["max_speed"]),
-                             max_acceleration=float(p["max_acceleration"]),
-                             max_image_pixels=int(p["max_image_pixels"])),
-            extrinsics, pose_lookup, self.stats)
-        self._bad_input_loggers = {}
-
-        # --- publishers -----------------------------------------------------------------
-        self.messages = ReusedMessages()
+    def _create_publishers(self) -> None:
+        self.messages = messages.ReusedMessages()
         self.pub_grid = self.create_publisher(SemanticVoxelGrid, "~/occupancy", OUTPUT_QOS)
         self.pub_cloud = self.create_publisher(PointCloud2, "~/occupancy/cloud", OUTPUT_QOS)
         self.pub_bev = self.create_publisher(OccupancyGrid, "~/occupancy/bev", OUTPUT_QOS)
@@ -261,7 +157,7 @@ class OdgNode(Node):
         self.pub_fps = self.create_publisher(Float32, "~/fps", OUTPUT_QOS)
         self.pub_diagnostics = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
 
-        # --- subscriptions --------------------------------------------------------------
+    def _subscribe(self, p: dict, cameras: list[str]) -> None:
         image_type = CompressedImage if p["image_transport"] == "compressed" else Image
         self._inputs = []
         for camera in cameras:
@@ -283,17 +179,6 @@ class OdgNode(Node):
                 TFMessage, "/tf", lambda m: self.on_tf(m, False), TF_QOS))
             self._inputs.append(self.create_subscription(
                 TFMessage, "/tf_static", lambda m: self.on_tf(m, True), TF_STATIC_QOS))
-
-        self.create_timer(float(p["diagnostics_period"]), self.publish_diagnostics)
-        # decoding runs ahead of the model: set n+1 decodes while the model runs on set n
-        self.get_logger().info(self.pipeline.jpeg_decoder_reason)
-        self.pipeline.start_decoding(self.warn_bad_input, self._internal_error)
-        self._worker = threading.Thread(target=self._work, name="odg_inference", daemon=True)
-        self._worker.start()
-        self.get_logger().info(
-            f"{cfg.name}: {len(cameras)} cameras ({p['image_transport']}), pose from "
-            f"{p['pose_source']}, extrinsics from {p['extrinsics_source']}, history "
-            f"{predictor.history.capacity} frames, outputs in {self.output_frame}")
 
     # ------------------------------------------------------------------ bad input reporting
     def warn_bad_input(self, error: BadInput) -> None:
@@ -396,53 +281,19 @@ class OdgNode(Node):
         header = Header(stamp=result.header if isinstance(result.header, TimeMsg)
                         else TimeMsg(), frame_id=self.output_frame)
         cfg = self.cfg
-        fields = packing.voxel_grid_fields(result.grid, result.confidence, cfg.pc_range,
-                                           cfg.voxel_size, cfg.labels)
-        grid = self.messages.grid_message(header, fields)
-        self.pub_grid.publish(grid)
-
+        self.pub_grid.publish(self.messages.grid_message(header, packing.voxel_grid_fields(
+            result.grid, result.confidence, cfg.pc_range, cfg.voxel_size, cfg.labels)))
         if self.pub_cloud.get_subscription_count():
-            c = packing.cloud_fields(result.grid, cfg.pc_range, cfg.voxel_size, cfg.labels)
-            cloud = PointCloud2(header=header, height=c["height"], width=c["width"],
-                                fields=[PointField(name=n, offset=o, datatype=d, count=k)
-                                        for n, o, d, k in c["fields"]],
-                                is_bigendian=c["is_bigendian"], point_step=c["point_step"],
-                                row_step=c["row_step"], is_dense=c["is_dense"])
-            cloud.data = _u8(c["data"])
-            self.pub_cloud.publish(cloud)
-
+            self.pub_cloud.publish(messages.cloud_message(header, packing.cloud_fields(
+                result.grid, cfg.pc_range, cfg.voxel_size, cfg.labels)))
         if self.pub_bev.get_subscription_count():
-            b = packing.bev_fields(result.grid, cfg.pc_range, cfg.voxel_size,
-                                   float(self.params["bev_min_z"]),
-                                   float(self.params["bev_max_z"]), cfg.labels)
-            bev = OccupancyGrid(header=header)
-            bev.info.map_load_time = header.stamp
-            bev.info.resolution = b["resolution"]
-            bev.info.width, bev.info.height = b["width"], b["height"]
-            bev.info.origin = _pose_msg(b["origin_position"])
-            bev.data = array.array("b", b["data"])
-            self.pub_bev.publish(bev)
-
+            self.pub_bev.publish(messages.bev_message(header, packing.bev_fields(
+                result.grid, cfg.pc_range, cfg.voxel_size, float(self.params["bev_min_z"]),
+                float(self.params["bev_max_z"]), cfg.labels)))
         objects = self.messages.object_array(header, result.boxes)
         self.pub_objects.publish(objects)
-
         if self.pub_markers.get_subscription_count():
-            markers = MarkerArray(markers=[Marker(header=header, action=Marker.DELETEALL)])
-            for i, obj in enumerate(objects.objects):
-                r, g, b = packing.box_color(obj.class_id)
-                markers.markers.append(Marker(
-                    header=header, ns="objects", id=i, type=Marker.CUBE, action=Marker.ADD,
-                    pose=obj.pose, scale=Vector3(x=obj.size.x, y=obj.size.y, z=obj.size.z),
-                    color=ColorRGBA(r=r, g=g, b=b, a=0.5)))
-                markers.markers.append(Marker(
-                    header=header, ns="labels", id=i, type=Marker.TEXT_VIEW_FACING,
-                    action=Marker.ADD, pose=_pose_msg((obj.pose.position.x,
-                                                       obj.pose.position.y,
-                                                       obj.pose.position.z + obj.size.z)),
-                    scale=Vector3(z=0.8), color=ColorRGBA(r=1.0, g=1.0, b=1.0, a=1.0),
-                    text=f"{obj.class_name} {obj.score:.2f}"))
-            self.pub_markers.publish(markers)
-
+            self.pub_markers.publish(messages.marker_array(header, objects))
         timings = dict(result.timings)
         timings["publish"] = time.perf_counter() - start
         self.stats.record_output(result.stamp, self.now_seconds(), timings)
@@ -461,12 +312,9 @@ class OdgNode(Node):
         if self.internal_errors:
             status["level"] = max(status["level"], 2)      # DiagnosticStatus.ERROR
             status["message"] += f"; {self.internal_errors} internal errors (see the log)"
-        message = DiagnosticStatus(
-            level=bytes([status["level"]]), name=f"{self.get_fully_qualified_name()}: pipeline",
-            message=status["message"], hardware_id=str(self.pipeline.predictor.device),
-            values=[KeyValue(key=k, value=v) for k, v in status["values"]])
-        self.pub_diagnostics.publish(DiagnosticArray(
-            header=Header(stamp=self.get_clock().now().to_msg()), status=[message]))
+        self.pub_diagnostics.publish(messages.diagnostic_array(
+            self.get_clock().now().to_msg(), f"{self.get_fully_qualified_name()}: pipeline",
+            str(self.pipeline.predictor.device), status))
         self.pub_fps.publish(Float32(data=float(self.stats.rate_hz())))
 
     def destroy_node(self):
@@ -476,6 +324,74 @@ class OdgNode(Node):
         if self._worker is not None and self._worker.is_alive():
             self._worker.join(timeout=5.0)
         return super().destroy_node()
+
+
+def load_predictor(p: dict, logger) -> OnlinePredictor:
+    """The checkpoint of the validated parameters ``p`` on its device, in the online step
+    (its ModelConfig: ``predictor.cfg``)."""
+    device = resolve_device(p["device"])
+    thresholds = {k: float(p[k]) for k in ("score_threshold", "box_score_threshold")
+                  if float(p[k]) >= 0}
+    if not p["checkpoint"].strip():
+        raise ValueError("checkpoint is empty: give a path, shipped (the packaged "
+                         "model/odg_cpu.pt) or random (random weights, for tests)")
+    if p["checkpoint"] == "random":
+        model, cfg = load_model(None, p["preset"], device, **thresholds)
+        logger.warning(f"checkpoint random: preset {p['preset']} with RANDOM WEIGHTS on "
+                       f"{device}. The published occupancy and objects are meaningless.")
+    else:
+        path = shipped_checkpoint() if p["checkpoint"] == "shipped" else p["checkpoint"]
+        model, cfg = load_model(path, device=device, **thresholds)
+        logger.info(f"loaded {path} ({cfg.name}) on {device}, precision {p['precision']}")
+    slow = slow_precision_warning(p["precision"], device)
+    if slow:
+        logger.warning(slow)
+    history = int(p["history_frames"]) or None
+    predictor = OnlinePredictor(model, cfg, device, max_gap=float(p["history_max_gap"]),
+                                num_frames=history,
+                                min_interval=float(p["history_interval"]),
+                                precision=p["precision"], compile=p["compile"],
+                                compiled_step=p["compiled_step"].strip() or None)
+    logger.info(f"online step: {predictor.mode} mode, start-up (compile, capture) "
+                f"{predictor.startup_seconds:.1f} s")
+    return predictor
+
+
+def pose_sources(p: dict, cameras: list[str]):
+    """(the TF buffer, the pose look-up or None for odometry, the extrinsics look-up) of the
+    validated parameters ``p``."""
+    tf = TransformBuffer(max_extrapolation=float(p["max_pose_extrapolation"]),
+                         cache_time=float(p["tf_cache_time"]), max_speed=float(p["max_speed"]),
+                         max_acceleration=float(p["max_acceleration"]))
+    pose_lookup = None
+    if p["pose_source"] == "tf":
+        global_frame, base = p["global_frame"], p["base_frame"]
+        pose_lookup = lambda t: tf.lookup(global_frame, base, t, "pose_miss")  # noqa
+    if p["extrinsics_source"] == "rig":
+        rig = load_rig(p["rig_file"] or resource_path("config/rig_nuscenes.yaml"))
+        missing = [c for c in cameras if c not in rig.cameras]
+        if missing:
+            raise ValueError(f"cameras {missing} are not in the rig file "
+                             f"(it has {list(rig.cameras)})")
+        extrinsics = lambda camera, frame_id, t: rig.cameras[camera].sensor2ego  # noqa
+    else:
+        base = p["base_frame"]
+        extrinsics = lambda camera, frame_id, t: tf.lookup(  # noqa
+            base, frame_id, t, "missing_extrinsics")
+    return tf, pose_lookup, extrinsics
+
+
+def pipeline_settings(p: dict, cameras: list[str]) -> PipelineSettings:
+    """The pipeline's settings from the validated parameters."""
+    return PipelineSettings(cameras, slop=float(p["slop"]),
+                            max_future=float(p["max_future_stamp"]),
+                            pose_max_extrapolation=float(p["max_pose_extrapolation"]),
+                            intrinsics=IntrinsicsRange(float(p["min_focal_length"]),
+                                                       float(p["max_focal_length"]),
+                                                       float(p["max_principal_point_offset"])),
+                            max_speed=float(p["max_speed"]),
+                            max_acceleration=float(p["max_acceleration"]),
+                            max_image_pixels=int(p["max_image_pixels"]))
 
 
 def wants_help(argv: list[str]) -> bool:

@@ -61,7 +61,7 @@ def built_anew(res, frame: str):
 
 def test_refilled_messages_are_sent_like_new_ones(rclpy_module):
     from rclpy.serialization import deserialize_message, serialize_message
-    from odg_ros.ros import node as node_module
+    from odg_ros.ros import messages as messages_module, node as node_module
 
     def sent(msg):
         return deserialize_message(serialize_message(msg), type(msg))
@@ -84,7 +84,7 @@ def test_refilled_messages_are_sent_like_new_ones(rclpy_module):
     node = types.SimpleNamespace(
         cfg=types.SimpleNamespace(pc_range=PC_RANGE, voxel_size=0.4, labels=LABELS),
         output_frame="base_link", stats=PipelineStats(), now_seconds=lambda: 0.0,
-        params={"bev_min_z": 0.0, "bev_max_z": 2.0}, messages=node_module.ReusedMessages(),
+        params={"bev_min_z": 0.0, "bev_max_z": 2.0}, messages=messages_module.ReusedMessages(),
         pub_grid=Recorder("grid"), pub_cloud=Recorder("cloud"), pub_bev=Recorder("bev"),
         pub_objects=Recorder("objects"), pub_markers=Recorder("markers", subscribers=1))
     # more boxes, then fewer, none, more again; a new grid each time
@@ -100,7 +100,7 @@ def test_refilled_messages_are_sent_like_new_ones(rclpy_module):
 
 def test_grid_fields_are_copied_once_into_the_reused_field(rclpy_module):
     import array
-    from odg_ros.ros.node import _refilled_u8
+    from odg_ros.ros.messages import refilled_u8 as _refilled_u8
     field = array.array("B", bytes(6))
     values = np.arange(6, dtype=np.uint8)
     assert _refilled_u8(field, values) is field and field.tolist() == list(range(6))
