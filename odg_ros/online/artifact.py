@@ -12,7 +12,7 @@ The exported function takes the ring's memory as inputs and writes the newest fr
 it in place (an artifact holds no state but its constants):
 
     images uint8 [N, H, W, 3], packed float32 [n], ring_0..ring_{L-1} (written in place)
-      -> labels, confidence, boxes, score, label, valid (as ``OnlineStep``)
+      -> labels, confidence, boxes, score, label, valid, observed (as ``OnlineStep``)
 """
 from __future__ import annotations
 
@@ -27,10 +27,11 @@ from torch import nn
 
 from .step import OnlineStep
 
-FORMAT = "odg-online-step-1"
+FORMAT = "odg-online-step-2"    # 2: the observed output and the visibility geometry
 SIGNATURE_FILE = "odg_step.json"
 # what a signature holds, in the order a mismatch is reported
-SIGNATURE_KEYS = ("format", "torch", "device", "precision", "capacity", "config", "weights")
+SIGNATURE_KEYS = ("format", "torch", "device", "precision", "capacity", "visibility", "config",
+                  "weights")
 
 
 class StaleArtifact(ValueError):
@@ -59,15 +60,16 @@ def weights_hash(model: nn.Module) -> str:
     return digest.hexdigest()
 
 
-def step_signature(model: nn.Module, cfg, capacity: int, device, precision: str) -> dict:
+def step_signature(model: nn.Module, cfg, capacity: int, device, precision: str,
+                   visibility: bool = True) -> dict:
     """What a compiled step is valid for (compared key by key when it is loaded)."""
     return {"format": FORMAT, "torch": torch.__version__, "device": torch.device(device).type,
-            "precision": precision, "capacity": int(capacity),
+            "precision": precision, "capacity": int(capacity), "visibility": bool(visibility),
             "config": json.loads(json.dumps(cfg.to_dict())), "weights": weights_hash(model)}
 
 
 def export_artifact(model: nn.Module, cfg, path, capacity: int | None = None, device="cpu",
-                    precision: str = "fp32") -> tuple[Path, dict]:
+                    precision: str = "fp32", visibility: bool = True) -> tuple[Path, dict]:
     """Compile the online step over a ring of ``capacity`` (default: the model's frames) into
     ``path`` (.pt2) -> (the path, its signature)."""
     from torch.export.pt2_archive._package import package_pt2
@@ -76,7 +78,7 @@ def export_artifact(model: nn.Module, cfg, path, capacity: int | None = None, de
         raise ValueError(f"{path}: a compiled step is a .pt2 file")
     k = cfg.num_frames if capacity is None else int(capacity)
     model = model.to(device).eval()
-    step = OnlineStep(model, cfg, k, device, precision).eval()
+    step = OnlineStep(model, cfg, k, device, precision, visibility=visibility).eval()
     H, W = cfg.image_size
     images = torch.zeros(cfg.num_cams, H, W, 3, dtype=torch.uint8, device=device)
     packed = torch.zeros(step.layout.size)
@@ -86,7 +88,7 @@ def export_artifact(model: nn.Module, cfg, path, capacity: int | None = None, de
         exported = torch.export.export(RingInputStep(step).eval(), example, strict=False)
         files = torch._inductor.aot_compile(exported.module(check_guards=False), example,
                                             options={"aot_inductor.package": True})
-    signature = step_signature(model, cfg, k, device, precision)
+    signature = step_signature(model, cfg, k, device, precision, visibility)
     package_pt2(str(path), aoti_files={"model": files},
                 extra_files={SIGNATURE_FILE: json.dumps(signature)})
     return path, signature

@@ -20,7 +20,7 @@ from torch import nn
 
 from .step import OnlineStep
 
-OUTPUT_NAMES = ("labels", "confidence", "boxes", "score", "label", "valid")
+OUTPUT_NAMES = ("labels", "confidence", "boxes", "score", "label", "valid", "observed")
 
 
 def _sort_stable(self, stable=None, dim: int = -1, descending: bool = False):
@@ -29,6 +29,15 @@ def _sort_stable(self, stable=None, dim: int = -1, descending: bool = False):
     from onnxscript import opset18 as op
     size = op.Reshape(op.Gather(op.Shape(self), dim, axis=0), op.Constant(value_ints=[1]))
     return op.TopK(self, size, axis=dim, largest=descending, sorted=True)
+
+
+def _searchsorted(sorted_sequence, self, out_int32: bool = False, right: bool = False,
+                  side=None, sorter=None):
+    """aten.searchsorted (left side) as ONNX: per row, the number of entries below the value
+    (the visibility's sequences are short, ~170 samples)."""
+    from onnxscript import opset18 as op
+    below = op.Cast(op.Less(sorted_sequence, self), to=7)          # int64
+    return op.ReduceSum(below, op.Constant(value_ints=[-1]), keepdims=1)
 
 
 class StatelessStep(nn.Module):
@@ -72,6 +81,8 @@ def export_onnx(model: nn.Module, cfg, path, capacity: int | None = None, opset:
     with torch.no_grad(), sdpa_kernel(SDPBackend.MATH):
         torch.onnx.export(stateless, (images, packed, *ring), str(path), dynamo=True,
                           opset_version=opset, input_names=names, output_names=outputs,
-                          custom_translation_table={torch.ops.aten.sort.stable: _sort_stable},
+                          custom_translation_table={torch.ops.aten.sort.stable: _sort_stable,
+                                                    torch.ops.aten.searchsorted.Tensor:
+                                                        _searchsorted},
                           verbose=False)
     return stateless, (images, packed, *ring), Path(path)

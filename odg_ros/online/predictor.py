@@ -40,7 +40,8 @@ class Prediction:
     (0..255); boxes: list of dicts (network.postprocess.box_dicts); timings: seconds per stage
     (upload: geometry + images to the device; model: the device step; download: results
     back and into Python objects);
-    num_frames: frames the decoder saw; history_reset: why the history restarted, or None."""
+    num_frames: frames the decoder saw; history_reset: why the history restarted, or None;
+    observed: bool [X, Y, Z], the voxels a camera sees (None without visibility)."""
 
     grid: np.ndarray
     confidence: np.ndarray
@@ -49,6 +50,7 @@ class Prediction:
     num_frames: int
     history_reset: str | None = None
     output: ODGOutput | None = field(default=None, repr=False)
+    observed: np.ndarray | None = None
 
 
 def resolve_mode(mode: str, device, compiled_step: bool = False) -> str:
@@ -76,7 +78,8 @@ class OnlinePredictor:
     def __init__(self, model: torch.nn.Module, cfg: ModelConfig, device: str | torch.device,
                  max_gap: float = 1.0, num_frames: int | None = None,
                  keep_output: bool = False, min_interval: float = 0.0,
-                 precision: str = "fp32", compile: str = "eager", compiled_step=None):
+                 precision: str = "fp32", compile: str = "eager", compiled_step=None,
+                 visibility: bool = True):
         """num_frames: history length k (current set included), at most cfg.num_frames
         (None = cfg.num_frames); max_gap: seconds between sets that restart the history;
         min_interval: seconds between the history frames kept, so the decoder sees the
@@ -90,7 +93,8 @@ class OnlinePredictor:
         capture happen here, at start-up (``startup_seconds``); compiled_step: a .pt2 file
         of ``odg export --aoti`` run instead of compiling (artifact.py; refused with a
         StaleArtifact if built for another model, configuration, precision, history length,
-        device or torch). The grid's free label is the model's class count (cfg.num_classes)."""
+        device or torch). The grid's free label is the model's class count (cfg.num_classes).
+        visibility: also compute which voxels the cameras observe (online/visibility.py)."""
         k = cfg.num_frames if num_frames is None else int(num_frames)
         if not 1 <= k <= cfg.num_frames:
             raise ValueError(f"history of {k} frames; the model takes 1..{cfg.num_frames}")
@@ -104,7 +108,9 @@ class OnlinePredictor:
         self.precision = precision
         self.mode = resolve_mode(compile, self.device, compiled_step is not None)
         start = time.perf_counter()
-        self.online_step = OnlineStep(model, cfg, k, self.device, precision).eval()
+        self.visibility = bool(visibility)
+        self.online_step = OnlineStep(model, cfg, k, self.device, precision,
+                                      visibility=self.visibility).eval()
         self.ring = self.online_step.ring              # same capacity: slots follow history
         self.layout = self.online_step.layout
         cuda = self.device.type == "cuda"
@@ -132,7 +138,7 @@ class OnlinePredictor:
         """The .pt2 step, checked against this predictor -> f(images, packed) on the ring."""
         from .artifact import load_artifact, step_signature
         compiled = load_artifact(path, step_signature(model, self.cfg, capacity, self.device,
-                                                      precision),
+                                                      precision, self.visibility),
                                  for_cuda_graph=self.mode == "graphs")
         ring = self.ring
 
@@ -176,9 +182,10 @@ class OnlinePredictor:
         self._graph.replay()
         return self._outputs
 
-    def _pack_geometry(self, frames, slots) -> None:
+    def _pack_geometry(self, frames, slots, bounds) -> None:
         """History frames (newest first) stored in ring ``slots`` -> the packed buffer, in
-        storage-slot order; empty slots get the oldest frame's geometry (finite, never read)."""
+        storage-slot order; empty slots get the oldest frame's geometry (finite, never read).
+        With the current set's inverse ego2img and image ``bounds`` for its visibility."""
         current, oldest = frames[0], frames[-1]
         k, N = self.layout.capacity, self.cfg.num_cams
         # the warps of all frames in one stacked computation (ego_warp's products)
@@ -191,15 +198,18 @@ class OnlinePredictor:
             warps[slot] = warp
             deltas[slot] = current.stamp - frame.stamp
         frame_index = slots + [slots[-1]] * (self.cfg.num_frames - len(slots))
+        img2ego = _inverse(current.ego2img) if self.visibility else np.eye(4)
         self.layout.pack(self._packed_host.numpy(), ego2img, warps, deltas, frame_index,
-                         slots[0])
+                         slots[0], img2ego, bounds)
 
     @torch.inference_mode()
     def step(self, images: np.ndarray, ego2img: np.ndarray, pose: np.ndarray,
-             stamp: float) -> Prediction:
+             stamp: float, bounds=None) -> Prediction:
         """images uint8 [N, H, W, 3] network-input RGB (NumPy, or a tensor on the device);
         ego2img [N, 4, 4] of this set;
-        pose [4, 4] T_global_from_ego at ``stamp`` (the set's reference stamp, seconds)."""
+        pose [4, 4] T_global_from_ego at ``stamp`` (the set's reference stamp, seconds);
+        bounds [N, 4]: each camera's whole image in network-input pixels (u0, v0, u1, v1;
+        visibility.image_bounds), None: the network input itself."""
         N = len(images)
         if images.shape[1:] != (*self.cfg.image_size, 3) or N != self.cfg.num_cams:
             raise ValueError(f"images {images.shape}, expected [{self.cfg.num_cams}, "
@@ -217,7 +227,9 @@ class OnlinePredictor:
         self.ring.advance(replace_newest=replace)
         frames = self.history.frames()
         assert len(frames) == len(self.ring)
-        self._pack_geometry(frames, self.ring.slots())
+        H, W = self.cfg.image_size
+        self._pack_geometry(frames, self.ring.slots(),
+                            (0.0, 0.0, W, H) if bounds is None else bounds)
         images_in = self._images
         if isinstance(images, torch.Tensor):       # decoded on the device already
             self._images.copy_(images, non_blocking=True)
@@ -245,7 +257,7 @@ class OnlinePredictor:
             copied.synchronize()                          # the step's only wait
             outputs = self._host_outputs
         t2 = time.perf_counter()
-        labels, confidence, boxes, score, label, valid = (
+        labels, confidence, boxes, score, label, valid, observed = (
             # copies of their own where the pinned buffers are rewritten by the next step;
             # the CPU step's outputs are new tensors each time
             o.numpy().copy() if cuda else o.numpy() for o in outputs)
@@ -257,7 +269,9 @@ class OnlinePredictor:
         return Prediction(grid=labels.reshape(X, Y, Z), confidence=confidence.reshape(X, Y, Z),
                           boxes=boxes, timings=timings, num_frames=len(frames),
                           history_reset=reset,
-                          output=self._raw_output() if self.keep_output else None)
+                          output=self._raw_output() if self.keep_output else None,
+                          observed=observed.reshape(X, Y, Z).astype(bool)
+                          if self.visibility else None)
 
     def _host_outputs_for(self, outputs):
         if self._host_outputs is None:
@@ -271,3 +285,18 @@ class OnlinePredictor:
         with precision_context(self.precision, self.device):
             return self.online_step.model._decode_stored(self.ring.all_levels(), ego2img, warps,
                                                          deltas, frame_index, False, None)
+
+
+def _inverse(matrices: np.ndarray) -> np.ndarray:
+    """The inverses of [N, 4, 4] matrices; NaN for a singular one (its camera then observes
+    nothing: visibility.py reads no voxel through NaN geometry)."""
+    try:
+        return np.linalg.inv(matrices)
+    except np.linalg.LinAlgError:
+        out = np.full_like(matrices, np.nan, dtype=np.float64)
+        for i, m in enumerate(matrices):
+            try:
+                out[i] = np.linalg.inv(m)
+            except np.linalg.LinAlgError:
+                pass
+        return out

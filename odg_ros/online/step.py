@@ -2,7 +2,8 @@
 
     images uint8 [N, H, W, 3] + packed geometry float32 [n]
       -> normalise -> backbone -> ring slot write -> decoder over all k ring slots
-      -> grid (voxelise) + top-D boxes with a valid mask
+      -> grid (voxelise, padding) + top-D boxes with a valid mask + the voxels the cameras
+         observe (visibility.py)
 
 Every step has the same shapes and no host read, whatever the history's fill level: the
 decoder samples all ``capacity`` ring slots and a frame index (in the packed geometry) says
@@ -31,6 +32,7 @@ from ..network.padding import pad_occupancy
 from ..network.postprocess import ranked_boxes, voxelise
 from ..network.precision import half_dtype, precision_context, with_half_matrix_weights
 from ..preprocess import IMAGENET_MEAN, IMAGENET_STD
+from .visibility import Visibility
 
 MODES = ("eager", "compiled", "graphs")
 
@@ -38,25 +40,32 @@ MODES = ("eager", "compiled", "graphs")
 class GeometryLayout:
     """Offsets of the packed per-step geometry (one host-to-device copy per step):
     ego2img [1, k, N, 4, 4], ego_warp [1, k, 4, 4], time_delta [1, k] in storage-slot order,
-    frame_index [num_frames] (slot read by each time step), slot [1] (the slot written)."""
+    frame_index [num_frames] (slot read by each time step), slot [1] (the slot written);
+    for the visibility of the current set: img2ego [N, 4, 4] (its ego2img inverted) and
+    bounds [N, 4] (u0, v0, u1, v1: each camera's whole image in network-input pixels)."""
 
     def __init__(self, capacity: int, num_cams: int, num_frames: int):
         self.capacity, self.num_cams, self.num_frames = capacity, num_cams, num_frames
         sizes = {"ego2img": capacity * num_cams * 16, "ego_warp": capacity * 16,
-                 "time_delta": capacity, "frame_index": num_frames, "slot": 1}
+                 "time_delta": capacity, "frame_index": num_frames, "slot": 1,
+                 "img2ego": num_cams * 16, "bounds": num_cams * 4}
         self.slices, start = {}, 0
         for name, size in sizes.items():
             self.slices[name] = slice(start, start + size)
             start += size
         self.size = start
 
-    def pack(self, out: np.ndarray, ego2img, ego_warp, time_delta, frame_index, slot) -> None:
+    def pack(self, out: np.ndarray, ego2img, ego_warp, time_delta, frame_index, slot,
+             img2ego=np.eye(4), bounds=(0.0, 0.0, 1.0, 1.0)) -> None:
         """Host arrays in storage-slot order -> ``out`` float32 [size] (indices are exact)."""
         out[self.slices["ego2img"]] = np.asarray(ego2img).ravel()
         out[self.slices["ego_warp"]] = np.asarray(ego_warp).ravel()
         out[self.slices["time_delta"]] = np.asarray(time_delta).ravel()
         out[self.slices["frame_index"]] = frame_index
         out[self.slices["slot"]] = slot
+        N = self.num_cams
+        out[self.slices["img2ego"]] = np.broadcast_to(img2ego, (N, 4, 4)).ravel()
+        out[self.slices["bounds"]] = np.broadcast_to(bounds, (N, 4)).ravel()
 
     def unpack(self, packed: torch.Tensor):
         k, N = self.capacity, self.num_cams
@@ -64,16 +73,27 @@ class GeometryLayout:
         return (part["ego2img"].view(1, k, N, 4, 4), part["ego_warp"].view(1, k, 4, 4),
                 part["time_delta"].view(1, k), part["frame_index"].long(), part["slot"].long())
 
+    def current_view(self, packed: torch.Tensor):
+        """(ego2img, img2ego [N, 4, 4], bounds [N, 4]) of the set written this step."""
+        N = self.num_cams
+        ego2img, _, _, _, slot = self.unpack(packed)
+        return (ego2img[0].index_select(0, slot)[0], packed[self.slices["img2ego"]].view(N, 4, 4),
+                packed[self.slices["bounds"]].view(N, 4))
+
 
 class OnlineStep(nn.Module):
-    """One online step over device tensors; holds the feature ring (written in place)."""
+    """One online step over device tensors; holds the feature ring (written in place).
+    visibility: compute which voxels the cameras observe (online/visibility.py); without it
+    the ``observed`` output is empty."""
 
     def __init__(self, model: nn.Module, cfg: ModelConfig, capacity: int, device,
-                 precision: str = "fp32"):
+                 precision: str = "fp32", visibility: bool = True):
         super().__init__()
         self.model, self.cfg, self.precision = model, cfg, precision
         self.free_label = cfg.num_classes           # Occ3D: free = the class count
         self.device = torch.device(device)
+        self.visibility = Visibility(cfg.grid_shape, cfg.pc_range, cfg.voxel_size,
+                                     self.free_label, device=device) if visibility else None
         self.layout = GeometryLayout(capacity, cfg.num_cams, cfg.num_frames)
         self.register_buffer("mean", torch.tensor(IMAGENET_MEAN, device=device),
                              persistent=False)
@@ -108,7 +128,8 @@ class OnlineStep(nn.Module):
 
     def forward(self, images: torch.Tensor, packed: torch.Tensor):
         """images uint8 [N, H, W, 3]; packed float32 [layout.size] -> labels, confidence
-        uint8 [X*Y*Z]; boxes [D, 9], score [D], label [D], valid [D] (by score)."""
+        uint8 [X*Y*Z]; boxes [D, 9], score [D], label [D], valid [D] (by score); observed
+        uint8 [X*Y*Z] (1: a camera sees the voxel; [0] without visibility)."""
         ego2img, ego_warp, time_delta, frame_index, slot = self.layout.unpack(packed)
         x = ((images.float() / 255.0 - self.mean) / self.std).movedim(-1, -3)
         self.ring.write_slot(self.features(x), slot)
@@ -129,4 +150,8 @@ class OnlineStep(nn.Module):
         else:
             boxes, score, label, valid = ranked_boxes(layer.boxes, layer.box_logits,
                                                       self.cfg.box_score_threshold)
-        return labels[0], confidence[0], boxes[0], score[0], label[0], valid[0]
+        if self.visibility is None:
+            observed = labels.new_zeros(0)
+        else:
+            observed = self.visibility(labels[0], *self.layout.current_view(packed))
+        return labels[0], confidence[0], boxes[0], score[0], label[0], valid[0], observed

@@ -1,0 +1,109 @@
+"""How well the node's visibility (free / occupied / unknown) agrees with the world's own
+``mask_camera``: the voxel IoU of "observed" over held-out keyframes.
+
+    python -m tools.visibility_agreement --data data/synth24/infos_val.pkl
+    python -m tools.visibility_agreement --data data/synth24/infos_val.pkl \\
+        --checkpoint model/odg_cpu.pt
+
+Without --checkpoint the visibility is computed from the ground-truth occupancy (what the
+method can reach when the grid is right); with it, from the grid the node's online step
+predicts (keyframes in scene order, history as in the node). Prints one line per scene and
+a JSON summary (IoU over all voxels of all keyframes, and the mean per keyframe).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import time
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from odg_ros.config import load_preset
+from odg_ros.data.dataset import OccDataset
+from odg_ros.online.visibility import Visibility, image_bounds
+
+
+def keyframe_inputs(dataset: OccDataset, index: int):
+    """(ego2img [N, 4, 4], the camera images' bounds in network-input pixels [N, 4],
+    mask_camera, semantics) of one keyframe."""
+    info = dataset.infos[index]
+    ego2img, _, _ = dataset.frame_geometry(info["cams"], np.asarray(info["ego_pose"]))
+    bounds = image_bounds([info["cams"][c]["image_hw"] for c in dataset.camera_names],
+                          dataset.image_size)
+    semantics, _, mask_camera, _ = dataset.load_occupancy(info)
+    return ego2img, bounds, mask_camera.astype(bool), semantics
+
+
+def predicted_observed(checkpoint: str, dataset: OccDataset, progress: bool):
+    """observed bool [X, Y, Z] per keyframe from the online step's predicted grid."""
+    from odg_ros.network.checkpoint import load_model
+    from odg_ros.online.predictor import OnlinePredictor
+    model, cfg = load_model(checkpoint, device="cpu")
+    predictor, scene = None, None
+    for index in tqdm(range(len(dataset)), desc="online step", disable=not progress):
+        info = dataset.infos[index]
+        if info["scene_token"] != scene:
+            predictor, scene = OnlinePredictor(model, cfg, "cpu"), info["scene_token"]
+        ego2img, bounds, _, _ = keyframe_inputs(dataset, index)
+        images = np.stack([dataset.load_image(info["cams"][c]) for c in dataset.camera_names])
+        prediction = predictor.step(images, ego2img, np.asarray(info["ego_pose"]),
+                                    info["timestamp"] * 1e-6, bounds=bounds)
+        yield prediction.observed
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--data", required=True, help="infos file of held-out keyframes")
+    parser.add_argument("--checkpoint", default=None,
+                        help="predict the grid with this checkpoint (default: use the "
+                             "ground-truth occupancy)")
+    parser.add_argument("--preset", default="odg_cpu", help="grid and image size (GT mode)")
+    parser.add_argument("--limit", type=int, default=None, help="first N keyframes only")
+    args = parser.parse_args(argv)
+    torch.set_num_threads(1)
+    cfg = load_preset(args.preset)
+    if args.checkpoint:
+        from odg_ros.network.checkpoint import load_model
+        cfg = load_model(args.checkpoint, device="cpu")[1]
+    dataset = OccDataset(args.data, cfg)
+    if args.limit:
+        dataset.infos = dataset.infos[:args.limit]
+    visibility = Visibility(cfg.grid_shape, cfg.pc_range, cfg.voxel_size, cfg.num_classes)
+    predicted = predicted_observed(args.checkpoint, dataset, True) if args.checkpoint else None
+    totals, per_keyframe, per_scene, seconds = np.zeros(2), [], {}, []
+    for index in tqdm(range(len(dataset)), desc="keyframes", disable=predicted is not None):
+        ego2img, bounds, mask, semantics = keyframe_inputs(dataset, index)
+        if predicted is None:
+            start = time.process_time()
+            with torch.inference_mode():
+                observed = visibility(
+                    torch.from_numpy(semantics.reshape(-1)),
+                    torch.tensor(ego2img, dtype=torch.float32),
+                    torch.tensor(np.linalg.inv(ego2img), dtype=torch.float32),
+                    torch.tensor(bounds, dtype=torch.float32)).numpy()
+            seconds.append(time.process_time() - start)
+            observed = observed.reshape(mask.shape).astype(bool)
+        else:
+            observed = next(predicted).astype(bool)
+        counts = np.array([(observed & mask).sum(), (observed | mask).sum()])
+        totals += counts
+        per_keyframe.append(counts[0] / max(counts[1], 1))
+        name = dataset.infos[index]["scene_name"]
+        per_scene.setdefault(name, np.zeros(2))
+        per_scene[name] += counts
+    for name, (inter, union) in per_scene.items():
+        print(f"{name}: IoU of observed {inter / union:.4f}")
+    summary = {"data": args.data, "grid": "predicted by " + args.checkpoint
+               if args.checkpoint else "ground truth", "keyframes": len(per_keyframe),
+               "iou_observed": round(float(totals[0] / totals[1]), 4),
+               "mean_keyframe_iou": round(float(np.mean(per_keyframe)), 4)}
+    if seconds:
+        summary["visibility_ms_median_cpu_1_thread"] = round(1e3 * float(np.median(seconds)), 1)
+    print(json.dumps(summary, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
