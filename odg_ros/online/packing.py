@@ -32,17 +32,21 @@ def voxel_centres(indices: np.ndarray, pc_range, voxel_size: float) -> np.ndarra
 
 
 def voxel_grid_fields(grid: np.ndarray, confidence: np.ndarray | None, pc_range,
-                      voxel_size: float, labels: OccLabels = NUSCENES_LABELS) -> dict:
-    """odg_ros_msgs/SemanticVoxelGrid fields (all but the header); labels and confidence
-    flat uint8 [X*Y*Z] in the grid's C order (views of the arrays given where contiguous).
+                      voxel_size: float, labels: OccLabels = NUSCENES_LABELS,
+                      observed: np.ndarray | None = None) -> dict:
+    """odg_ros_msgs/SemanticVoxelGrid fields (all but the header); labels, confidence and
+    observed flat uint8 [X*Y*Z] in the grid's C order (views of the arrays given where
+    contiguous).
 
     grid uint8 [X, Y, Z] (labels.free_label = free); confidence uint8 [X, Y, Z] or None;
-    labels: the model's label set (ModelConfig.labels), which names the classes.
+    labels: the model's label set (ModelConfig.labels), which names the classes; observed
+    bool [X, Y, Z] (a camera sees the voxel) or None (the field stays empty).
     """
     if grid.dtype != np.uint8 or grid.ndim != 3:
         raise ValueError(f"grid must be uint8 [X, Y, Z], got {grid.dtype} {grid.shape}")
-    if confidence is not None and confidence.shape != grid.shape:
-        raise ValueError(f"confidence {confidence.shape} != grid {grid.shape}")
+    for name, other in (("confidence", confidence), ("observed", observed)):
+        if other is not None and other.shape != grid.shape:
+            raise ValueError(f"{name} {other.shape} != grid {grid.shape}")
     X, Y, Z = grid.shape
     return {
         "origin_position": tuple(float(v) for v in pc_range[:3]),   # minimum corner
@@ -55,14 +59,18 @@ def voxel_grid_fields(grid: np.ndarray, confidence: np.ndarray | None, pc_range,
         "labels": np.ascontiguousarray(grid).reshape(-1),
         "confidence": np.zeros(0, np.uint8) if confidence is None else
         np.ascontiguousarray(confidence, dtype=np.uint8).reshape(-1),
-        "observed": b"",
+        "observed": np.zeros(0, np.uint8) if observed is None else
+        np.ascontiguousarray(observed).reshape(-1).view(np.uint8),
         "class_names": list(labels.names),
     }
 
 
 def cloud_fields(grid: np.ndarray, pc_range, voxel_size: float,
-                 labels: OccLabels = NUSCENES_LABELS) -> dict:
-    """sensor_msgs/PointCloud2 fields (all but the header) of the occupied voxel centres.
+                 labels: OccLabels = NUSCENES_LABELS,
+                 observed: np.ndarray | None = None) -> dict:
+    """sensor_msgs/PointCloud2 fields (all but the header) of the occupied voxel centres:
+    x y z float32, label uint8, and with ``observed`` (bool [X, Y, Z]) an observed uint8
+    (1: a camera sees the voxel, 0: predicted where no camera sees).
 
     'fields' is a list of (name, offset, datatype, count) for sensor_msgs/PointField.
     """
@@ -78,10 +86,14 @@ def cloud_fields(grid: np.ndarray, pc_range, voxel_size: float,
         centres = ((np.arange(size) + 0.5) * voxel_size + origin[axis]).astype(np.float32)
         points[:, axis] = centres[index]
     points.view(np.uint8)[:, 12] = flat[occupied]                   # label byte, then padding
+    fields = [("x", 0, POINTFIELD_FLOAT32, 1), ("y", 4, POINTFIELD_FLOAT32, 1),
+              ("z", 8, POINTFIELD_FLOAT32, 1), ("label", 12, POINTFIELD_UINT8, 1)]
+    if observed is not None:
+        points.view(np.uint8)[:, 13] = np.ascontiguousarray(observed).reshape(-1)[occupied]
+        fields.append(("observed", 13, POINTFIELD_UINT8, 1))
     return {
         "height": 1, "width": len(points),
-        "fields": [("x", 0, POINTFIELD_FLOAT32, 1), ("y", 4, POINTFIELD_FLOAT32, 1),
-                   ("z", 8, POINTFIELD_FLOAT32, 1), ("label", 12, POINTFIELD_UINT8, 1)],
+        "fields": fields,
         "is_bigendian": False,
         "point_step": CLOUD_DTYPE.itemsize,
         "row_step": CLOUD_DTYPE.itemsize * len(points),
@@ -91,24 +103,37 @@ def cloud_fields(grid: np.ndarray, pc_range, voxel_size: float,
 
 
 def bev_fields(grid: np.ndarray, pc_range, voxel_size: float, min_z: float,
-               max_z: float, labels: OccLabels = NUSCENES_LABELS) -> dict:
+               max_z: float, labels: OccLabels = NUSCENES_LABELS,
+               observed: np.ndarray | None = None) -> dict:
     """nav_msgs/OccupancyGrid fields (info + data) of a 2D obstacle map for planners.
 
     A cell (x, y) is occupied (100) if any voxel of its column whose centre height lies in
     [min_z, max_z] (metres, grid frame) has a label other than free or a drivable class
-    (nuScenes: driveable_surface, Waymo: road); otherwise free (0). Every other class
+    (nuScenes: driveable_surface, Waymo: road), seen by a camera or not. Every other class
     (objects, but also sidewalk, terrain, other_flat) blocks: a planner must not drive there.
-    The model predicts every voxel, so no cell is unknown (-1).
-    OccupancyGrid is row-major with x along a row: data[y * width + x].
+    Otherwise it is free (0) when a camera sees every voxel of the band from the column's
+    highest drivable voxel up (the whole band where it has none), and unknown (-1) when not:
+    behind an obstacle, outside every image (``observed`` bool [X, Y, Z]; None: every
+    voxel counts as seen). OccupancyGrid is row-major with x along a row: data[y * width + x].
     """
     X, Y, Z = grid.shape
     z_centres = (np.arange(Z) + 0.5) * voxel_size + pc_range[2]
     band = (z_centres >= min_z) & (z_centres <= max_z)
     blocks = np.ones(256, dtype=bool)                  # label -> blocks a planner
     blocks[list(labels.passable())] = False
-    blocked = blocks[grid[:, :, band]]                 # [X, Y, Zb]; a table: ~5x np.isin
+    column = grid[:, :, band]
+    blocked = blocks[column]                           # [X, Y, Zb]; a table: ~5x np.isin
     occupied = blocked.any(axis=2).T                                 # [Y, X]
     data = np.where(occupied, 100, 0).astype(np.int8)
+    if observed is not None:
+        seen = observed[:, :, band]
+        drivable = (column != labels.free_label) & ~blocked
+        # from the highest drivable voxel up (argmax of the reversed band: its last one)
+        Zb = int(band.sum())
+        top = np.where(drivable.any(axis=2), Zb - 1 - drivable[:, :, ::-1].argmax(axis=2), -1)
+        above = np.arange(Zb) >= top[:, :, None]
+        unknown = (above & ~seen).any(axis=2).T                      # [Y, X]
+        data[unknown & ~occupied] = -1
     return {
         "resolution": float(voxel_size), "width": X, "height": Y,
         "origin_position": (float(pc_range[0]), float(pc_range[1]), 0.0),

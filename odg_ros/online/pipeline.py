@@ -36,6 +36,7 @@ from .poses import PoseBuffer
 from .predictor import OnlinePredictor
 from .rig import CameraCalibration, IntrinsicsRange, check_intrinsics, set_ego2img
 from .sync import CameraSet, CameraSetSync
+from .visibility import image_bounds
 
 
 @dataclass
@@ -69,13 +70,15 @@ class PreparedSet:
     reference_pose: np.ndarray
     timings: dict[str, float]
     ready: Any = None          # CUDA event of images decoded on the device
+    bounds: np.ndarray | None = None   # each camera's whole image, network-input pixels
 
 
 @dataclass
 class OnlineResult:
     """stamp: reference stamp (s); header: the opaque header object given with the
     reference camera's image; grid/confidence uint8 [X, Y, Z]; boxes: list of dicts;
-    timings: seconds per stage; num_frames: frames the decoder used."""
+    timings: seconds per stage; num_frames: frames the decoder used; observed: bool
+    [X, Y, Z], the voxels a camera sees (None with the visibility off)."""
 
     stamp: float
     header: Any
@@ -84,6 +87,7 @@ class OnlineResult:
     boxes: list[dict]
     timings: dict[str, float]
     num_frames: int
+    observed: np.ndarray | None = None
 
 
 ExtrinsicsLookup = Callable[[str, str, float], np.ndarray]   # (camera, frame_id, stamp) -> 4x4
@@ -203,14 +207,14 @@ class OnlinePipeline:
             DeviceJpegDecoder.hand_over(prepared.images, prepared.ready)
         prediction = self.predictor.step(prepared.images, prepared.ego2img,
                                          prepared.reference_pose,
-                                         camera_set.reference_stamp)
+                                         camera_set.reference_stamp, prepared.bounds)
         timings = dict(prediction.timings)
         timings.update(prepared.timings)
         return OnlineResult(stamp=camera_set.reference_stamp,
                             header=camera_set.payloads[camera_set.reference_camera][1],
                             grid=prediction.grid, confidence=prediction.confidence,
                             boxes=prediction.boxes, timings=timings,
-                            num_frames=prediction.num_frames)
+                            num_frames=prediction.num_frames, observed=prediction.observed)
 
     # ---------------------------------------------------------------- decoding ahead
     def start_decoding(self, on_bad_input: Callable[[BadInput], None],
@@ -289,9 +293,10 @@ class OnlinePipeline:
 
             for _ in self._decoder_pool.map(decode_into, range(len(names))):
                 pass
+        bounds = image_bounds([infos[c].image_hw for c in names], self.input_hw)
         return PreparedSet(camera_set, images, ego2img, reference_pose,
                            {"lookup": t0 - t_lookup,
-                            "decode_images": time.perf_counter() - t0}, ready)
+                            "decode_images": time.perf_counter() - t0}, ready, bounds)
 
     def _decode(self, camera: str, image: EncodedImage, info: CameraCalibration) -> np.ndarray:
         try:
