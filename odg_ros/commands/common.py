@@ -131,27 +131,13 @@ def device(text: str) -> str:
 
 
 def config_overrides(items: list[str] | None) -> dict:
-    """``--set key=value`` items -> {key: YAML-typed value}; unknown keys are a UserError."""
-    import dataclasses
-    import difflib
-
-    import yaml
-
-    from ..config import ModelConfig
-    known = [f.name for f in dataclasses.fields(ModelConfig)]
-    out = {}
-    for item in items or []:
-        key, sep, value = item.partition("=")
-        key = key.strip()
-        if not sep or not key:
-            raise UserError(f"--set expects KEY=VALUE, got {item!r}")
-        if key not in known:
-            close = difflib.get_close_matches(key, known, n=3)
-            hint = f"; did you mean {', '.join(close)}?" if close else \
-                " (the keys of model/odg_cpu.yaml)"
-            raise UserError(f"--set {key}: not a model setting{hint}")
-        try:
-            out[key] = yaml.safe_load(value)
-        except yaml.YAMLError:
-            raise UserError(f"--set {item}: the value is not valid YAML") from None
-    return out
+    """``--set key=value`` items -> {key: value} for ModelConfig, checked by the node's
+    validator (online/parameters.py: types, ranges, unknown keys); a negative score
+    threshold keeps the checkpoint's own, as the node's parameter does."""
+    from ..online.parameters import parse_settings
+    try:
+        values = parse_settings(items)
+    except ValueError as error:
+        raise UserError(str(error)) from None
+    return {k: v for k, v in values.items()
+            if not (k in ("score_threshold", "box_score_threshold") and v < 0)}

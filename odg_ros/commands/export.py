@@ -80,8 +80,10 @@ def export_step(args) -> int:
         return 2
     from ..online.onnx_export import export_onnx
     model, cfg = load_model(args.checkpoint)
-    _, inputs, path = export_onnx(model, cfg, args.onnx)
-    report = {"source": str(args.checkpoint), "onnx": str(path), "bytes": path.stat().st_size,
+    _, inputs, files = export_onnx(model, cfg, args.onnx)
+    report = {"source": str(args.checkpoint), "onnx": str(files[0][0]),
+              "files": {str(p): size for p, size in files},
+              "bytes": sum(size for _, size in files),
               "inputs": {name: list(t.shape) for name, t in
                          zip(["images", "packed"] + [f"ring_{i}" for i in
                                                      range(len(inputs) - 2)], inputs)}}

@@ -5,10 +5,14 @@ so the exported function takes the ring as inputs and returns it updated:
 
     images uint8 [N, H, W, 3], packed float32 [n], ring_0..ring_{L-1}
       -> labels, confidence uint8 [X*Y*Z], boxes [D, 9], score [D], label [D], valid [D],
+         observed uint8 [X*Y*Z] (a camera sees the voxel),
          ring_0_out..ring_{L-1}_out (the ring with the newest frame written)
 
 ``packed`` is the geometry buffer the node fills (``GeometryLayout``); a runtime feeds the
 returned ring to the next step. Shapes are static, as in the node (every ring slot read).
+
+The graph is one self-contained file where it fits protobuf's 2 GB; a larger one keeps its
+weights in a ``.data`` file beside it, and ``export_onnx`` names every file it wrote.
 """
 from __future__ import annotations
 
@@ -64,9 +68,15 @@ def example_inputs(step: OnlineStep, seed: int = 0):
     return images, ring
 
 
+# protobuf's limit on one message; the graph stays one file below it (with room to spare)
+SINGLE_FILE_LIMIT = 2 ** 31 - 2 ** 26
+
+
 def export_onnx(model: nn.Module, cfg, path, capacity: int | None = None, opset: int = 20):
     """Write the online step over a ring of ``capacity`` (default: the model's frames) to
-    ``path`` -> the StatelessStep exported, the example inputs traced, the path."""
+    ``path`` -> the StatelessStep exported, the example inputs traced, and every file
+    written [(path, bytes)]: ``path`` alone when the graph fits one file, else ``path`` and
+    its external weights."""
     from torch.nn.attention import SDPBackend, sdpa_kernel
     k = cfg.num_frames if capacity is None else int(capacity)
     step = OnlineStep(model.eval(), cfg, k, "cpu").eval()
@@ -84,5 +94,21 @@ def export_onnx(model: nn.Module, cfg, path, capacity: int | None = None, opset:
                           custom_translation_table={torch.ops.aten.sort.stable: _sort_stable,
                                                     torch.ops.aten.searchsorted.Tensor:
                                                         _searchsorted},
-                          verbose=False)
-    return stateless, (images, packed, *ring), Path(path)
+                          verbose=False, external_data=True)
+    return stateless, (images, packed, *ring), _single_file_if_it_fits(Path(path))
+
+
+def _single_file_if_it_fits(path: Path) -> list[tuple[Path, int]]:
+    """The exporter writes the weights beside the graph (``path.data``); folded back into
+    ``path`` where the whole stays under SINGLE_FILE_LIMIT (a graph copied without its
+    ``.data`` file would not load). -> every file of the export with its size."""
+    import onnx
+    data = [p for p in path.parent.glob(path.name + "*") if p != path]
+    total = path.stat().st_size + sum(p.stat().st_size for p in data)
+    if data and total < SINGLE_FILE_LIMIT:
+        graph = onnx.load(str(path), load_external_data=True)
+        onnx.save_model(graph, str(path), save_as_external_data=False)
+        for p in data:
+            p.unlink()
+        data = []
+    return [(p, p.stat().st_size) for p in [path, *data]]

@@ -3,6 +3,10 @@
 The node declares them from here, validates the values it gets, and prints them for
 ``odg_node --help``; tools/node_parameters.py writes config/odg.yaml, docs/parameters.md and
 the README's summary from the same schema, and a test keeps both current.
+
+The same checks validate ``odg ... --set key=value`` (``model_settings``): every model
+setting typed as ModelConfig declares it, with the schema's rule where the node has a
+parameter of the same name (the score thresholds).
 """
 from __future__ import annotations
 
@@ -16,7 +20,9 @@ from ..config import preset_names
 from ..resources import resource_path
 
 SCHEMA = "config/odg_node.schema.yaml"
-TYPES = {"bool": bool, "int": int, "float": float, "string": str, "string_array": list}
+TYPES = {"bool": bool, "int": int, "float": float, "string": str, "string_array": list,
+         "int_array": list, "float_array": list}
+_ELEMENTS = {"string_array": (str,), "int_array": (int,), "float_array": (int, float)}
 GROUPS = {"inputs": "inputs", "sync": "synchronisation and history", "model": "model",
           "outputs": "outputs"}
 _KEYS = {"type", "default", "description", "group", "enum", "minimum", "maximum",
@@ -56,8 +62,9 @@ class Parameter:
             value = float(value)
         if not isinstance(value, expected) or (expected is int and isinstance(value, bool)):
             return f"{self.name}={value!r}: expected {self.type}"
-        if expected is list and not all(isinstance(v, str) for v in value):
-            return f"{self.name}={value!r}: expected a list of strings"
+        if expected is list and not all(isinstance(v, _ELEMENTS[self.type]) and
+                                        not isinstance(v, bool) for v in value):
+            return f"{self.name}={value!r}: expected a list of {self.type.split('_')[0]}s"
         if expected is float and math.isnan(value):
             return f"{self.name}=nan: expected a number"
         if self.enum and value not in self.enum:
@@ -175,3 +182,56 @@ def params_file_text(schema: dict[str, Parameter] | None = None) -> str:
                 line = f"{line:<44}# {p.constraint()}"
             lines.append(line)
     return "\n".join(lines) + "\n"
+
+
+def closest_name(name: str, known) -> str:
+    """'; did you mean X?' for the known name closest to ``name`` ('' when none is close)."""
+    import difflib
+    close = difflib.get_close_matches(name, list(known), n=1, cutoff=0.6)
+    return f"; did you mean {close[0]}?" if close else ""
+
+
+def model_settings(schema: dict[str, Parameter] | None = None) -> dict[str, Parameter]:
+    """The rules of ``--set``: one per ModelConfig field, typed from its annotation, the
+    schema's rule where the node has the same parameter (its range, its meaning: a negative
+    score threshold keeps the checkpoint's own)."""
+    import dataclasses
+
+    from ..config import ModelConfig
+    schema = load_schema() if schema is None else schema
+    kinds = {"str": "string", "bool": "bool", "int": "int", "float": "float",
+             "tuple[int, int]": "int_array", "tuple[int, ...]": "int_array",
+             "tuple[float, ...]": "float_array"}
+    rules = {}
+    for f in dataclasses.fields(ModelConfig):
+        if f.name in schema:
+            rules[f.name] = schema[f.name]
+        else:
+            rules[f.name] = Parameter(name=f.name, type=kinds[str(f.type)],
+                                      default=f.default, description="", group="model")
+    return rules
+
+
+def parse_settings(items, rules: dict[str, Parameter] | None = None) -> dict:
+    """``key=value`` texts (YAML values, as a params file holds them) -> {key: value}, each
+    checked against its rule. Every problem raises one ValueError line: not KEY=VALUE, an
+    unknown key (with the closest known one), a wrong type (``flase`` is no bool), a value
+    out of range."""
+    rules = model_settings() if rules is None else rules
+    out = {}
+    for item in items or []:
+        key, sep, text = item.partition("=")
+        key = key.strip()
+        if not sep or not key:
+            raise ValueError(f"--set expects KEY=VALUE, got {item!r}")
+        if key not in rules:
+            raise ValueError(f"--set {key}: not a model setting{closest_name(key, rules)}")
+        try:
+            value = yaml.safe_load(text)
+        except yaml.YAMLError:
+            raise ValueError(f"--set {item}: the value is not valid YAML") from None
+        problem = rules[key].check(value)
+        if problem:
+            raise ValueError(f"--set {problem}")
+        out[key] = float(value) if rules[key].type == "float" else value
+    return out

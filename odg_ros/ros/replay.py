@@ -85,7 +85,8 @@ def replay(bag, *, rate: float = 1.0, clock: bool = False, loop: bool = False,
     if not (rate > 0 and rate < float("inf")):
         raise ValueError(f"rate must be a positive number, got {rate}")
     bag = Path(bag)
-    topics = bag_topics(bag)
+    with _readable(bag, "cannot open it"):
+        topics = bag_topics(bag)
     if not topics:
         raise ValueError(f"{bag}: the bag has no topics")
     stats = ReplayStats()
@@ -173,7 +174,7 @@ def _publish_once(bag: Path, publishers: dict, clock_pub, rate: float, stats: Re
     wall0 = bag0 = None
     last_clock_ns = None
     try:
-        for topic, stamp_ns, _, raw in iter_bag(bag, topics=publishers):
+        for topic, stamp_ns, _, raw in _messages(bag, publishers, stats):
             if bag0 is None:
                 wall0, bag0 = time.monotonic(), stamp_ns
             delay = wall0 + (stamp_ns - bag0) * 1e-9 / rate - time.monotonic()
@@ -187,6 +188,37 @@ def _publish_once(bag: Path, publishers: dict, clock_pub, rate: float, stats: Re
             bar.update(1)
     finally:
         bar.close()
+
+
+class _readable:
+    """Turns what reading a damaged, truncated or foreign bag raises into one ValueError
+    line (``odg replay`` shows it as its error, exit code 2)."""
+
+    def __init__(self, bag: Path, doing: str):
+        self.bag, self.doing = bag, doing
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, kind, error, traceback):
+        # whatever the reader raises on bytes it cannot parse (its own ReaderError, but also
+        # struct.error, OverflowError, KeyError... from a corrupt chunk): only reading is
+        # inside this block
+        if kind is not None and issubclass(kind, Exception):
+            raise ValueError(f"{self.bag} is not a readable rosbag2 bag ({self.doing}: "
+                             f"{type(error).__name__}: {error})") from error
+        return False
+
+
+def _messages(bag: Path, topics, stats: ReplayStats):
+    """iter_bag, a reading error named with the messages published before it."""
+    messages = iter_bag(bag, topics=topics)
+    while True:
+        with _readable(bag, f"after {sum(stats.published.values())} messages"):
+            item = next(messages, None)
+        if item is None:
+            return
+        yield item
 
 
 def _clock_message(stamp_ns: int):
