@@ -204,7 +204,8 @@ class _readable:
         # whatever the reader raises on bytes it cannot parse (its own ReaderError, but also
         # struct.error, OverflowError, KeyError... from a corrupt chunk): only reading is
         # inside this block
-        if kind is not None and issubclass(kind, Exception):
+        if kind is not None and issubclass(kind, Exception) and \
+                not issubclass(kind, _Interrupted):             # Ctrl-C while reading
             raise ValueError(f"{self.bag} is not a readable rosbag2 bag ({self.doing}: "
                              f"{type(error).__name__}: {error})") from error
         return False
