@@ -170,10 +170,12 @@ def node_numbers(record: SessionRecord) -> dict:
         "fps_topic_median": (float(np.median([f for f in record.fps_samples if f > 0]))
                              if any(f > 0 for f in record.fps_samples) else None),
         "stage_ms": stage_ms,
-        "latency_sim_ms": {"p50": node_float("latency_p50_ms"),
-                           "p95": node_float("latency_p95_ms")},
+        "latency_sim_ms": {"p50": node_float("stamp_age_p50_ms (node clock)"),
+                           "p95": node_float("stamp_age_p95_ms (node clock)")},
+        "receipt_to_publish_ms": {"p50": node_float("receipt_to_publish_p50_ms (steady)"),
+                                  "p95": node_float("receipt_to_publish_p95_ms (steady)")},
         "counters": {k: v for k, v in diag.items()
-                     if k not in ("rate_hz", "latency_p50_ms", "latency_p95_ms")
+                     if k != "rate_hz" and "_ms (" not in k and ": " not in k
                      and not k.startswith("stage_")},
         "status": record.diagnostics_message,
     }

@@ -1,9 +1,15 @@
 """Health of the online pipeline as plain dicts (the node packs them into diagnostic_msgs).
 
-Tracks, over a sliding window of outputs: output rate, pipeline latency (node clock now -
-image stamp, the diagnostic_msgs convention for a perception pipeline) p50/p95, and the
-processing time per stage; and reports the skip/drop counters of the pipeline. Levels use
-the diagnostic_msgs/DiagnosticStatus byte values.
+Tracks, over a sliding window of outputs: output rate, two latencies p50/p95 and the
+processing time per stage; reports the skip/drop counters of the pipeline and, per input
+topic, the messages received and the seconds since the last one. Levels use the
+diagnostic_msgs/DiagnosticStatus byte values.
+
+Two clocks, named in every value: rates, stage times, "receipt_to_publish" (the set's last
+image received -> its results published) and "no input for N s" run on the steady clock
+(``time.monotonic``), so they stay true under simulated time, a paused bag or a clock jump;
+"stamp_age" is the node's clock at publication minus the image stamp (the age of the data in
+the clock that stamped it: sim time while a bag is replayed with use_sim_time).
 """
 from __future__ import annotations
 
@@ -25,16 +31,43 @@ LOAD_COUNTERS = ("stale_sets_dropped", "tf_ignored", "tf_received", "tf_frames_f
 INPUT_COUNTERS = ("sets_completed", "tf_received")
 
 
+class InputMonitor:
+    """Per input topic: messages received and the steady time of the last one. Thread-safe:
+    the subscription callbacks record, a timer reads."""
+
+    def __init__(self, topics, clock=time.monotonic):
+        self._clock = clock
+        self._lock = threading.Lock()
+        self._counts = {topic: 0 for topic in topics}
+        self._last: dict[str, float] = {}
+
+    def received(self, topic: str) -> None:
+        now = self._clock()
+        with self._lock:
+            self._counts[topic] = self._counts.get(topic, 0) + 1
+            self._last[topic] = now
+
+    def snapshot(self) -> dict[str, tuple[int, float | None]]:
+        """topic -> (messages received, seconds since the last one or None)."""
+        now = self._clock()
+        with self._lock:
+            return {t: (n, now - self._last[t] if t in self._last else None)
+                    for t, n in self._counts.items()}
+
+
 class PipelineStats:
-    """Thread-safe: outputs are recorded by the worker, status read by a timer."""
+    """Thread-safe: outputs are recorded by the worker, status read by a timer. ``inputs``:
+    the InputMonitor of the node's subscriptions (None: inputs judged by the counters)."""
 
     def __init__(self, window: int = 100, rate_window_s: float = 5.0,
                  stale_after_s: float = 5.0, clock=time.monotonic,
-                 max_tf_rate: float = float("inf")):
+                 max_tf_rate: float = float("inf"), inputs: InputMonitor | None = None):
         self._lock = threading.Lock()
         self._clock = clock
-        self._output_times: deque[float] = deque(maxlen=window)   # monotonic
-        self._latencies: deque[float] = deque(maxlen=window)      # seconds
+        self.inputs = inputs
+        self._output_times: deque[float] = deque(maxlen=window)   # steady
+        self._ages: deque[float] = deque(maxlen=window)           # s, node clock
+        self._latencies: deque[float] = deque(maxlen=window)      # s, steady
         self._stage_times: dict[str, deque[float]] = {s: deque(maxlen=window) for s in STAGES}
         self.rate_window_s = float(rate_window_s)
         self.stale_after_s = float(stale_after_s)
@@ -46,12 +79,17 @@ class PipelineStats:
         self._counter_history: deque[tuple[float, dict[str, int]]] = deque()
         self._window_base: dict[str, int] = {}
 
-    def record_output(self, image_stamp: float, now: float, timings: dict[str, float]) -> None:
-        """One published result: its image stamp and the node clock ``now`` (seconds)."""
+    def record_output(self, image_stamp: float, now: float, timings: dict[str, float],
+                      received: float | None = None) -> None:
+        """One published result: its image stamp and the node clock ``now`` (seconds), and
+        the steady time its set's last image was received (None: unknown)."""
+        published = self._clock()
         with self._lock:
             self.outputs += 1
-            self._output_times.append(self._clock())
-            self._latencies.append(now - image_stamp)
+            self._output_times.append(published)
+            self._ages.append(now - image_stamp)
+            if received is not None:
+                self._latencies.append(published - received)
             for stage, seconds in timings.items():
                 if stage in self._stage_times:
                     self._stage_times[stage].append(seconds)
@@ -67,18 +105,21 @@ class PipelineStats:
         return (len(recent) - 1) / (recent[-1] - recent[0])
 
     def snapshot(self) -> dict:
-        """{'outputs', 'rate_hz', 'latency_ms': {'p50','p95'}, 'stage_ms': {stage: mean},
-        'seconds_since_output'} (None where nothing was measured yet)."""
+        """{'outputs', 'rate_hz', 'receipt_to_publish_ms' (steady) and 'stamp_age_ms' (node
+        clock): {'p50','p95'}, 'stage_ms': {stage: mean}, 'seconds_since_output'} (None
+        where nothing was measured yet)."""
+        def percentiles(values):
+            ms = np.asarray(values, dtype=np.float64) * 1e3
+            return {q: float(np.percentile(ms, n)) if ms.size else None
+                    for q, n in (("p50", 50), ("p95", 95))}
+
         with self._lock:
             now = self._clock()
-            latencies = np.asarray(self._latencies, dtype=np.float64) * 1e3
             return {
                 "outputs": self.outputs,
                 "rate_hz": self._rate_locked(now),
-                "latency_ms": {
-                    "p50": float(np.percentile(latencies, 50)) if latencies.size else None,
-                    "p95": float(np.percentile(latencies, 95)) if latencies.size else None,
-                },
+                "receipt_to_publish_ms": percentiles(self._latencies),
+                "stamp_age_ms": percentiles(self._ages),
                 "stage_ms": {s: (float(np.mean(v)) * 1e3 if v else None)
                              for s, v in self._stage_times.items()},
                 "seconds_since_output": (now - self._output_times[-1]
@@ -89,10 +130,12 @@ class PipelineStats:
         """A DiagnosticStatus as a dict: {'level', 'message', 'values': [(key, str)]}.
 
         OK while sets flow and nothing was skipped since the last call; WARN when sets were
-        skipped or dropped incomplete since the last call, before the first output, or when
-        /tf brings more than ``max_tf_rate`` transforms/s; ERROR when no output came for
-        ``stale_after_s`` (since the start or the last output) while inputs kept arriving,
-        with the dominant reason they were dropped over that time.
+        skipped or dropped incomplete since the last call, before the first output, when no
+        input came for ``stale_after_s`` ("no input for N s": a stopped bag, a dead driver),
+        or when /tf brings more than ``max_tf_rate`` transforms/s; ERROR when no output came
+        for ``stale_after_s`` (since the start or the last output) while inputs kept
+        arriving, with the dominant reason they were dropped over that time. Topics that
+        never sent are named in every non-OK message.
         """
         snap = self.snapshot()
         now = self._clock()
@@ -102,7 +145,6 @@ class PipelineStats:
         self._previous_counters = dict(counters)
         problems = {k: v for k, v in increased.items()
                     if k not in LOAD_COUNTERS and k not in INPUT_COUNTERS}
-        problem_text = ", ".join(f"{k}: {v}" for k, v in sorted(problems.items()))
 
         # what happened over the last stale_after_s (the oldest report inside it as base)
         while self._counter_history and now - self._counter_history[0][0] > self.stale_after_s:
@@ -110,13 +152,32 @@ class PipelineStats:
         self._counter_history.append((now, dict(counters)))
         base = self._window_base
         window = {k: v - base.get(k, 0) for k, v in counters.items() if v > base.get(k, 0)}
-        arriving = any(k not in LOAD_COUNTERS for k in window)
+        inputs = self.inputs.snapshot() if self.inputs is not None else {}
+        ages = [age for _, age in inputs.values() if age is not None]
+        quiet_for = min(ages) if ages else None           # since the last input, any topic
+        if inputs:
+            arriving = quiet_for is not None and quiet_for <= self.stale_after_s
+        else:
+            arriving = any(k not in LOAD_COUNTERS for k in window)
+        level, message = self._verdict(snap, now, problems, window, arriving, quiet_for)
+        never = [topic for topic, (count, _) in inputs.items() if count == 0]
+        if never and level != OK:
+            message += f"; never received: {', '.join(never)}"
+        tf_rate = increased.get("tf_received", 0) / elapsed if elapsed > 0 else 0.0
+        if tf_rate > self.max_tf_rate:
+            level = max(level, WARN)
+            message += (f"; /tf flood: {tf_rate:.0f} transforms/s (> {self.max_tf_rate:.0f}), "
+                        f"{increased.get('tf_ignored', 0)} dropped unread as not needed")
+        return {"level": level, "message": message,
+                "values": self._values(snap, counters, inputs)}
+
+    def _verdict(self, snap, now, problems, window, arriving, quiet_for) -> tuple[int, str]:
+        """(level, message) of ``status`` before the input and /tf notes."""
+        problem_text = ", ".join(f"{k}: {v}" for k, v in sorted(problems.items()))
+        skipped = f" (skipped: {problem_text})" if problem_text else ""
         silent_for = (snap["seconds_since_output"] if snap["outputs"]
                       else now - self._started)
-        tf_rate = increased.get("tf_received", 0) / elapsed if elapsed > 0 else 0.0
-
         if silent_for > self.stale_after_s and arriving:
-            level = ERROR
             message = f"no output for {silent_for:.1f} s while inputs arrive"
             drops = {k: v for k, v in window.items()
                      if k not in LOAD_COUNTERS and k not in INPUT_COUNTERS}
@@ -129,34 +190,32 @@ class PipelineStats:
                 message += ": sets complete but inference gives no output (see the log)"
             else:
                 message += ": no complete camera set"
-        elif snap["outputs"] == 0:
-            level = WARN
-            message = "waiting for the first complete camera set"
-            if problem_text:
-                message += f" (skipped: {problem_text})"
-        elif snap["seconds_since_output"] > self.stale_after_s:
-            level = ERROR
-            message = f"no output for {snap['seconds_since_output']:.1f} s"
-            if problem_text:
-                message += f" (skipped: {problem_text})"
-        elif problems:
-            level = WARN
-            message = f"skipped or dropped input since last report: {problem_text}"
-        else:
-            level = OK
-            message = f"running at {snap['rate_hz']:.1f} Hz"
-        if tf_rate > self.max_tf_rate:
-            level = max(level, WARN)
-            message += (f"; /tf flood: {tf_rate:.0f} transforms/s (> {self.max_tf_rate:.0f}), "
-                        f"{increased.get('tf_ignored', 0)} dropped unread as not needed")
+            return ERROR, message
+        if quiet_for is not None and quiet_for > self.stale_after_s:
+            return WARN, f"no input for {quiet_for:.1f} s" + (
+                f" (last output {snap['seconds_since_output']:.1f} s ago)"
+                if snap["outputs"] else "")
+        if snap["outputs"] == 0:
+            return WARN, "waiting for the first complete camera set" + skipped
+        if snap["seconds_since_output"] > self.stale_after_s:
+            return ERROR, f"no output for {snap['seconds_since_output']:.1f} s" + skipped
+        if problems:
+            return WARN, f"skipped or dropped input since last report: {problem_text}"
+        return OK, f"running at {snap['rate_hz']:.1f} Hz"
 
+    @staticmethod
+    def _values(snap, counters, inputs) -> list[tuple[str, str]]:
         def fmt(value):
             return "n/a" if value is None else f"{value:.1f}"
 
         values = [("outputs", str(snap["outputs"])),
-                  ("rate_hz", f"{snap['rate_hz']:.2f}"),
-                  ("latency_p50_ms", fmt(snap["latency_ms"]["p50"])),
-                  ("latency_p95_ms", fmt(snap["latency_ms"]["p95"]))]
+                  ("rate_hz", f"{snap['rate_hz']:.2f}")]
+        for name, clock in (("receipt_to_publish", "steady"), ("stamp_age", "node clock")):
+            for q in ("p50", "p95"):
+                values.append((f"{name}_{q}_ms ({clock})", fmt(snap[f"{name}_ms"][q])))
         values += [(f"stage_{s}_ms", fmt(v)) for s, v in snap["stage_ms"].items()]
+        for topic, (count, age) in inputs.items():
+            values += [(f"{topic}: received", str(count)),
+                       (f"{topic}: seconds since last", fmt(age))]
         values += [(k, str(v)) for k, v in sorted(counters.items())]
-        return {"level": level, "message": message, "values": values}
+        return values

@@ -78,7 +78,8 @@ class OnlineResult:
     """stamp: reference stamp (s); header: the opaque header object given with the
     reference camera's image; grid/confidence uint8 [X, Y, Z]; boxes: list of dicts;
     timings: seconds per stage; num_frames: frames the decoder used; observed: bool
-    [X, Y, Z], the voxels a camera sees (None with the visibility off)."""
+    [X, Y, Z], the voxels a camera sees (None with the visibility off); received: steady
+    time (time.monotonic) its set became complete."""
 
     stamp: float
     header: Any
@@ -88,6 +89,7 @@ class OnlineResult:
     timings: dict[str, float]
     num_frames: int
     observed: np.ndarray | None = None
+    received: float | None = None
 
 
 ExtrinsicsLookup = Callable[[str, str, float], np.ndarray]   # (camera, frame_id, stamp) -> 4x4
@@ -157,6 +159,7 @@ class OnlinePipeline:
         with self._input_lock:
             complete = self.sync.add(camera, stamp, (image, header))
         for camera_set in complete:
+            camera_set.completed_at = time.monotonic()
             self.mailbox.put(camera_set)
         return bool(complete)
 
@@ -214,7 +217,8 @@ class OnlinePipeline:
                             header=camera_set.payloads[camera_set.reference_camera][1],
                             grid=prediction.grid, confidence=prediction.confidence,
                             boxes=prediction.boxes, timings=timings,
-                            num_frames=prediction.num_frames, observed=prediction.observed)
+                            num_frames=prediction.num_frames, observed=prediction.observed,
+                            received=camera_set.completed_at)
 
     # ---------------------------------------------------------------- decoding ahead
     def start_decoding(self, on_bad_input: Callable[[BadInput], None],

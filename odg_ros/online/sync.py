@@ -58,6 +58,7 @@ class CameraSet:
 
     stamps: dict[str, float]
     payloads: dict[str, Any]
+    completed_at: float | None = None      # steady clock, when its last message came
 
     @property
     def reference_camera(self) -> str:

@@ -107,10 +107,11 @@ def test_diagnostics_rates_latency_and_levels():
     for k in range(20):
         clock[0] += 0.1                                   # 10 Hz
         stats.record_output(image_stamp=1000.0 + 0.1 * k, now=1000.0 + 0.1 * k + 0.2,
-                            timings={"model": 0.05, "upload": 0.03})
+                            timings={"model": 0.05, "upload": 0.03}, received=clock[0] - 0.09)
     snap = stats.snapshot()
     assert snap["rate_hz"] == pytest.approx(10.0)
-    assert snap["latency_ms"]["p50"] == pytest.approx(200.0)
+    assert snap["stamp_age_ms"]["p50"] == pytest.approx(200.0)          # node clock
+    assert snap["receipt_to_publish_ms"]["p50"] == pytest.approx(90.0)  # steady clock
     assert snap["stage_ms"]["model"] == pytest.approx(50.0)
     assert snap["stage_ms"]["publish"] is None
     assert stats.status(counters)["level"] == diagnostics.OK
