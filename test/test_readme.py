@@ -139,6 +139,6 @@ def test_rviz_config_shows_the_node_outputs():
                       "Map": "/odg_node/occupancy/bev",
                       "MarkerArray": "/odg_node/objects/markers"}
     assert config["Global Options"]["Fixed Frame"] == load_schema()["base_frame"].default
-    node_source = (ROOT / "odg_ros/ros/node.py").read_text()
+    node_source = (ROOT / "odg_ros/ros/messages.py").read_text()      # the node's Outputs
     for topic in topics.values():
         assert f'"~/{topic.removeprefix("/odg_node/")}"' in node_source, topic

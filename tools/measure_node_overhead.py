@@ -89,12 +89,12 @@ def pose_at(t: float) -> np.ndarray:
 
 
 def ros_publisher_self(cfg, stats):
-    """OdgNode.publish on a stand-in ``self`` with real rclpy publishers (no subscribers:
+    """The node's Outputs.publish (and its stats) with real rclpy publishers (no subscribers:
     serialised, not sent); ``optional``: the cloud, BEV and markers too, as if subscribed.
     None where rclpy is not importable."""
     try:
         import rclpy
-        from odg_ros.ros import messages as messages_module, node as node_module
+        from odg_ros.ros import messages as messages_module
         from odg_ros.ros.dds import use_localhost_dds
     except ImportError as error:
         print(f"rclpy not importable ({error}): publish times packing only")
@@ -102,27 +102,25 @@ def ros_publisher_self(cfg, stats):
     use_localhost_dds()
     rclpy.init()
     ros_node = rclpy.create_node("measure_node_overhead")
-    m = node_module
-
     subscribed = {"optional": 1}
+    required = ("occupancy", "objects")
 
-    def publisher(msg_type, topic):
-        real = ros_node.create_publisher(msg_type, topic, m.OUTPUT_QOS)
+    def create_publisher(msg_type, topic, qos):
+        real = ros_node.create_publisher(msg_type, topic.removeprefix("~/"), qos)
+        if topic.removeprefix("~/") in required:
+            return real
         return types.SimpleNamespace(publish=real.publish,
                                      get_subscription_count=lambda: subscribed["optional"])
 
-    fake = types.SimpleNamespace(
-        cfg=cfg, output_frame="base_link", stats=stats, now_seconds=time.time,
-        params={"bev_min_z": 0.0, "bev_max_z": 2.0},
-        messages=messages_module.ReusedMessages(),
-        pub_grid=publisher(m.SemanticVoxelGrid, "occupancy"),
-        pub_cloud=publisher(m.PointCloud2, "occupancy/cloud"),
-        pub_bev=publisher(m.OccupancyGrid, "occupancy/bev"),
-        pub_objects=publisher(m.DynamicObjectArray, "objects"),
-        pub_markers=publisher(m.MarkerArray, "objects/markers"))
+    outputs = messages_module.Outputs(types.SimpleNamespace(create_publisher=create_publisher),
+                                      cfg, "base_link", (0.0, 2.0))
+
     def publish(result, optional: bool):
         subscribed["optional"] = int(optional)
-        m.OdgNode.publish(fake, result)
+        start = time.perf_counter()
+        outputs.publish(result)
+        stats.record_output(result.stamp, time.time(), {"publish": time.perf_counter() - start},
+                            received=result.received)
 
     return publish, (ros_node, rclpy)
 
@@ -143,10 +141,10 @@ def packing_only(cfg):
 
 
 def replayed_outputs(outputs, cfg, occupied: int, boxes: int):
-    """The step's outputs (labels, confidence, boxes, score, label, valid), with random
-    voxels labelled until ``occupied`` are (random weights predict an empty grid) and the
-    ``boxes`` best boxes valid: the publishing cost of a busy scene."""
-    labels, confidence, box, score, label, valid = (o.clone() for o in outputs)
+    """The step's outputs (labels, confidence, boxes, score, label, valid, observed), with
+    random voxels labelled until ``occupied`` are (random weights predict an empty grid) and
+    the ``boxes`` best boxes valid: the publishing cost of a busy scene."""
+    labels, confidence, box, score, label, valid, observed = (o.clone() for o in outputs)
     free = cfg.labels.free_label
     missing = occupied - int((labels != free).sum())
     if missing > 0:
@@ -156,7 +154,7 @@ def replayed_outputs(outputs, cfg, occupied: int, boxes: int):
         labels.numpy()[chosen] = rng.integers(0, free, len(chosen))
     valid[:] = False
     valid[:boxes] = True
-    return labels, confidence, box, score, label, valid
+    return labels, confidence, box, score, label, valid, observed
 
 
 def measure_overlap(pipeline, feed, start: float, model_ms: float, sets: int) -> dict:

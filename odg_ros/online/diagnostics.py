@@ -35,11 +35,16 @@ class InputMonitor:
     """Per input topic: messages received and the steady time of the last one. Thread-safe:
     the subscription callbacks record, a timer reads."""
 
-    def __init__(self, topics, clock=time.monotonic):
+    def __init__(self, topics=(), clock=time.monotonic):
         self._clock = clock
         self._lock = threading.Lock()
         self._counts = {topic: 0 for topic in topics}
         self._last: dict[str, float] = {}
+
+    def watch(self, topic: str) -> None:
+        """Report ``topic`` from now on, as never received until it is."""
+        with self._lock:
+            self._counts.setdefault(topic, 0)
 
     def received(self, topic: str) -> None:
         now = self._clock()

@@ -191,6 +191,16 @@ def closest_name(name: str, known) -> str:
     return f"; did you mean {close[0]}?" if close else ""
 
 
+def unknown_parameters_text(names, schema: dict[str, Parameter]) -> str:
+    """'unknown parameter(s) ...' naming each of ``names`` with the closest schema name
+    ('' when there are none)."""
+    names = sorted(names)
+    if not names:
+        return ""
+    return "unknown parameter" + "s" * (len(names) > 1) + " " + ", ".join(
+        f"{name!r}{closest_name(name, schema)}" for name in names)
+
+
 def model_settings(schema: dict[str, Parameter] | None = None) -> dict[str, Parameter]:
     """The rules of ``--set``: one per ModelConfig field, typed from its annotation, the
     schema's rule where the node has the same parameter (its range, its meaning: a negative

@@ -9,16 +9,22 @@ from __future__ import annotations
 import array
 
 import numpy as np
+from builtin_interfaces.msg import Time as TimeMsg
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import Point, Pose, Quaternion, Vector3
 from nav_msgs.msg import OccupancyGrid
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import PointCloud2, PointField
-from std_msgs.msg import ColorRGBA, Header
+from std_msgs.msg import ColorRGBA, Float32, Float64, Header
 from visualization_msgs.msg import Marker, MarkerArray
 
 from odg_ros_msgs.msg import DynamicObject, DynamicObjectArray, SemanticVoxelGrid
 
 from ..online import packing
+
+OUTPUT_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
+                        reliability=ReliabilityPolicy.RELIABLE,
+                        durability=DurabilityPolicy.VOLATILE)
 
 
 def u8(data) -> array.array:
@@ -65,6 +71,7 @@ class ReusedMessages:
         grid.class_names = fields["class_names"]
         grid.labels = refilled_u8(grid.labels, fields["labels"])
         grid.confidence = refilled_u8(grid.confidence, fields["confidence"])
+        grid.observed = refilled_u8(grid.observed, fields["observed"])
         return grid
 
     def object_array(self, header: Header, boxes: list[dict]) -> DynamicObjectArray:
@@ -128,3 +135,49 @@ def diagnostic_array(stamp, name: str, hardware_id: str, status: dict) -> Diagno
         level=bytes([status["level"]]), name=name, message=status["message"],
         hardware_id=hardware_id, values=[KeyValue(key=k, value=v) for k, v in status["values"]])
     return DiagnosticArray(header=Header(stamp=stamp), status=[message])
+
+
+
+class Outputs:
+    """The node's publishers and what goes out on them for one result: the grid and the
+    objects always, the cloud, BEV and markers only to subscribers (building them costs)."""
+
+    def __init__(self, node, cfg, frame: str, bev_band: tuple[float, float]):
+        self.cfg, self.frame, self.bev_band = cfg, frame, bev_band
+        self.reused = ReusedMessages()
+        create = node.create_publisher
+        self.grid = create(SemanticVoxelGrid, "~/occupancy", OUTPUT_QOS)
+        self.cloud = create(PointCloud2, "~/occupancy/cloud", OUTPUT_QOS)
+        self.bev = create(OccupancyGrid, "~/occupancy/bev", OUTPUT_QOS)
+        self.objects = create(DynamicObjectArray, "~/objects", OUTPUT_QOS)
+        self.markers = create(MarkerArray, "~/objects/markers", OUTPUT_QOS)
+        self.fps = create(Float32, "~/fps", OUTPUT_QOS)
+        self.processing_ms = create(Float64, "~/debug/processing_time_ms", OUTPUT_QOS)
+        self.latency_ms = create(Float64, "~/debug/pipeline_latency_ms", OUTPUT_QOS)
+        self.diagnostics = create(DiagnosticArray, "/diagnostics", 10)
+
+    def publish(self, result) -> None:
+        """One OnlineResult, stamped with its reference image's header stamp."""
+        header = Header(stamp=result.header if isinstance(result.header, TimeMsg)
+                        else TimeMsg(), frame_id=self.frame)
+        cfg, observed = self.cfg, result.observed
+        self.grid.publish(self.reused.grid_message(header, packing.voxel_grid_fields(
+            result.grid, result.confidence, cfg.pc_range, cfg.voxel_size, cfg.labels,
+            observed)))
+        if self.cloud.get_subscription_count():
+            self.cloud.publish(cloud_message(header, packing.cloud_fields(
+                result.grid, cfg.pc_range, cfg.voxel_size, cfg.labels, observed)))
+        if self.bev.get_subscription_count():
+            self.bev.publish(bev_message(header, packing.bev_fields(
+                result.grid, cfg.pc_range, cfg.voxel_size, *self.bev_band, cfg.labels,
+                observed)))
+        objects = self.reused.object_array(header, result.boxes)
+        self.objects.publish(objects)
+        if self.markers.get_subscription_count():
+            self.markers.publish(marker_array(header, objects))
+
+    def publish_timing(self, processing_s: float, latency_s: float) -> None:
+        """Autoware's debug topics, milliseconds: processing (steady clock) and pipeline
+        latency (node clock)."""
+        self.processing_ms.publish(Float64(data=processing_s * 1e3))
+        self.latency_ms.publish(Float64(data=latency_s * 1e3))

@@ -10,13 +10,16 @@ sensor QoS), one CameraInfo per camera, the ego pose from /tf (+ /tf_static) or 
 topic, camera extrinsics from a rig file or TF. TF is read straight from tf2_msgs/TFMessage
 into a small transform buffer (online/transforms.py), so the node does not need tf2_ros.
 
-Outputs (reliable, keep-last 1): ~/occupancy (odg_ros_msgs/SemanticVoxelGrid),
-~/occupancy/cloud (PointCloud2: occupied voxel centres, x y z float32 + label uint8),
-~/occupancy/bev (OccupancyGrid: 100 where a column holds anything but free or
-driveable_surface between bev_min_z and bev_max_z), ~/objects (odg_ros_msgs/
-DynamicObjectArray), ~/objects/markers (MarkerArray), ~/fps (Float32), /diagnostics.
-Every output is in ``output_frame`` (the ego at the reference camera's stamp), stamped with
-that camera's header stamp.
+Outputs (reliable, keep-last 1): ~/occupancy (odg_ros_msgs/SemanticVoxelGrid, with the
+observed mask of online/visibility.py), ~/occupancy/cloud (PointCloud2: occupied voxel
+centres, x y z float32 + label uint8 + observed uint8), ~/occupancy/bev (OccupancyGrid: 100
+where a column holds anything but free or driveable_surface between bev_min_z and
+bev_max_z, -1 where it is not seen, else 0), ~/objects (odg_ros_msgs/DynamicObjectArray),
+~/objects/markers (MarkerArray), ~/debug/processing_time_ms and
+~/debug/pipeline_latency_ms (Float64), ~/fps (Float32), /diagnostics. Every output is in
+``output_frame`` (the ego at the reference camera's stamp), stamped with that camera's
+header stamp. Diagnostics and ~/fps run on a steady timer (they go on when a replayed bag
+and its /clock stop).
 
 Bad input (corrupt image, wrong size or encoding, missing CameraInfo, NaN / non-orthonormal
 pose, pose miss, future stamp) never stops the node: a warning throttled per kind, a
@@ -26,34 +29,34 @@ diagnostics counter, and the set is skipped.
 """
 from __future__ import annotations
 
+import re
 import signal
 import sys
 import threading
 import time
 import traceback
+from pathlib import Path
 
 import numpy as np
 import rclpy
-from builtin_interfaces.msg import Time as TimeMsg
-from diagnostic_msgs.msg import DiagnosticArray
-from nav_msgs.msg import OccupancyGrid, Odometry
+import rclpy.logging
+import yaml
+from nav_msgs.msg import Odometry
 from rcl_interfaces.msg import ParameterDescriptor, ParameterType
 from rclpy.exceptions import ParameterException
+from rclpy._rclpy_pybind11 import RCLError
+from rclpy.clock import Clock, ClockType
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy,
                        qos_profile_sensor_data)
-from sensor_msgs.msg import CameraInfo, CompressedImage, Image, PointCloud2
-from std_msgs.msg import Float32, Header
-from visualization_msgs.msg import MarkerArray
-
-from odg_ros_msgs.msg import DynamicObjectArray, SemanticVoxelGrid
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image
+from std_msgs.msg import Float32
 
 from ..network.checkpoint import load_model
 from ..network.precision import resolve_device, slow_precision_warning
-from ..online import packing
-from ..online.diagnostics import PipelineStats
+from ..online.diagnostics import InputMonitor, PipelineStats
 from ..online import parameters as node_parameters
 from ..online.errors import BadInput
 from ..online.images import EncodedImage
@@ -75,9 +78,7 @@ _PARAMETER_TYPES = {"bool": ParameterType.PARAMETER_BOOL,
                     "string": ParameterType.PARAMETER_STRING,
                     "string_array": ParameterType.PARAMETER_STRING_ARRAY}
 
-OUTPUT_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
-                        reliability=ReliabilityPolicy.RELIABLE,
-                        durability=DurabilityPolicy.VOLATILE)
+OUTPUT_QOS = messages.OUTPUT_QOS
 TF_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
                     reliability=ReliabilityPolicy.RELIABLE)
 TF_STATIC_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
@@ -88,6 +89,13 @@ TF_STATIC_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
 def stamp_seconds(stamp) -> float:
     """Raises BadInput('bad_stamp') for a stamp that is no valid time."""
     return stamp_to_seconds(stamp.sec, stamp.nanosec)
+
+
+def encoded_image(msg) -> EncodedImage:
+    """A CompressedImage or Image message as the pipeline's EncodedImage (not decoded)."""
+    if isinstance(msg, CompressedImage):
+        return EncodedImage(True, msg.format, bytes(msg.data))
+    return EncodedImage(False, msg.encoding, bytes(msg.data), msg.height, msg.width, msg.step)
 
 
 class OdgNode(Node):
@@ -108,17 +116,21 @@ class OdgNode(Node):
         self._tf_base = {p["base_frame"]} if p["pose_source"] == "tf" else set()
         self._tf_cameras: dict[str, str] = {}
         self.tf.set_wanted(self._tf_base)
+        self.inputs = InputMonitor()
         self.stats = PipelineStats(stale_after_s=float(p["no_output_timeout"]),
-                                   max_tf_rate=float(p["max_tf_rate"]))
+                                   max_tf_rate=float(p["max_tf_rate"]), inputs=self.inputs)
         self.internal_errors = 0
         self._error_lock = threading.Lock()
         self.pipeline = OnlinePipeline(predictor, pipeline_settings(p, cameras), extrinsics,
                                        pose_lookup, self.stats)
         self._bad_input_loggers = {}
-        self._create_publishers()
+        self.outputs = messages.Outputs(self, self.cfg, self.output_frame,
+                                        (float(p["bev_min_z"]), float(p["bev_max_z"])))
         self._subscribe(p, cameras)
 
-        self.create_timer(float(p["diagnostics_period"]), self.publish_diagnostics)
+        # steady: diagnostics go on (and say "no input") when a bag and its /clock stop
+        self.create_timer(float(p["diagnostics_period"]), self.publish_diagnostics,
+                          clock=Clock(clock_type=ClockType.STEADY_TIME))
         # decoding runs ahead of the model: set n+1 decodes while the model runs on set n
         self.get_logger().info(self.pipeline.jpeg_decoder_reason)
         self.pipeline.start_decoding(self.warn_bad_input, self._internal_error)
@@ -144,41 +156,50 @@ class OdgNode(Node):
                                              read_only=True,
                                              dynamic_typing=parameter.type == "float")
             self.declare_parameter(name, parameter.default, descriptor)
-        return node_parameters.validate(
+        values = node_parameters.validate(
             {name: self.get_parameter(name).value for name in schema}, schema)
+        self._refuse_unknown_parameters(schema, values["unknown_parameters"])
+        return values
 
-    def _create_publishers(self) -> None:
-        self.messages = messages.ReusedMessages()
-        self.pub_grid = self.create_publisher(SemanticVoxelGrid, "~/occupancy", OUTPUT_QOS)
-        self.pub_cloud = self.create_publisher(PointCloud2, "~/occupancy/cloud", OUTPUT_QOS)
-        self.pub_bev = self.create_publisher(OccupancyGrid, "~/occupancy/bev", OUTPUT_QOS)
-        self.pub_objects = self.create_publisher(DynamicObjectArray, "~/objects", OUTPUT_QOS)
-        self.pub_markers = self.create_publisher(MarkerArray, "~/objects/markers", OUTPUT_QOS)
-        self.pub_fps = self.create_publisher(Float32, "~/fps", OUTPUT_QOS)
-        self.pub_diagnostics = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+    def _refuse_unknown_parameters(self, schema, mode: str) -> None:
+        """Parameters given (params file, -p, launch) that the node does not declare (rclpy
+        keeps them in the node's overrides): error raises (one FATAL line), warn warns."""
+        text = node_parameters.unknown_parameters_text(
+            [name for name in self._parameter_overrides if not self.has_parameter(name)],
+            schema)
+        if text and mode == "error":
+            raise ValueError(f"{text} (unknown_parameters: warn only warns)")
+        if text:
+            self.get_logger().warning(text)
 
     def _subscribe(self, p: dict, cameras: list[str]) -> None:
         image_type = CompressedImage if p["image_transport"] == "compressed" else Image
         self._inputs = []
         for camera in cameras:
-            image_topic = p["image_topic"].format(camera=camera)
-            info_topic = p["camera_info_topic"].format(camera=camera)
-            self._inputs.append(self.create_subscription(
-                image_type, image_topic, lambda m, c=camera: self.on_image(c, m),
-                qos_profile_sensor_data))
-            self._inputs.append(self.create_subscription(
-                CameraInfo, info_topic, lambda m, c=camera: self.on_camera_info(c, m),
-                qos_profile_sensor_data))
+            self._input(image_type, p["image_topic"].format(camera=camera),
+                        lambda m, c=camera: self.on_image(c, m), qos_profile_sensor_data)
+            self._input(CameraInfo, p["camera_info_topic"].format(camera=camera),
+                        lambda m, c=camera: self.on_camera_info(c, m),
+                        qos_profile_sensor_data)
         if p["pose_source"] == "odometry":
-            self._inputs.append(self.create_subscription(
-                Odometry, p["odometry_topic"], self.on_odometry,
-                QoSProfile(depth=100, reliability=ReliabilityPolicy.BEST_EFFORT)))
+            self._input(Odometry, p["odometry_topic"], self.on_odometry,
+                        QoSProfile(depth=100, reliability=ReliabilityPolicy.BEST_EFFORT))
         if p["pose_source"] == "tf" or p["extrinsics_source"] == "tf":
             from tf2_msgs.msg import TFMessage    # on ROS installs and in the venv shim
-            self._inputs.append(self.create_subscription(
-                TFMessage, "/tf", lambda m: self.on_tf(m, False), TF_QOS))
-            self._inputs.append(self.create_subscription(
-                TFMessage, "/tf_static", lambda m: self.on_tf(m, True), TF_STATIC_QOS))
+            self._input(TFMessage, "/tf", lambda m: self.on_tf(m, False), TF_QOS)
+            self._input(TFMessage, "/tf_static", lambda m: self.on_tf(m, True),
+                        TF_STATIC_QOS)
+
+    def _input(self, message_type, topic: str, callback, qos) -> None:
+        """A subscription whose messages are counted per topic (its name after remapping)
+        for the diagnostics before ``callback`` sees them."""
+        name = self.resolve_topic_name(topic)
+        self.inputs.watch(name)
+
+        def receive(msg):
+            self.inputs.received(name)
+            callback(msg)
+        self._inputs.append(self.create_subscription(message_type, topic, receive, qos))
 
     # ------------------------------------------------------------------ bad input reporting
     def warn_bad_input(self, error: BadInput) -> None:
@@ -194,14 +215,9 @@ class OdgNode(Node):
 
     # ------------------------------------------------------------------------- callbacks
     def on_image(self, camera: str, msg) -> None:
-        if isinstance(msg, CompressedImage):
-            image = EncodedImage(True, msg.format, bytes(msg.data))
-        else:
-            image = EncodedImage(False, msg.encoding, bytes(msg.data), msg.height, msg.width,
-                                 msg.step)
         try:
             stamp = self._checked_stamp(msg.header.stamp)
-            self.pipeline.on_image(camera, stamp, image, self.now_seconds(),
+            self.pipeline.on_image(camera, stamp, encoded_image(msg), self.now_seconds(),
                                    header=msg.header.stamp)
         except BadInput as error:
             self.warn_bad_input(error)
@@ -278,25 +294,16 @@ class OdgNode(Node):
 
     def publish(self, result) -> None:
         start = time.perf_counter()
-        header = Header(stamp=result.header if isinstance(result.header, TimeMsg)
-                        else TimeMsg(), frame_id=self.output_frame)
-        cfg = self.cfg
-        self.pub_grid.publish(self.messages.grid_message(header, packing.voxel_grid_fields(
-            result.grid, result.confidence, cfg.pc_range, cfg.voxel_size, cfg.labels)))
-        if self.pub_cloud.get_subscription_count():
-            self.pub_cloud.publish(messages.cloud_message(header, packing.cloud_fields(
-                result.grid, cfg.pc_range, cfg.voxel_size, cfg.labels)))
-        if self.pub_bev.get_subscription_count():
-            self.pub_bev.publish(messages.bev_message(header, packing.bev_fields(
-                result.grid, cfg.pc_range, cfg.voxel_size, float(self.params["bev_min_z"]),
-                float(self.params["bev_max_z"]), cfg.labels)))
-        objects = self.messages.object_array(header, result.boxes)
-        self.pub_objects.publish(objects)
-        if self.pub_markers.get_subscription_count():
-            self.pub_markers.publish(messages.marker_array(header, objects))
+        self.outputs.publish(result)
         timings = dict(result.timings)
         timings["publish"] = time.perf_counter() - start
-        self.stats.record_output(result.stamp, self.now_seconds(), timings)
+        now = self.now_seconds()
+        self.stats.record_output(result.stamp, now, timings, received=result.received)
+        # processing: the set complete -> published (steady); latency: now - its image stamp
+        # (the node's clock)
+        processing = time.monotonic() - result.received if result.received is not None \
+            else sum(timings.values())
+        self.outputs.publish_timing(processing, now - result.stamp)
 
     # ----------------------------------------------------------------------- diagnostics
     def counters(self) -> dict[str, int]:
@@ -312,10 +319,10 @@ class OdgNode(Node):
         if self.internal_errors:
             status["level"] = max(status["level"], 2)      # DiagnosticStatus.ERROR
             status["message"] += f"; {self.internal_errors} internal errors (see the log)"
-        self.pub_diagnostics.publish(messages.diagnostic_array(
+        self.outputs.diagnostics.publish(messages.diagnostic_array(
             self.get_clock().now().to_msg(), f"{self.get_fully_qualified_name()}: pipeline",
             str(self.pipeline.predictor.device), status))
-        self.pub_fps.publish(Float32(data=float(self.stats.rate_hz())))
+        self.outputs.fps.publish(Float32(data=float(self.stats.rate_hz())))
 
     def destroy_node(self):
         self._stop.set()
@@ -351,7 +358,8 @@ def load_predictor(p: dict, logger) -> OnlinePredictor:
                                 num_frames=history,
                                 min_interval=float(p["history_interval"]),
                                 precision=p["precision"], compile=p["compile"],
-                                compiled_step=p["compiled_step"].strip() or None)
+                                compiled_step=p["compiled_step"].strip() or None,
+                                visibility=bool(p["visibility"]))
     logger.info(f"online step: {predictor.mode} mode, start-up (compile, capture) "
                 f"{predictor.startup_seconds:.1f} s")
     return predictor
@@ -394,6 +402,30 @@ def pipeline_settings(p: dict, cameras: list[str]) -> PipelineSettings:
                             max_image_pixels=int(p["max_image_pixels"]))
 
 
+def params_file_problem(argv: list[str]) -> str | None:
+    """What is wrong with the first unusable --params-file of the ROS arguments, or None."""
+    ros_args = argv[argv.index("--ros-args"):] if "--ros-args" in argv else []
+    for flag, path in zip(ros_args, ros_args[1:]):
+        if flag != "--params-file":
+            continue
+        if not Path(path).is_file():
+            return f"params file {path}: no such file"
+        try:
+            document = yaml.safe_load(Path(path).read_text())
+        except (OSError, UnicodeDecodeError, yaml.YAMLError) as error:
+            return f"params file {path}: not YAML ({' '.join(str(error).split())})"
+        if not isinstance(document, dict) or not all(
+                isinstance(v, dict) and "ros__parameters" in v for v in document.values()):
+            return (f"params file {path}: not a ROS params file (expected "
+                    "<node or /**>: {ros__parameters: {...}})")
+    return None
+
+
+def rcl_message(error: Exception) -> str:
+    """rcl's error text without its source locations (', at /path/file.c:123')."""
+    return re.sub(r",? at [^ ,]+\.c:\d+", "", " ".join(str(error).split()))
+
+
 def wants_help(argv: list[str]) -> bool:
     """-h / --help among the node's own arguments (those before --ros-args)."""
     own = argv[1:argv.index("--ros-args")] if "--ros-args" in argv else argv[1:]
@@ -409,7 +441,15 @@ def main(args=None) -> int:
     # KeyboardInterrupt can land inside rclpy's Task construction and leave a half-built task
     # that errors when collected (seen at the end of the demo).
     stop = threading.Event()
-    rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
+    problem = params_file_problem(argv)       # checked here: rcl would log its own error too
+    if problem is None:
+        try:
+            rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
+        except RCLError as error:             # what rcl refuses in the arguments
+            problem = rcl_message(error)
+    if problem is not None:
+        rclpy.logging.get_logger(NODE_NAME).fatal(f"cannot start: {problem}")
+        return 1
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
     node = executor = None

@@ -196,3 +196,16 @@ def test_agreement_with_a_synthetic_worlds_mask_camera(tmp_path):
     iou = (observed & mask).sum() / (observed | mask).sum()
     print(f"IoU of observed against mask_camera: {iou:.3f}")
     assert iou > 0.75                            # 0.78 measured on this keyframe
+
+
+def test_the_predictor_without_visibility_returns_none():
+    from test_online_predictor import make_model, make_sets
+    from odg_ros.online.predictor import OnlinePredictor
+    model, cfg = make_model()
+    images, ego2img, pose, stamp = make_sets(cfg, 1)[0]
+    on = OnlinePredictor(model, cfg, "cpu").step(images, ego2img, pose, stamp)
+    off = OnlinePredictor(model, cfg, "cpu", visibility=False).step(images, ego2img, pose,
+                                                                   stamp)
+    assert on.observed.shape == on.grid.shape and on.observed.any()
+    assert off.observed is None
+    np.testing.assert_array_equal(on.grid, off.grid)

@@ -1,7 +1,7 @@
-"""OdgNode.publish refills the same grid and object messages for every result: what it
-publishes must equal, after serialisation, the messages built anew, field by field, for
-each result, whatever the results before them (more boxes, another grid). (Compared as
-deserialised messages: the serialised bytes hold uninitialised CDR padding.)"""
+"""The node's Outputs (ros/messages.py) refill the same grid and object messages for every
+result: what they publish must equal, after serialisation, the messages built anew, field by
+field, for each result, whatever the results before them (more boxes, another grid).
+(Compared as deserialised messages: the serialised bytes hold uninitialised CDR padding.)"""
 from __future__ import annotations
 
 import types
@@ -10,7 +10,6 @@ import numpy as np
 
 from odg_ros.classes import BOX_CLASSES, LABEL_SETS
 from odg_ros.online import packing
-from odg_ros.online.diagnostics import PipelineStats
 
 LABELS = LABEL_SETS["nuscenes"]
 PC_RANGE = (-2.0, -1.6, -1.0, 2.0, 1.6, 0.6)
@@ -27,8 +26,10 @@ def result(seed: int, boxes: int):
                  "size": rng.uniform(0.5, 5, 3).tolist(), "yaw": float(rng.uniform(-3, 3)),
                  "velocity": rng.normal(size=2).tolist()}
                 for label in rng.integers(0, len(BOX_CLASSES), boxes)]
+    observed = rng.integers(0, 2, GRID).astype(bool)
     return types.SimpleNamespace(header=Time(sec=100 + seed, nanosec=seed), stamp=100.0 + seed,
-                                 grid=grid, confidence=confidence, boxes=box_list, timings={})
+                                 grid=grid, confidence=confidence, boxes=box_list, timings={},
+                                 observed=observed)
 
 
 def built_anew(res, frame: str):
@@ -42,7 +43,8 @@ def built_anew(res, frame: str):
         header=header, origin=Pose(position=Point(x=PC_RANGE[0], y=PC_RANGE[1], z=PC_RANGE[2])),
         resolution=0.4, size_x=X, size_y=Y, size_z=Z, memory_order="xyz_c",
         free_label=LABELS.free_label, unknown_label=255, class_names=list(LABELS.names),
-        labels=res.grid.tobytes(), confidence=res.confidence.tobytes())
+        labels=res.grid.tobytes(), confidence=res.confidence.tobytes(),
+        observed=res.observed.astype(np.uint8).tobytes())
     objects = DynamicObjectArray(header=header)
     for box in res.boxes:
         w, length, h = box["size"]
@@ -61,7 +63,7 @@ def built_anew(res, frame: str):
 
 def test_refilled_messages_are_sent_like_new_ones(rclpy_module):
     from rclpy.serialization import deserialize_message, serialize_message
-    from odg_ros.ros import messages as messages_module, node as node_module
+    from odg_ros.ros import messages as messages_module
 
     def sent(msg):
         return deserialize_message(serialize_message(msg), type(msg))
@@ -81,16 +83,19 @@ def test_refilled_messages_are_sent_like_new_ones(rclpy_module):
         def get_subscription_count(self):
             return self.subscribers
 
-    node = types.SimpleNamespace(
-        cfg=types.SimpleNamespace(pc_range=PC_RANGE, voxel_size=0.4, labels=LABELS),
-        output_frame="base_link", stats=PipelineStats(), now_seconds=lambda: 0.0,
-        params={"bev_min_z": 0.0, "bev_max_z": 2.0}, messages=messages_module.ReusedMessages(),
-        pub_grid=Recorder("grid"), pub_cloud=Recorder("cloud"), pub_bev=Recorder("bev"),
-        pub_objects=Recorder("objects"), pub_markers=Recorder("markers", subscribers=1))
+    names = {"~/occupancy": "grid", "~/objects": "objects", "~/objects/markers": "markers"}
+
+    def create_publisher(msg_type, topic, qos):
+        return Recorder(names.get(topic, topic), subscribers=int(topic in names))
+
+    outputs = messages_module.Outputs(
+        types.SimpleNamespace(create_publisher=create_publisher),
+        types.SimpleNamespace(pc_range=PC_RANGE, voxel_size=0.4, labels=LABELS),
+        "base_link", (0.0, 2.0))
     # more boxes, then fewer, none, more again; a new grid each time
     results = [result(seed, boxes) for seed, boxes in enumerate((3, 1, 0, 5))]
     for res in results:
-        node_module.OdgNode.publish(node, res)
+        outputs.publish(res)
     for i, res in enumerate(results):
         grid, objects = built_anew(res, "base_link")
         assert published["grid"][i] == sent(grid), f"grid of result {i}"

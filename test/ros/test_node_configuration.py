@@ -1,0 +1,82 @@
+"""What a ROS user meets when configuring odg_node: a parameter the node does not know
+(params file, -p), a misspelt boolean, a params file that is missing or no ROS params file:
+one FATAL line naming it (and the closest known name) and exit code 1; with
+unknown_parameters: warn, a warning and the node runs."""
+from __future__ import annotations
+
+import signal
+import subprocess
+import sys
+
+import pytest
+import yaml
+
+
+def run_node(*args, timeout=120):
+    return subprocess.run([sys.executable, "-m", "odg_ros.ros.node", *args],
+                          capture_output=True, text=True, timeout=timeout)
+
+
+def one_fatal_line(result) -> str:
+    assert result.returncode == 1, (result.stdout, result.stderr)
+    lines = (result.stdout + result.stderr).strip().splitlines()
+    assert len(lines) == 1 and "[FATAL]" in lines[0], lines
+    return lines[0]
+
+
+def params_file(path, **values):
+    path.write_text(yaml.safe_dump({"/**": {"ros__parameters": values}}))
+    return str(path)
+
+
+def test_an_unknown_parameter_on_the_command_line_stops_the_node(rclpy_module):
+    line = one_fatal_line(run_node("--ros-args", "-p", "slopp:=0.1", "-p", "device:=cpu"))
+    assert "unknown parameter 'slopp'; did you mean slop?" in line
+
+
+def test_misspelt_names_in_a_params_file_are_all_named(rclpy_module, tmp_path):
+    path = params_file(tmp_path / "p.yaml", checkpint="random", score_treshold=0.9,
+                       device="cpu")
+    line = one_fatal_line(run_node("--ros-args", "--params-file", path))
+    assert "unknown parameters 'checkpint'; did you mean checkpoint?, 'score_treshold'; " \
+           "did you mean score_threshold?" in line
+
+
+def test_a_misspelt_boolean_stops_the_node(rclpy_module):
+    line = one_fatal_line(run_node("--ros-args", "-p", "visibility:=flase", "-p",
+                                   "device:=cpu"))
+    assert "visibility" in line and "expecting type 'BOOL'" in line
+
+
+@pytest.mark.parametrize("content, expected", [
+    (None, "no such file"),
+    ("slop: [1,\n", "not YAML"),
+    ("slop: 0.1\n", "not a ROS params file"),
+])
+def test_a_params_file_that_is_missing_or_no_params_file(rclpy_module, tmp_path, content,
+                                                         expected):
+    path = tmp_path / "params.yaml"
+    if content is not None:
+        path.write_text(content)
+    line = one_fatal_line(run_node("--ros-args", "--params-file", str(path)))
+    assert f"params file {path}: {expected}" in line
+
+
+def test_unknown_parameters_warn_only_warns(rclpy_module, tmp_path):
+    path = params_file(tmp_path / "p.yaml", checkpoint="random", device="cpu",
+                       unknown_parameters="warn", slopp=0.1)
+    child = subprocess.Popen([sys.executable, "-m", "odg_ros.ros.node", "--ros-args",
+                              "--params-file", path, "-r", "__ns:=/odg_warn_test"],
+                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        lines = []
+        for line in child.stdout:
+            lines.append(line)
+            if "outputs in" in line:                 # started
+                break
+        text = "".join(lines)
+        assert "[WARN]" in text and "unknown parameter 'slopp'; did you mean slop?" in text
+        assert "outputs in" in text, text
+    finally:
+        child.send_signal(signal.SIGINT)
+        assert child.wait(timeout=30) == 0
