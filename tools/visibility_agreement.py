@@ -2,13 +2,18 @@
 ``mask_camera``: the voxel IoU of "observed" over held-out keyframes.
 
     python -m tools.visibility_agreement --data data/synth24/infos_val.pkl
-    python -m tools.visibility_agreement --data data/synth24/infos_val.pkl \\
+    python -m tools.visibility_agreement --data data/synth24/infos_val.pkl \
         --checkpoint model/odg_cpu.pt
+    python -m tools.visibility_agreement --data data/synth24/infos_val.pkl --device cuda
+    python -m tools.visibility_agreement --data data/synth24/infos_val.pkl \
+        --checkpoint model/odg_cpu.pt --step-share 12
 
 Without --checkpoint the visibility is computed from the ground-truth occupancy (what the
-method can reach when the grid is right); with it, from the grid the node's online step
-predicts (keyframes in scene order, history as in the node). Prints one line per scene and
-a JSON summary (IoU over all voxels of all keyframes, and the mean per keyframe).
+method can reach when the grid is right), on --device, and timed there (the median per
+keyframe: CPU time of one thread on the CPU, CUDA events on a GPU); with it, from the grid
+the node's online step predicts on the CPU (keyframes in scene order, history as in the
+node). Prints one line per scene and a JSON summary (IoU over all voxels of all keyframes,
+and the mean per keyframe).
 """
 from __future__ import annotations
 
@@ -36,6 +41,27 @@ def keyframe_inputs(dataset: OccDataset, index: int):
     return ego2img, bounds, mask_camera.astype(bool), semantics
 
 
+def timed(visibility, device, semantics, ego2img, bounds):
+    """(observed uint8 [X*Y*Z], seconds it took on ``device``)."""
+    inputs = (torch.from_numpy(semantics.reshape(-1)),
+              torch.tensor(ego2img, dtype=torch.float32),
+              torch.tensor(np.linalg.inv(ego2img), dtype=torch.float32),
+              torch.tensor(bounds, dtype=torch.float32))
+    inputs = [t.to(device) for t in inputs]
+    with torch.inference_mode():
+        if device.type != "cuda":
+            start = time.process_time()
+            observed = visibility(*inputs)
+            return observed.numpy(), time.process_time() - start
+        visibility(*inputs)                                  # warm-up (allocator, kernels)
+        begin, end = (torch.cuda.Event(enable_timing=True) for _ in range(2))
+        begin.record()
+        observed = visibility(*inputs)
+        end.record()
+        end.synchronize()
+        return observed.cpu().numpy(), begin.elapsed_time(end) / 1e3
+
+
 def predicted_observed(checkpoint: str, dataset: OccDataset, progress: bool):
     """observed bool [X, Y, Z] per keyframe from the online step's predicted grid."""
     from odg_ros.network.checkpoint import load_model
@@ -53,6 +79,29 @@ def predicted_observed(checkpoint: str, dataset: OccDataset, progress: bool):
         yield prediction.observed
 
 
+def step_share(checkpoint: str, dataset: OccDataset, sets: int) -> dict:
+    """The CPU time of the online step with and without the visibility, interleaved set by
+    set on the same keyframes (one thread) -> medians and the visibility's share."""
+    from odg_ros.network.checkpoint import load_model
+    from odg_ros.online.predictor import OnlinePredictor
+    model, cfg = load_model(checkpoint, device="cpu")
+    predictors = {on: OnlinePredictor(model, cfg, "cpu", visibility=on) for on in (True, False)}
+    times = {True: [], False: []}
+    for index in tqdm(range(min(sets, len(dataset))), desc="step with / without"):
+        info = dataset.infos[index]
+        ego2img, bounds, _, _ = keyframe_inputs(dataset, index)
+        images = np.stack([dataset.load_image(info["cams"][c]) for c in dataset.camera_names])
+        for on, predictor in predictors.items():
+            start = time.process_time()
+            predictor.step(images, ego2img, np.asarray(info["ego_pose"]),
+                           info["timestamp"] * 1e-6, bounds=bounds)
+            times[on].append(time.process_time() - start)
+    with_ms, without_ms = (1e3 * float(np.median(times[on][1:])) for on in (True, False))
+    return {"step_ms_median_with_visibility": round(with_ms, 1),
+            "step_ms_median_without": round(without_ms, 1),
+            "visibility_share_of_the_step": round((with_ms - without_ms) / with_ms, 3)}
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--data", required=True, help="infos file of held-out keyframes")
@@ -61,6 +110,11 @@ def main(argv=None) -> int:
                              "ground-truth occupancy)")
     parser.add_argument("--preset", default="odg_cpu", help="grid and image size (GT mode)")
     parser.add_argument("--limit", type=int, default=None, help="first N keyframes only")
+    parser.add_argument("--device", default="cpu",
+                        help="where the visibility of the ground truth runs and is timed")
+    parser.add_argument("--step-share", type=int, default=0, metavar="N",
+                        help="with --checkpoint: instead, time the online step with and "
+                             "without the visibility on the first N keyframes (CPU)")
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
     cfg = load_preset(args.preset)
@@ -70,25 +124,24 @@ def main(argv=None) -> int:
     dataset = OccDataset(args.data, cfg)
     if args.limit:
         dataset.infos = dataset.infos[:args.limit]
-    visibility = Visibility(cfg.grid_shape, cfg.pc_range, cfg.voxel_size, cfg.num_classes)
+    if args.step_share:
+        print(json.dumps(step_share(args.checkpoint, dataset, args.step_share), indent=2))
+        return 0
+    device = torch.device(args.device)
+    visibility = Visibility(cfg.grid_shape, cfg.pc_range, cfg.voxel_size, cfg.num_classes,
+                            device=device)
     predicted = predicted_observed(args.checkpoint, dataset, True) if args.checkpoint else None
-    totals, per_keyframe, per_scene, seconds = np.zeros(2), [], {}, []
+    totals, per_keyframe, per_scene, seconds = np.zeros(4), [], {}, []
     for index in tqdm(range(len(dataset)), desc="keyframes", disable=predicted is not None):
         ego2img, bounds, mask, semantics = keyframe_inputs(dataset, index)
         if predicted is None:
-            start = time.process_time()
-            with torch.inference_mode():
-                observed = visibility(
-                    torch.from_numpy(semantics.reshape(-1)),
-                    torch.tensor(ego2img, dtype=torch.float32),
-                    torch.tensor(np.linalg.inv(ego2img), dtype=torch.float32),
-                    torch.tensor(bounds, dtype=torch.float32)).numpy()
-            seconds.append(time.process_time() - start)
+            observed, elapsed = timed(visibility, device, semantics, ego2img, bounds)
+            seconds.append(elapsed)
             observed = observed.reshape(mask.shape).astype(bool)
         else:
             observed = next(predicted).astype(bool)
         counts = np.array([(observed & mask).sum(), (observed | mask).sum()])
-        totals += counts
+        totals += [*counts, (observed & ~mask).sum(), (~observed & mask).sum()]
         per_keyframe.append(counts[0] / max(counts[1], 1))
         name = dataset.infos[index]["scene_name"]
         per_scene.setdefault(name, np.zeros(2))
@@ -98,9 +151,13 @@ def main(argv=None) -> int:
     summary = {"data": args.data, "grid": "predicted by " + args.checkpoint
                if args.checkpoint else "ground truth", "keyframes": len(per_keyframe),
                "iou_observed": round(float(totals[0] / totals[1]), 4),
-               "mean_keyframe_iou": round(float(np.mean(per_keyframe)), 4)}
+               "mean_keyframe_iou": round(float(np.mean(per_keyframe)), 4),
+               # of the voxels said observed, hidden in truth; of those seen, said unknown
+               "observed_but_hidden": round(float(totals[2] / (totals[0] + totals[2])), 4),
+               "seen_but_unknown": round(float(totals[3] / (totals[0] + totals[3])), 4)}
     if seconds:
-        summary["visibility_ms_median_cpu_1_thread"] = round(1e3 * float(np.median(seconds)), 1)
+        where = "cpu_1_thread" if device.type == "cpu" else device.type
+        summary[f"visibility_ms_median_{where}"] = round(1e3 * float(np.median(seconds)), 2)
     print(json.dumps(summary, indent=2))
     return 0
 
