@@ -9,7 +9,7 @@ import shutil
 import pytest
 import torch
 
-from odg_ros.cli import main
+from odg_ros.commands import main
 from odg_ros.online.parameters import load_schema, model_settings, parse_settings
 
 
@@ -65,12 +65,9 @@ def test_the_settings_share_the_node_schemas_rules():
 
 @pytest.fixture(scope="module")
 def good_bag(tmp_path_factory):
-    import sys
-    from pathlib import Path
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "ros"))
-    import tiny_nuscenes
-    from odg_ros.ros.bag import write_scene_bag
-    from odg_ros.ros.nuscenes_source import NuScenesSensorTables
+    from odg_ros.bags.nuscenes_source import NuScenesSensorTables
+    from odg_ros.bags.writer import write_scene_bag
+    from testing import tiny_nuscenes
     root = tmp_path_factory.mktemp("tiny_nuscenes")
     tiny_nuscenes.build(root, scene_durations_s=(1.0,))
     out = tmp_path_factory.mktemp("bags") / "scene-0001"

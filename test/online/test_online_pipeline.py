@@ -298,3 +298,25 @@ def test_decoding_ahead_keeps_the_newest_set_in_order_and_skips_bad_sets(model_a
     finally:
         release.set()
         pipeline.close()
+
+
+def test_the_result_carries_what_the_whole_camera_images_see(model_and_cfg):
+    """The pipeline passes each camera's whole image (CameraInfo's size) to the visibility:
+    its result equals the predictor's given those bounds, not the network input's crop."""
+    from odg_ros.online.visibility import image_bounds
+    model, cfg = model_and_cfg
+    pipeline = make_pipeline(model_and_cfg)
+    feed_calibration_and_poses(pipeline)
+    start, images = 10.5, set_images(0)
+    assert feed_set(pipeline, start, images)
+    result = run_one(pipeline)
+    ego2img = set_ego2img([adjust_intrinsics(scaled_K(c), HW, cfg.image_size) for c in CAMS],
+                          [RIG.cameras[c].sensor2ego for c in CAMS],
+                          [pose_at(start + o) for o in OFFSETS], pose_at(start))
+    inputs = np.stack([resize_crop(i, cfg.image_size) for i in images])
+    whole = OnlinePredictor(model, cfg, "cpu").step(
+        inputs, ego2img, pose_at(start), start, image_bounds([HW] * 6, cfg.image_size))
+    cropped = OnlinePredictor(model, cfg, "cpu").step(inputs, ego2img, pose_at(start), start)
+    assert result.observed.shape == result.grid.shape and result.observed.any()
+    assert np.array_equal(result.observed, whole.observed)
+    assert result.observed.sum() > cropped.observed.sum()     # the cropped rows count

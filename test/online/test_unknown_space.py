@@ -64,35 +64,3 @@ def test_the_cloud_can_carry_observed():
     assert np.array_equal(flags == 1, points["x"] < 110 * 0.4 - 40)
     assert [f[0] for f in cloud_fields(grid, RANGE, 0.4)["fields"]] == ["x", "y", "z", "label"]
 
-
-def test_the_pipeline_result_carries_what_the_whole_camera_images_see():
-    """The pipeline passes each camera's whole image (CameraInfo's size) to the visibility:
-    its result equals the predictor's given those bounds, not the network input's crop."""
-    from test_online_pipeline import (CAMS, HW, OFFSETS, RIG, feed_calibration_and_poses,
-                                      feed_set, make_pipeline, pose_at, run_one, scaled_K,
-                                      set_images)
-    from odg_ros.network import ODG
-    from odg_ros.online.predictor import OnlinePredictor
-    from odg_ros.online.rig import set_ego2img
-    from odg_ros.online.visibility import image_bounds
-    from odg_ros.preprocess import adjust_intrinsics, resize_crop
-    from helpers import tiny_config
-    import torch
-    cfg = tiny_config(score_threshold=0.0, box_score_threshold=0.0)
-    torch.manual_seed(0)
-    model = ODG(cfg).eval()
-    pipeline = make_pipeline((model, cfg))
-    feed_calibration_and_poses(pipeline)
-    start, images = 10.5, set_images(0)
-    assert feed_set(pipeline, start, images)
-    result = run_one(pipeline)
-    ego2img = set_ego2img([adjust_intrinsics(scaled_K(c), HW, cfg.image_size) for c in CAMS],
-                          [RIG.cameras[c].sensor2ego for c in CAMS],
-                          [pose_at(start + o) for o in OFFSETS], pose_at(start))
-    inputs = np.stack([resize_crop(i, cfg.image_size) for i in images])
-    whole = OnlinePredictor(model, cfg, "cpu").step(
-        inputs, ego2img, pose_at(start), start, image_bounds([HW] * 6, cfg.image_size))
-    cropped = OnlinePredictor(model, cfg, "cpu").step(inputs, ego2img, pose_at(start), start)
-    assert result.observed.shape == result.grid.shape and result.observed.any()
-    assert np.array_equal(result.observed, whole.observed)
-    assert result.observed.sum() > cropped.observed.sum()     # the cropped rows count

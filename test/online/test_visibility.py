@@ -199,7 +199,7 @@ def test_agreement_with_a_synthetic_worlds_mask_camera(tmp_path):
 
 
 def test_the_predictor_without_visibility_returns_none():
-    from test_online_predictor import make_model, make_sets
+    from testing.online import make_model, make_sets
     from odg_ros.online.predictor import OnlinePredictor
     model, cfg = make_model()
     images, ego2img, pose, stamp = make_sets(cfg, 1)[0]
