@@ -126,8 +126,9 @@ def _run(args, log) -> int:
             start = time.monotonic()
             index = pick_keyframe(scored, meta["infos"])
             stamp = int(meta["infos"][index]["cams"][REFERENCE_CAMERA]["timestamp"]) * 1000
+            observed = {g.stamp_ns: g.observed for g in record.grids}
             draw_demo_png(out / "demo.png", meta, index, grids[stamp], report,
-                               per_keyframe[index])
+                          per_keyframe[index], observed[stamp])
             timings["picture"] = time.monotonic() - start
         else:
             report["warnings"].append("no keyframe grid arrived: nothing scored, no demo.png")

@@ -64,6 +64,7 @@ class ReceivedGrid:
     stamp_ns: int              # header stamp (the set's CAM_FRONT stamp)
     wall_s: float              # time.monotonic() on receipt
     labels: np.ndarray         # uint8 [X, Y, Z], 17 = free
+    observed: np.ndarray | None = None    # bool [X, Y, Z]: a camera sees it (None: not sent)
 
 
 @dataclass

@@ -154,7 +154,11 @@ class PlannerStandIn:
                           f"{len(msg.labels)} labels for {shape}")
             return
         labels = np.frombuffer(bytes(msg.labels), dtype=np.uint8).reshape(shape)
-        self.record.grids.append(ReceivedGrid(_stamp_ns(msg.header.stamp), now, labels))
+        observed = None
+        if len(msg.observed) == labels.size:
+            observed = np.frombuffer(bytes(msg.observed), dtype=np.uint8).reshape(shape) != 0
+        self.record.grids.append(ReceivedGrid(_stamp_ns(msg.header.stamp), now, labels,
+                                              observed))
 
     def on_objects(self, msg) -> None:
         self.record.objects.append((_stamp_ns(msg.header.stamp), len(msg.objects)))

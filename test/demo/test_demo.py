@@ -12,7 +12,7 @@ import pytest
 from PIL import Image
 
 from odg_ros.demo import DemoError
-from odg_ros.demo.picture import bev_rgb
+from odg_ros.demo.picture import UNKNOWN_COLOR, bev_rgb, unknown_columns
 from odg_ros.demo.records import CameraSets, ReceivedGrid, SessionRecord, bag_camera_sets
 from odg_ros.demo.report import (format_summary, grid_latencies_ms, keyframes_by_stamp,
                                  score_keyframes, summarize_session)
@@ -67,6 +67,9 @@ def test_demo_runs_the_whole_path_across_processes(demo_run):
     assert json.loads((out / "demo.json").read_text())["frames_out"] == report["frames_out"]
     with Image.open(out / "demo.png") as picture:
         assert picture.width > 600 and picture.height > 600
+        # the prediction's unknown space is drawn in its own colour
+        pixels = np.asarray(picture.convert("RGB")).reshape(-1, 3)
+        assert (pixels == UNKNOWN_COLOR).all(axis=1).sum() > 1000
     assert "Traceback" not in (out / "node.log").read_text()
     assert "reusing" not in result.stderr and "building the demo world" in result.stderr
 
@@ -183,3 +186,18 @@ def test_the_node_runs_on_the_demo_s_device():
     command = node_command("tiny.pt", "bf16", "cuda:1")
     assert command[command.index("device:=cuda:1") - 1] == "-p"
     assert "precision:=bf16" in command
+
+
+def test_the_prediction_shows_unknown_space_in_its_own_colour():
+    """The columns the node's BEV marks -1 (no camera sees them) are UNKNOWN_COLOR; a seen
+    road column keeps its class colour."""
+    from odg_ros.classes import FREE_LABEL, OCC_COLORS
+    labels = np.full((200, 200, 16), FREE_LABEL, np.uint8)
+    labels[:, :, 2] = 11                                     # the road
+    observed = np.zeros(labels.shape, bool)
+    observed[100:, :, 2:] = True                             # seen ahead of the car only
+    unknown = unknown_columns(labels, observed)
+    assert unknown[:100].all() and not unknown[100:].any()
+    rgb = bev_rgb(labels, unknown=unknown)                   # forward up: rows reversed
+    assert tuple(rgb[150, 10]) == UNKNOWN_COLOR              # x < 0: behind, not seen
+    assert tuple(rgb[50, 10]) == OCC_COLORS[11]              # x > 0: seen road
