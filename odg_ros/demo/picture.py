@@ -17,7 +17,7 @@ def pick_keyframe(scored: list[int], infos: list[dict]) -> int:
 
 
 # columns the node publishes as unknown (-1 in ~/occupancy/bev): no camera sees them
-UNKNOWN_COLOR = (96, 64, 128)
+UNKNOWN_COLOR = (40, 70, 110)
 
 
 def bev_rgb(labels: np.ndarray, seen: np.ndarray | None = None,
