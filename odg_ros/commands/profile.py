@@ -14,7 +14,7 @@ import torch
 from ..config import PRESET_NAMES, load_preset
 from ..data.batch import collate
 from ..train.census import PHASES, census_of_steps
-from ..train.trainer import Trainer, TrainOptions
+from ..train.trainer import Trainer, TrainOptions, training_renderer
 from .common import device, existing_file, infos_file, positive_int, preset
 
 
@@ -32,6 +32,9 @@ def add_arguments(parser):
                         help="network input size (the counts do not depend on it; default: "
                              "the preset's)")
     parser.add_argument("--batch-size", type=positive_int, default=1, help="samples per step")
+    parser.add_argument("--renderer", choices=("torch", "gsplat"), default="torch",
+                        help="the render loss's renderer: ours, or gsplat's (with --cuda-paths "
+                             "its CUDA kernels are counted by stand-ins; on CUDA they run)")
     parser.add_argument("--render-pixels", type=positive_int, default=512,
                         help="LiDAR pixels rendered per camera, as for odg train")
     parser.add_argument("--backbone-weights", type=existing_file,
@@ -57,11 +60,13 @@ def run(args) -> int:
     batches = [collate([dataset[(i * args.batch_size + j) % len(dataset)]
                         for j in range(args.batch_size)]) for i in range(args.steps + 1)]
     start = time.perf_counter()
-    census = census_of_steps(trainer, batches, args.cuda_paths)
+    if args.renderer == "gsplat" and not args.cuda_paths:
+        trainer.criterion.renderer = training_renderer("gsplat", trainer.device)
+    census = census_of_steps(trainer, batches, args.cuda_paths, args.renderer)
     seconds = time.perf_counter() - start
     where = "CUDA paths forced" if args.cuda_paths else str(trainer.device)
     print(f"odg profile train: {cfg.name} {cfg.image_size[0]}x{cfg.image_size[1]}, batch "
-          f"{args.batch_size}, {where}, {args.steps} counted step(s) "
+          f"{args.batch_size}, renderer {args.renderer}, {where}, {args.steps} counted step(s) "
           f"({seconds:.1f} s with the warm-up, under the census)\n")
     print(census.report(args.top))
     gpu = None
@@ -73,6 +78,7 @@ def run(args) -> int:
             "preset": cfg.name, "image_size": list(cfg.image_size), "cuda_paths": args.cuda_paths,
             "batch_size": args.batch_size, "ops_per_step": census.per_step(census.ops),
             "syncs_per_step": census.per_step(census.syncs),
+            "renderer": args.renderer, "waits_by_kind": census.waits_by_kind(),
             "by_phase": {phase: {"ops": census.per_step(census.ops, phase),
                                  "syncs": census.per_step(census.syncs, phase)}
                          for phase in PHASES + ("other",)},

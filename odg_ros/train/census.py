@@ -1,21 +1,43 @@
-"""Census of one training step: the ATen ops it launches and the host syncs it makes, by phase
+"""Census of one training step: the ATen ops it launches and the host waits it makes, by phase
 and by source line.
 
 An op is counted where it reaches a backend (a TorchDispatchMode, below autograd), so on CUDA
-one op is roughly one kernel launch (views, which launch nothing, are not counted). A host sync is an op whose result size or value the host
-must wait for: ``.item()`` / ``bool()`` / ``float()`` reads, ``nonzero``, boolean-mask indexing,
-``unique``, ``bincount``, ``repeat_interleave`` without ``output_size``, a copy to the CPU, and
-``.numpy()`` / ``.tolist()``. With ``cuda_paths`` the step takes the code paths a CUDA run takes
-(nearest neighbours on the device, fused AdamW) and every op of the CPU run counts as if its
-tensors lived on the GPU, so the census of a GPU run can be taken on a CPU. What a CUDA run
-keeps on the host is told apart: ops drawing from a CPU generator (a CUDA op cannot), the
-batch's host keys (``batch.HOST_KEYS``), and whatever is computed from these alone; ``.to()``
-of such a tensor is its upload, a host sync unless ``non_blocking`` (torch waits for the
-stream after a blocking copy to the GPU).
+one op is roughly one kernel launch (views, which launch nothing, are not counted). A host
+wait is anything the host must wait for the device at, of four kinds (``WAIT_KINDS``):
+
+* **read**: a value comes to the host: ``.item()``, ``bool()`` / ``float()`` / ``int()`` of a
+  tensor, ``.tolist()``, ``.numpy()``, ``allclose``, ``equal``, ``histc`` (its range);
+* **download**: a copy to host memory: ``.cpu()``, ``.to("cpu")``, ``copy_`` into a host tensor;
+* **shape**: an output whose size depends on the data: ``nonzero`` (``argwhere``, one-argument
+  ``where``), ``masked_select``, boolean-mask indexing, ``unique*``, ``bincount``,
+  ``repeat_interleave`` without ``output_size``;
+* **upload**: a copy from host memory that torch makes wait for the stream: a fresh tensor of
+  at least one dimension made on the device (``torch.tensor(data, device=...)``,
+  ``x.new_tensor(list)``, ``torch.as_tensor`` of a list or array: torch copies it from
+  pageable memory, then synchronises), a host tensor moved to the device without
+  ``non_blocking`` or from unpinned memory (``.to()``, ``copy_``), and a host tensor of at least
+  one dimension given to an op on the device (an implicit copy). 0-dim host tensors are not
+  counted: device ops take them as scalars.
+
+``cuda_paths``: the step takes the code paths a CUDA run takes (nearest neighbours on the
+device, fused AdamW) and every tensor counts as a device tensor, except what a CUDA run keeps
+on the host: ops drawing from a CPU generator (a CUDA op cannot), the batch's host keys
+(``batch.HOST_KEYS``), the optimizer's host step counters, what ``.cpu()`` returns, and
+whatever is computed from these alone. So the census of a GPU run is taken on a CPU. Two
+things a CPU run cannot see directly are inferred:
+
+* where a fresh tensor (``aten.lift_fresh``: ``torch.tensor``, ``new_tensor``, ``as_tensor``,
+  ``from_numpy``) is made: where it is first used. If it first meets a device tensor in an op,
+  a CUDA run made it on the device (an upload); if it meets host data or is moved by ``.to()``,
+  it was made on the host;
+* pinned memory: ``pin_memory()`` marks a host copy as pinned, and ``batch.upload`` pins as on
+  CUDA. The training device is the CPU here too, so ``.to(d)`` with a ``torch.device`` moves to
+  the device; only ``"cpu"`` spelt as a string names the host.
 """
 from __future__ import annotations
 
 import collections
+import contextlib
 import linecache
 import sys
 from dataclasses import dataclass, field
@@ -24,22 +46,28 @@ from pathlib import Path
 import torch
 from torch.utils._python_dispatch import TorchDispatchMode
 
+from ..data import batch as batch_module
 from ..data.batch import HOST_KEYS, tensors_in
 
 aten = torch.ops.aten
 PHASES = ("data", "forward", "losses", "render", "backward", "optimizer")
+WAIT_KINDS = ("read", "download", "shape", "upload")
 _PACKAGE = str(Path(__file__).resolve().parents[1]) + "/"
-_THIS_FILE = str(Path(__file__).resolve())
+# files whose lines a wait is never attributed to: the census and its stand-ins
+_OWN_FILES = {str(Path(__file__).resolve()),
+              str(Path(__file__).resolve().with_name("gsplat_stand_in.py"))}
 # Trainer methods, outermost first, and the phase their ops belong to.
 _TRAINER_PHASES = {"_load_batch": "data", "_forward": "forward", "_losses": "losses",
                    "_backward": "backward", "_optimizer_step": "optimizer"}
 _RENDER_FILES = ("render/", "losses/render_loss.py")
 
-# Ops whose output size or value the host needs before it can go on.
-_ALWAYS_SYNC = {aten._local_scalar_dense.default, aten.nonzero.default, aten.masked_select.default,
-                aten.equal.default, aten.is_nonzero.default, aten._unique.default,
-                aten._unique2.default, aten.unique_dim.default, aten.unique_consecutive.default,
-                aten.bincount.default}
+# Ops whose output size or value the host needs before it can go on, by kind.
+_READS = {aten._local_scalar_dense.default, aten.is_nonzero.default, aten.equal.default,
+          aten.allclose.default, aten.histc.default}
+_SHAPES = {aten.nonzero.default, aten.masked_select.default, aten._unique.default,
+           aten._unique2.default, aten.unique_dim.default, aten.unique_consecutive.default,
+           aten.unique_dim_consecutive.default, aten.bincount.default}
+_FRESH = {aten.lift_fresh.default, aten.lift_fresh_copy.default}
 _HOST_READS = ("numpy", "tolist")
 
 
@@ -48,23 +76,16 @@ def _draws_on_host(kwargs) -> bool:
     return generator is not None and generator.device.type == "cpu"
 
 
-def _is_sync(func, args, kwargs, device_type: str | None) -> bool:
-    tensors = [a for a in args if isinstance(a, torch.Tensor)]
-    on_device = device_type is None or any(t.device.type == device_type for t in tensors)
-    if func in _ALWAYS_SYNC:
-        return on_device
+def _shape_wait(func, args, kwargs) -> bool:
+    """Whether the op's output size depends on the values of its (device) inputs."""
+    if func in _SHAPES:
+        return True
     if func in (aten.repeat_interleave.Tensor, aten.repeat_interleave.self_Tensor):
-        return on_device and kwargs.get("output_size") is None
+        return kwargs.get("output_size") is None
     if func in (aten.index.Tensor, aten.index_put.default, aten.index_put_.default,
                 aten._index_put_impl_.default):
         indices = args[1] if len(args) > 1 else ()
-        return on_device and any(i is not None and i.dtype in (torch.bool, torch.uint8)
-                                 for i in indices)
-    if func in (aten._to_copy.default, aten.copy_.default) and device_type is not None:
-        source = args[1] if func is aten.copy_.default else args[0]
-        target = args[0].device if func is aten.copy_.default else kwargs.get("device")
-        return (source.device.type == device_type and target is not None
-                and torch.device(target).type == "cpu")
+        return any(i is not None and i.dtype in (torch.bool, torch.uint8) for i in indices)
     return False
 
 
@@ -73,7 +94,7 @@ def _where() -> tuple[str, str]:
     frame, line, phase, render = sys._getframe(2), None, "other", False
     while frame is not None:
         filename = frame.f_code.co_filename
-        if filename.startswith(_PACKAGE) and filename != _THIS_FILE:
+        if filename.startswith(_PACKAGE) and filename not in _OWN_FILES:
             relative = filename[len(_PACKAGE):]
             if line is None:
                 code = linecache.getline(filename, frame.f_lineno).strip()
@@ -90,9 +111,11 @@ def _where() -> tuple[str, str]:
 
 @dataclass
 class Census:
-    """Counts per (phase, source line); ``steps`` divides them into per-step numbers."""
+    """Counts per (phase, source line); ``steps`` divides them into per-step numbers.
+    ``syncs`` counts every host wait, ``kinds`` the same waits by kind (``WAIT_KINDS``)."""
     ops: collections.Counter = field(default_factory=collections.Counter)
     syncs: collections.Counter = field(default_factory=collections.Counter)
+    kinds: collections.Counter = field(default_factory=collections.Counter)
     steps: int = 1
 
     def per_step(self, counter: collections.Counter, phase: str | None = None) -> float:
@@ -101,15 +124,20 @@ class Census:
     def by_line(self, counter: collections.Counter, top: int) -> list[tuple[float, str, str]]:
         return [(n / self.steps, phase, line) for (phase, line), n in counter.most_common(top)]
 
+    def waits_by_kind(self) -> dict[str, float]:
+        return {kind: self.kinds[kind] / self.steps for kind in WAIT_KINDS}
+
     def report(self, top: int = 12) -> str:
-        rows = [f"{'phase':10s} {'ops/step':>10s} {'syncs/step':>11s}"]
+        rows = [f"{'phase':10s} {'ops/step':>10s} {'waits/step':>11s}"]
         for phase in PHASES + ("other",):
             ops, syncs = self.per_step(self.ops, phase), self.per_step(self.syncs, phase)
             if ops or syncs:
                 rows.append(f"{phase:10s} {ops:10,.0f} {syncs:11,.0f}")
         rows.append(f"{'total':10s} {self.per_step(self.ops):10,.0f} "
                     f"{self.per_step(self.syncs):11,.0f}")
-        for title, counter in (("host syncs", self.syncs), ("launched ops", self.ops)):
+        rows.append("host waits per step by kind: " + ", ".join(
+            f"{kind} {n:g}" for kind, n in self.waits_by_kind().items()))
+        for title, counter in (("host waits", self.syncs), ("launched ops", self.ops)):
             rows.append(f"\n{title} per step by source line (top {top}):")
             rows += [f"{n:9,.0f}  {phase:9s} {line}" for n, phase, line in
                      self.by_line(counter, top)]
@@ -121,97 +149,325 @@ def _storage(t: torch.Tensor) -> int:
     return t.untyped_storage().data_ptr() if t.layout == torch.strided else -1
 
 
+def _tensors(args, kwargs) -> list[torch.Tensor]:
+    return [t for a in list(args) + list(kwargs.values())
+            for t in (a if isinstance(a, (list, tuple)) else (a,)) if isinstance(t, torch.Tensor)]
+
+
+def _names_the_host(args, kwargs) -> bool:
+    """Whether ``.to()``'s arguments spell the host as a string ("cpu", "cpu:0")."""
+    target = kwargs.get("device", args[0] if args else None)
+    return isinstance(target, str) and target.startswith("cpu")
+
+
 class CensusMode(TorchDispatchMode):
-    """Counts ops and host syncs into ``census``; ``device_type`` None counts every tensor as
-    a device tensor (the CUDA paths on a CPU), else only tensors of that device type sync.
-    ``host_tensors``: tensors that a CUDA run keeps on the host (the optimizer's step counters).
-    What is computed from host tensors alone, and what ``.cpu()`` returns, is on the host too:
-    its ops are neither launches nor syncs (with the CUDA paths forced, ``.cpu()`` is the sync)."""
+    """Counts ops and host waits into ``census`` (module docstring); ``device_type`` None
+    counts every tensor as a device tensor (the CUDA paths on a CPU), else only tensors of
+    that device type are on the device. ``host_tensors``: tensors that a CUDA run keeps on the
+    host (the batch's targets, the optimizer's step counters).
+
+    With the CUDA paths, each storage is of one kind: HOST (host data), FRESH (a fresh
+    tensor, or computed from fresh tensors alone: made where it is first used) or, by
+    default, DEVICE. DEVICE storages made by a factory (``torch.zeros``, ``arange``, ...) or
+    from such alone are also "unused factories" until they meet other device data: one that
+    meets host data (or is read) first was made on the host (a host op, no upload)."""
+
+    HOST, FRESH, DEVICE = "host", "fresh", "device"
 
     def __init__(self, census: Census, device_type: str | None, host_tensors=()):
         super().__init__()
         self.census, self.device_type = census, device_type
         self._host: set[int] = set()
-        self._kept = []             # host storages stay alive: their addresses are not reused
+        self._fresh: dict[int, frozenset[int]] = {}   # storage -> the fresh tensors it is from
+        self._made_on: dict[int, str] = {}            # fresh tensor -> HOST or DEVICE
+        self._factory: set[int] = set()
+        self._pinned: set[int] = set()
+        self._kept = []             # marked storages stay alive: their addresses are not reused
+        self._quiet = 0
+        self.active = False
         for t in host_tensors:
-            self._mark_host(t)
-        self._uploading = False
-        self._originals = {name: getattr(torch.Tensor, name)
-                           for name in _HOST_READS + ("cpu", "to")}
+            self._mark(t, self.HOST)
+        self._originals = {name: getattr(torch.Tensor, name) for name in
+                           _HOST_READS + ("cpu", "to", "pin_memory", "is_pinned")}
+        self._stages = batch_module.stages_in_pinned_memory
 
-    def _mark_host(self, t: torch.Tensor) -> None:
+    # -------------------------------------------------------------- where tensors are
+    def _mark(self, t: torch.Tensor, kind: str, roots: frozenset = frozenset()) -> None:
         if t.layout != torch.strided:
             return
-        self._host.add(_storage(t))
+        storage = _storage(t)
+        self._fresh.pop(storage, None)
+        self._host.discard(storage)
+        self._factory.discard(storage)
+        if kind == self.HOST:
+            self._host.add(storage)
+        elif kind == self.FRESH:
+            self._fresh[storage] = roots or frozenset({storage})
         self._kept.append(t.untyped_storage())
 
-    def _on_host(self, t: torch.Tensor) -> bool:
-        return (self.device_type is not None and t.device.type != self.device_type) or \
-            _storage(t) in self._host
+    def _mark_factory(self, out) -> None:
+        for t in (out if isinstance(out, (list, tuple)) else (out,)):
+            if isinstance(t, torch.Tensor) and t.layout == torch.strided:
+                self._factory.add(_storage(t))
+                self._kept.append(t.untyped_storage())
+
+    def _kind(self, t: torch.Tensor) -> str:
+        if self.device_type is not None:
+            return self.HOST if t.device.type != self.device_type else self.DEVICE
+        storage = _storage(t)
+        if storage in self._host:
+            return self.HOST
+        return self.FRESH if storage in self._fresh else self.DEVICE
+
+    def _on_device(self, t: torch.Tensor) -> bool:
+        """A device tensor that is not an unused factory (a read of it waits)."""
+        return self._kind(t) == self.DEVICE and _storage(t) not in self._factory
+
+    def _made_on_host(self, t: torch.Tensor) -> None:
+        """A fresh tensor met host data or was moved by ``.to()``: it was made on the host."""
+        for root in self._fresh.get(_storage(t), ()):
+            self._made_on.setdefault(root, self.HOST)
+
+    def _uploads_of(self, t: torch.Tensor, kind: str) -> int:
+        """Waits for a host or fresh tensor ``t`` given to an op on the device."""
+        if t.dim() == 0:
+            return 0                                # a scalar: passed by value
+        if kind == self.HOST:
+            return 1                                # an implicit copy of host data
+        roots = self._fresh[_storage(t)]
+        if any(self._made_on.get(root) == self.HOST for root in roots):
+            return 1
+        new = [root for root in roots if root not in self._made_on]
+        for root in roots:
+            self._made_on[root] = self.DEVICE
+        self._mark(t, self.DEVICE)                  # made on the device: a device tensor
+        return len(new)
+
+    # -------------------------------------------------------------- counting
+    def record(self, ops: int = 0, waits: int = 0, kind: str = "read") -> None:
+        """Counts at the current source line while active (stand-ins of kernels that cannot
+        run here)."""
+        if not self.active:
+            return
+        self._add(_where(), ops, [(kind, waits)] if waits else [])
+
+    def _add(self, where, ops: int, waits) -> None:
+        self.census.ops[where] += ops
+        for kind, number in waits:
+            if number:
+                self.census.syncs[where] += number
+                self.census.kinds[kind] += number
+
+    @contextlib.contextmanager
+    def uncounted(self):
+        """Ops here are neither counted nor change where tensors are (stand-ins' values)."""
+        self._quiet += 1
+        try:
+            yield
+        finally:
+            self._quiet -= 1
+
+    def _count(self, func, waits=()) -> None:
+        """One op (unless a view without waits: it launches no kernel) and its waits,
+        (kind, number) pairs."""
+        if any(number for _, number in waits) or not func.is_view:
+            self._add(_where(), 1, waits)
 
     def __torch_dispatch__(self, func, types, args=(), kwargs=None):
         kwargs = kwargs or {}
-        tensors = [t for a in list(args) + list(kwargs.values())
-                   for t in (a if isinstance(a, (list, tuple)) else (a,))
-                   if isinstance(t, torch.Tensor)]
-        on_host = all(self._on_host(t) for t in tensors) if tensors else _draws_on_host(kwargs)
-        if on_host and not self._uploading:
-            out = func(*args, **kwargs)
-            if self.device_type is None:
-                for t in (out if isinstance(out, (list, tuple)) else (out,)):
-                    if isinstance(t, torch.Tensor):
-                        self._mark_host(t)
+        if self._quiet:
+            return func(*args, **kwargs)
+        if func in _FRESH:
+            return self._fresh_tensor(func, args, kwargs)
+        if func is aten.copy_.default:
+            return self._copy(func, args, kwargs)
+        if func is aten._to_copy.default and self.device_type is not None:
+            self._transfer(args[0], kwargs)
+        tensors = _tensors(args, kwargs)
+        kinds = [self._kind(t) for t in tensors]
+        on_device = [t for t, k in zip(tensors, kinds) if k == self.DEVICE]
+        factories_only = all(_storage(t) in self._factory for t in on_device)
+        if on_device and factories_only and self.device_type is None and \
+                (self.HOST in kinds or func in _READS):
+            for t in on_device:                     # factories that were made on the host
+                self._mark(t, self.HOST)
+            kinds = [self._kind(t) for t in tensors]
+            on_device = []
+        if not on_device and (tensors or _draws_on_host(kwargs)):
+            return self._on_host(func, args, kwargs, tensors, kinds)
+        waits = [("upload", sum(self._uploads_of(t, k) for t, k in zip(tensors, kinds)
+                                if k != self.DEVICE))]
+        if func in _READS:
+            waits.append(("read", 1))
+        elif _shape_wait(func, args, kwargs):
+            waits.append(("shape", 1))
+        self._count(func, waits)
+        out = func(*args, **kwargs)
+        if self.device_type is None:
+            if factories_only:
+                self._mark_factory(out)
+            else:
+                for t in on_device:
+                    self._factory.discard(_storage(t))
+        return out
+
+    def _transfer(self, source: torch.Tensor, kwargs) -> None:
+        """On a real device: ``_to_copy`` between the host and the device."""
+        target = kwargs.get("device")
+        if target is None or torch.device(target).type == source.device.type:
+            return
+        if source.device.type == self.device_type:
+            self._count(aten._to_copy.default, [("download", 1)])
+        elif torch.device(target).type == self.device_type:
+            pinned = source.is_pinned() and bool(kwargs.get("non_blocking"))
+            self._count(aten._to_copy.default, [("upload", int(not pinned))])
+
+    def _on_host(self, func, args, kwargs, tensors, kinds):
+        """An op on host (or fresh) tensors alone: neither a launch nor a wait. Its result is
+        host data if any input is (or it draws from a CPU generator), else fresh."""
+        out = func(*args, **kwargs)
+        if self.device_type is not None:
             return out
-        sync = _is_sync(func, args, kwargs, self.device_type)
-        if sync or not func.is_view:              # a view launches no kernel
-            where = _where()
-            self.census.ops[where] += 1
-            self.census.syncs[where] += sync
+        from_host = self.HOST in kinds or not tensors
+        fresh = [t for t, k in zip(tensors, kinds) if k == self.FRESH]
+        if from_host:
+            for t in fresh:
+                if t.dim():
+                    self._made_on_host(t)
+        roots = frozenset().union(*(self._fresh[_storage(t)] for t in fresh))
+        for t in (out if isinstance(out, (list, tuple)) else (out,)):
+            if isinstance(t, torch.Tensor):
+                self._mark(t, self.HOST if from_host else self.FRESH, roots)
+        return out
+
+    def _fresh_tensor(self, func, args, kwargs):
+        out = func(*args, **kwargs)
+        if self.device_type is None:
+            self._mark(out, self.FRESH)              # where it is made: decided by its use
+        elif out.device.type == self.device_type:
+            self._count(func, [("upload", int(out.dim() > 0))])
+        return out
+
+    def _copy(self, func, args, kwargs):
+        """``dst.copy_(src)``: an upload, a download, or an op on one side."""
+        dst, src = args[0], args[1]
+        non_blocking = bool(args[2]) if len(args) > 2 else bool(kwargs.get("non_blocking"))
+        to_kind, from_kind = self._kind(dst), self._kind(src)
+        if self.device_type is None:
+            for t, k in ((dst, to_kind), (src, from_kind)):
+                if k == self.DEVICE and _storage(t) in self._factory:
+                    self._factory.discard(_storage(t))     # a factory written or read
+            if to_kind == self.FRESH and from_kind == self.DEVICE:
+                self._uploads_of(dst, to_kind)           # written on the device: made there
+                to_kind = self.DEVICE
+            if from_kind == self.FRESH:
+                self._made_on_host(src)
+        if to_kind != self.DEVICE and from_kind != self.DEVICE:
+            return func(*args, **kwargs)            # host to host
+        if to_kind == self.DEVICE and from_kind != self.DEVICE:
+            pinned = _storage(src) in self._pinned or \
+                (self.device_type is not None and src.is_pinned())
+            self._count(func, [("upload", int(not (non_blocking and pinned)))])
+        elif to_kind != self.DEVICE:
+            self._count(func, [("download", 1)])
+        else:
+            self._count(func)
         return func(*args, **kwargs)
 
+    # -------------------------------------------------------------- Python-level spellings
     def __enter__(self):
+        originals = self._originals
+
+        def host_read(name):
+            def counted(tensor, *args, **kwargs):
+                if not self._quiet and self._on_device(tensor):
+                    self.record(ops=1, waits=1, kind="read")   # a copy to the host
+                return originals[name](tensor, *args, **kwargs)
+            return counted
         for name in _HOST_READS:
-            def counted(tensor, *args, _original=self._originals[name], **kwargs):
-                if not self._on_host(tensor):
-                    self.census.syncs[_where()] += 1
-                return _original(tensor, *args, **kwargs)
-            setattr(torch.Tensor, name, counted)
-
-        def to_host(tensor, *args, _original=self._originals["cpu"], **kwargs):
-            on_host = self._on_host(tensor)
-            out = _original(tensor, *args, **kwargs)
-            if not on_host and self.device_type is None:     # a no-op on the CPU: count it
-                self.census.syncs[_where()] += 1
-                self._mark_host(out)
-            return out
-        torch.Tensor.cpu = to_host
-
-        def upload(tensor, *args, _original=self._originals["to"], **kwargs):
-            out = _original(tensor, *args, **kwargs)
-            device, _, non_blocking, _ = torch._C._nn._parse_to(*args, **kwargs)
-            if self.device_type is None and device is not None and self._on_host(tensor):
-                self._uploading = True                 # the copy is a launch; its result is
-                try:                                   # a device tensor
-                    out = out.clone()
-                finally:
-                    self._uploading = False
-                # a blocking upload waits for the stream (torch synchronises after the copy)
-                self.census.syncs[_where()] += not non_blocking
-            return out
-        torch.Tensor.to = upload
+            setattr(torch.Tensor, name, host_read(name))
+        if self.device_type is None:               # the CUDA paths: the host is told apart
+            # functions (not bound methods), so that the tensor is their first argument
+            torch.Tensor.cpu = lambda tensor, *a, **k: self._to_host(tensor, *a, **k)
+            torch.Tensor.to = lambda tensor, *a, **k: self._to(tensor, *a, **k)
+            torch.Tensor.pin_memory = lambda tensor, *a, **k: self._pin_memory(tensor)
+            torch.Tensor.is_pinned = lambda tensor, *args, **kwargs: (
+                _storage(tensor) in self._pinned)
+            batch_module.stages_in_pinned_memory = lambda tensor, device: (
+                self._kind(tensor) != self.DEVICE and _storage(tensor) not in self._pinned)
+        self.active = True
         return super().__enter__()
 
     def __exit__(self, *exc):
         for name, original in self._originals.items():
             setattr(torch.Tensor, name, original)
+        batch_module.stages_in_pinned_memory = self._stages
+        self.active = False
         return super().__exit__(*exc)
 
+    def _host_copy(self, tensor: torch.Tensor, pinned: bool = False) -> torch.Tensor:
+        with self.uncounted():
+            out = tensor.clone()
+        self._mark(out, self.HOST)
+        if pinned:
+            self._pinned.add(_storage(out))
+        return out
 
-def force_cuda_paths(trainer) -> None:
-    """The code paths a CUDA run takes, on whatever device ``trainer`` runs."""
+    def _to_host(self, tensor, *args, **kwargs):
+        if self._quiet:
+            return self._originals["cpu"](tensor, *args, **kwargs)
+        if not self._on_device(tensor):
+            self._made_on_host(tensor)
+            return tensor
+        self.record(ops=1, waits=1, kind="download")
+        return self._host_copy(tensor)
+
+    def _to(self, tensor, *args, **kwargs):
+        original = self._originals["to"]
+        if self._quiet:
+            return original(tensor, *args, **kwargs)
+        device, _, non_blocking, _ = torch._C._nn._parse_to(*args, **kwargs)
+        if device is None:
+            return original(tensor, *args, **kwargs)         # a cast where the tensor is
+        if _names_the_host(args, kwargs):
+            out = original(tensor, *args, **kwargs)
+            if not self._on_device(tensor):
+                self._made_on_host(tensor)
+                return out
+            self.record(ops=1, waits=1, kind="download")
+            return self._host_copy(out)
+        if self._kind(tensor) == self.DEVICE:
+            return original(tensor, *args, **kwargs)
+        self._made_on_host(tensor)
+        pinned = _storage(tensor) in self._pinned
+        out = original(tensor, *args, **kwargs)
+        with self.uncounted():
+            out = out.clone()                       # the upload's result is a device tensor
+        self._mark(out, self.DEVICE)
+        # blocking, torch waits for the stream after the copy; from pageable memory the
+        # copy itself waits
+        self.record(ops=1, waits=int(not (non_blocking and pinned)), kind="upload")
+        return out
+
+    def _pin_memory(self, tensor, *args, **kwargs):
+        if self._on_device(tensor):
+            raise RuntimeError("cannot pin a device tensor")
+        self._made_on_host(tensor)
+        return self._host_copy(tensor, pinned=True)
+
+
+def force_cuda_paths(trainer, renderer: str = "torch") -> None:
+    """The code paths a CUDA run takes, on whatever device ``trainer`` runs; ``renderer``
+    ``gsplat``: the render loss through gsplat's rasteriser, whose CUDA kernels the census
+    replaces by stand-ins (``gsplat_stand_in``)."""
     trainer.criterion.nn_method = "cdist"
     for group in trainer.optimizer.param_groups:
         group["fused"], group["foreach"] = True, False
+    if renderer == "gsplat":
+        from ..render.gsplat_backend import render_scenes_gsplat
+        trainer.criterion.renderer = render_scenes_gsplat
+    elif renderer != "torch":
+        raise ValueError(f"renderer must be torch or gsplat, got {renderer!r}")
 
 
 def optimizer_host_tensors(optimizer) -> list[torch.Tensor]:
@@ -227,16 +483,36 @@ def batch_host_tensors(batch: dict) -> list[torch.Tensor]:
     return [t for key in HOST_KEYS for t in tensors_in(batch.get(key))]
 
 
-def census_of_steps(trainer, batches, cuda_paths: bool) -> Census:
-    """Census of ``trainer.train_step`` over ``batches`` (one warm-up step first, not counted)."""
+def census_of_steps(trainer, batches, cuda_paths: bool, renderer: str = "torch",
+                    warm_up: bool = True) -> Census:
+    """Census of ``trainer.train_step`` over ``batches``. ``warm_up``: the first batch's step
+    is a warm-up, not counted (the first step makes the optimizer's state and the device
+    constants that later steps reuse). ``renderer`` (with ``cuda_paths``): ``torch`` ours,
+    ``gsplat`` gsplat's rasteriser as it runs on CUDA, its kernels replaced by stand-ins that
+    count what they launch and read (``gsplat_stand_in``)."""
     if cuda_paths:
-        force_cuda_paths(trainer)
-    trainer.train_step(batches[0])
-    census = Census(steps=len(batches) - 1)
-    device_type = None if cuda_paths else trainer.device.type
+        force_cuda_paths(trainer, renderer)
+    counted = batches[1:] if warm_up else batches
     host = optimizer_host_tensors(trainer.optimizer) + \
-        [t for batch in batches[1:] for t in batch_host_tensors(batch)] if cuda_paths else ()
-    with CensusMode(census, device_type, host):
-        for batch in batches[1:]:
-            trainer.train_step(batch)
+        [t for batch in counted for t in batch_host_tensors(batch)] if cuda_paths else ()
+    census = Census(steps=len(counted))
+    device_type = None if cuda_paths else trainer.device.type
+    mode = CensusMode(census, device_type, host)
+    with _gsplat_stand_in(mode, cuda_paths and renderer == "gsplat"):
+        if warm_up:
+            trainer.train_step(batches[0])
+        if counted:
+            with mode:
+                for batch in counted:
+                    trainer.train_step(batch)
     return census
+
+
+@contextlib.contextmanager
+def _gsplat_stand_in(mode: CensusMode, active: bool):
+    if not active:
+        yield
+        return
+    from .gsplat_stand_in import gsplat_kernels_counted_by
+    with gsplat_kernels_counted_by(mode):
+        yield
