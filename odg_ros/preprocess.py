@@ -89,8 +89,9 @@ def resize_crop(image: np.ndarray, dst_hw) -> np.ndarray:
 
 def normalize(images_uint8: torch.Tensor) -> torch.Tensor:
     """[..., H, W, 3] uint8 RGB -> [..., 3, H, W] float32, ImageNet mean/std normalised."""
+    from .data.batch import device_constant
     x = images_uint8.float().div_(255.0)
-    mean = torch.tensor(IMAGENET_MEAN, dtype=x.dtype, device=x.device)
-    std = torch.tensor(IMAGENET_STD, dtype=x.dtype, device=x.device)
+    mean = device_constant(IMAGENET_MEAN, x.device, x.dtype)
+    std = device_constant(IMAGENET_STD, x.device, x.dtype)
     x = (x - mean) / std
     return x.movedim(-1, -3).contiguous()

@@ -27,7 +27,7 @@ import torch
 import torch.nn.functional as F
 
 from ..preprocess import IMAGENET_MEAN, IMAGENET_STD
-from .batch import upload
+from .batch import device_constant, upload
 
 ZOOM = (0.9, 1.1)
 FLIP_PROBABILITY = 0.5
@@ -72,15 +72,21 @@ def augment_batch(batch: dict, pc_range, generator: torch.Generator | None = Non
 
 
 # ---------------------------------------------------------------------------- flip
+# The flip's matrices are constants of the device (writing an element of a device tensor
+# from the host would be a copy that the host waits for).
 def mirror_y(device, dtype=torch.float32) -> torch.Tensor:
-    return torch.diag(torch.tensor([1.0, -1.0, 1.0, 1.0], device=device, dtype=dtype))
+    return device_constant(_diagonal(1.0, -1.0, 1.0, 1.0), device, dtype)
 
 
 def image_flip(width: float, device, dtype=torch.float32) -> torch.Tensor:
     """4x4 acting on (u d, v d, d, 1): u -> width - u."""
-    m = torch.eye(4, device=device, dtype=dtype)
-    m[0, 0], m[0, 2] = -1.0, width
-    return m
+    return device_constant(((-1.0, 0.0, float(width), 0.0), (0.0, 1.0, 0.0, 0.0),
+                            (0.0, 0.0, 1.0, 0.0), (0.0, 0.0, 0.0, 1.0)), device, dtype)
+
+
+def _diagonal(*values: float) -> tuple:
+    return tuple(tuple(v if i == j else 0.0 for j in range(len(values)))
+                 for i, v in enumerate(values))
 
 
 def flip_sample(sample: dict, pc_range) -> None:
@@ -91,7 +97,7 @@ def flip_sample(sample: dict, pc_range) -> None:
     device, W = images.device, images.shape[-1]
     Fy = mirror_y(device)
     Fimg = image_flip(W, device)
-    Fcam = torch.diag(torch.tensor([-1.0, 1.0, 1.0, 1.0], device=device))
+    Fcam = device_constant(_diagonal(-1.0, 1.0, 1.0, 1.0), device)
     sample["images"] = images.flip(-1)
     sample["ego2img"] = Fimg @ sample["ego2img"].float() @ Fy
     sample["ego_warp"] = Fy @ sample["ego_warp"].float() @ Fy
@@ -132,9 +138,9 @@ def resize_crop_sample(sample: dict, scale: float, offset) -> None:
     resampled = F.grid_sample(flat.float(), grid.expand(flat.shape[0], H, W, 2),
                               mode="bilinear", padding_mode="zeros", align_corners=False)
     sample["images"] = resampled.to(images.dtype).view_as(images)
-    A = torch.eye(4, device=device)
-    A[0, 0] = A[1, 1] = scale
-    A[0, 2], A[1, 2] = -ox, -oy
+    # made on the host from the drawn numbers, sent in one non-blocking copy
+    A = upload(torch.tensor([[scale, 0.0, -ox, 0.0], [0.0, scale, -oy, 0.0],
+                             [0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0]]), device)
     sample["ego2img"] = A @ sample["ego2img"].float()
     if "intrinsics" in sample:
         sample["intrinsics"] = A[:3, :3] @ sample["intrinsics"].float()
@@ -167,8 +173,8 @@ def photometric_distortion(images: torch.Tensor, generator=None) -> torch.Tensor
     shape = images.shape
     flat = images.reshape(-1, 3, *shape[-2:]).float()
     n, device = flat.shape[0], flat.device
-    mean = torch.tensor(IMAGENET_MEAN, device=device).view(1, 3, 1, 1)
-    std = torch.tensor(IMAGENET_STD, device=device).view(1, 3, 1, 1)
+    mean = device_constant(IMAGENET_MEAN, device).view(1, 3, 1, 1)
+    std = device_constant(IMAGENET_STD, device).view(1, 3, 1, 1)
     rgb = flat * std + mean                                            # [0, 1]
 
     def draw(low, high, identity):   # per image: a factor with probability 0.5, else identity

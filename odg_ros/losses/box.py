@@ -28,7 +28,7 @@ from typing import Sequence
 import torch
 import torch.distributed as dist
 
-from ..data.batch import upload
+from ..data.batch import device_constant, upload
 from .focal import FOCAL_ALPHA, FOCAL_GAMMA, one_hot_targets, sigmoid_focal_loss
 from .matcher import box_match_cost, hungarian_match
 
@@ -77,14 +77,14 @@ def matched_normaliser(num_matched: int, device) -> float | torch.Tensor:
     all-reduce); at least 1."""
     if not (dist.is_available() and dist.is_initialized()) or dist.get_world_size() == 1:
         return max(num_matched, 1)
-    count = torch.tensor(float(num_matched), device=device)
+    count = torch.full((), float(num_matched), device=device)     # a fill, not a copy
     dist.all_reduce(count)
     return (count / dist.get_world_size()).clamp(min=1.0)
 
 
 @dataclass
 class BoxMatch:
-    """One sample's Hungarian matching (host tensors)."""
+    """One sample's Hungarian matching: the matched indices on the predictions' device."""
     pred_index: torch.Tensor
     gt_index: torch.Tensor
     num_nonfinite_costs: int
@@ -95,8 +95,9 @@ def match_layers(layers: Sequence[tuple[torch.Tensor, torch.Tensor]],
                  code_weights: Sequence[float] = BOX_CODE_WEIGHTS) -> list[list[BoxMatch]]:
     """Hungarian matches of every layer's (codes [B, D, 10], logits [B, D, C]) to the GT.
 
-    The GT is checked once, where it is given, and every cost matrix comes to the host in one
-    copy: the host waits for the device once, not once per layer and sample.
+    The GT is checked once, where it is given, every cost matrix comes to the host in one
+    copy and every matched index goes back in one: the host waits for the device once, not
+    once per layer and sample.
     """
     codes0, logits0 = layers[0]
     num_classes, device = logits0.shape[-1], codes0.device
@@ -117,21 +118,28 @@ def match_layers(layers: Sequence[tuple[torch.Tensor, torch.Tensor]],
                                           labels[b], code_weights)
                     parts.append(cost.double().flatten())
         host = torch.cat(parts).cpu() if parts else torch.zeros(0, dtype=torch.float64)
-    offset, matches = 0, []
+    found = []                                   # per layer and sample: the host matching
+    offset = 0
     for codes, _ in layers:
-        layer = []
         for b in range(codes.shape[0]):
             d, m = codes.shape[1], gt_codes[b].shape[0]
-            empty = torch.zeros(0, dtype=torch.long)
             if not (m and d):
-                layer.append(BoxMatch(empty, empty, 0))
+                found.append((empty_index(), empty_index(), 0))
                 continue
-            cost = host[offset:offset + d * m].view(d, m)
+            found.append(hungarian_match(host[offset:offset + d * m].view(d, m)))
             offset += d * m
-            pred_idx, gt_idx, bad = hungarian_match(cost)
-            layer.append(BoxMatch(pred_idx, gt_idx, bad))
-        matches.append(layer)
-    return matches
+    # every matched index goes up in one pinned copy (from pageable memory, each would wait)
+    sizes = [int(index.numel()) for pred, gt, _ in found for index in (pred, gt)]
+    indices = upload(torch.cat([index for pred, gt, _ in found for index in (pred, gt)]),
+                     device).split(sizes)
+    matches = [BoxMatch(indices[2 * i], indices[2 * i + 1], bad) for i, (*_, bad) in
+               enumerate(found)]
+    per_layer = [codes.shape[0] for codes, _ in layers]
+    return [matches[sum(per_layer[:l]):sum(per_layer[:l + 1])] for l in range(len(layers))]
+
+
+def empty_index() -> torch.Tensor:
+    return torch.zeros(0, dtype=torch.long)
 
 
 @dataclass
@@ -162,7 +170,7 @@ def box_loss(codes: torch.Tensor, logits: torch.Tensor, gt_boxes: Sequence[torch
     codes = codes if codes.dtype == torch.float64 else codes.float()
     logits = logits.to(codes.dtype)
     num_classes = logits.shape[-1]
-    w = codes.new_tensor(code_weights)
+    w = device_constant(code_weights, codes.device, codes.dtype)
     l1_sum = focal_sum = codes.new_zeros(())
     num_matched = num_bad_cost = num_bad_target = 0
     for b, match in enumerate(matches):
@@ -170,8 +178,7 @@ def box_loss(codes: torch.Tensor, logits: torch.Tensor, gt_boxes: Sequence[torch
         if match.pred_index.numel():
             boxes = upload(gt_boxes[b], codes.device, codes.dtype)
             labels = upload(gt_labels[b], codes.device, torch.long)
-            pred_idx = match.pred_index.to(codes.device, non_blocking=True)
-            gt_idx = match.gt_index.to(codes.device, non_blocking=True)
+            pred_idx, gt_idx = match.pred_index, match.gt_index
             matched_gt = encode_boxes(boxes)[gt_idx]
             finite = torch.isfinite(matched_gt)
             num_bad_target = num_bad_target + (~finite).sum()     # stays on the device

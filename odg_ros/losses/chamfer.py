@@ -48,7 +48,7 @@ import torch.nn.functional as F
 from scipy.spatial import cKDTree
 
 from ..classes import FREE_LABEL, OCC_CLASS_WEIGHTS
-from ..data.batch import upload
+from ..data.batch import device_constant, upload
 from .focal import FOCAL_ALPHA, FOCAL_GAMMA, one_hot_targets, sigmoid_focal_loss
 
 CHAMFER_BETA = 0.2         # SmoothL1 beta (m)
@@ -207,13 +207,15 @@ def gt_point_weights(target: OccupancyTarget, dist_to_pred: torch.Tensor) -> tor
     """OPUS per-GT weights of the GT -> pred term (see module docstring). [M] float."""
     uncovered = (dist_to_pred > EMPTY_DIST_THR) & target.visible
     weights = torch.where(uncovered, EMPTY_WEIGHT, 1.0).to(dist_to_pred.dtype)
-    rare = torch.isin(target.labels, target.labels.new_tensor(RARE_CLASSES)) & target.visible
+    rare_classes = device_constant(RARE_CLASSES, target.labels.device, target.labels.dtype)
+    rare = (target.labels[:, None] == rare_classes).any(-1) & target.visible
     return torch.where(rare, weights.clamp(min=RARE_WEIGHT), weights)
 
 
 def distance_weight(points: torch.Tensor, pc_range: Sequence[float]) -> torch.Tensor:
     """OPUS: 1 + horizontal distance from the grid centre / horizontal grid diagonal. [N]."""
-    centre = points.new_tensor([(pc_range[0] + pc_range[3]) / 2, (pc_range[1] + pc_range[4]) / 2])
+    centre = device_constant([(pc_range[0] + pc_range[3]) / 2, (pc_range[1] + pc_range[4]) / 2],
+                             points.device, points.dtype)
     diagonal = math.hypot(pc_range[3] - pc_range[0], pc_range[4] - pc_range[1])
     return 1 + (points[:, :2] - centre).norm(dim=-1) / diagonal
 
@@ -255,7 +257,7 @@ def occupancy_loss(points: torch.Tensor, logits: torch.Tensor | None,
         logits = _at_least_float32(logits)
         if logits.shape[-1] != len(class_weights):
             raise ValueError(f"{logits.shape[-1]} class logits but {len(class_weights)} weights")
-        cls_w = points.new_tensor(class_weights)
+        cls_w = device_constant(class_weights, points.device, points.dtype)
 
     pred_sum = gt_sum = focal_sum = points.new_zeros(())
     num_pred = num_gt = num_focal = num_empty = 0

@@ -23,6 +23,7 @@ import torch
 import torch.nn.functional as F
 from scipy.optimize import linear_sum_assignment
 
+from ..data.batch import device_constant
 from .focal import FOCAL_ALPHA, FOCAL_GAMMA
 
 log = logging.getLogger(__name__)
@@ -44,7 +45,7 @@ def focal_match_cost(logits: torch.Tensor, labels: torch.Tensor, alpha: float = 
 def l1_match_cost(codes: torch.Tensor, gt_codes: torch.Tensor,
                   code_weights: Sequence[float]) -> torch.Tensor:
     """codes [D, K], gt_codes [M, K] -> [D, M] weighted L1 over the finite GT entries."""
-    w = codes.new_tensor(code_weights)
+    w = device_constant(code_weights, codes.device, codes.dtype)
     finite = torch.isfinite(gt_codes)
     diff = (codes[:, None, :] - torch.where(finite, gt_codes, 0)[None]).abs() * w
     return torch.where(finite[None], diff, 0).sum(-1)

@@ -46,6 +46,7 @@ from typing import NamedTuple, Sequence
 
 import torch
 
+from ..data.batch import upload
 from .projection import (ALPHA_MAX, ALPHA_MIN, Splats, depth_order, project_candidates,
                          splat_power)
 
@@ -129,15 +130,45 @@ def render_scenes(scenes: Sequence[Sequence[torch.Tensor]], cam_from_ego: torch.
     of N tensors [P, 2]. Returns K lists of N RenderResults, each equal to render_cameras of
     that scene alone (to float64 rounding of the transmittance sums).
     """
+    if not scenes:
+        _check_scenes(scenes, cam_from_ego, intrinsics, pixels)
+        return []
+    (height, width), (means, scales, rotations, opacities, features), sizes, checks = \
+        scene_inputs(scenes, cam_from_ego, intrinsics, pixels, image_hw, near, tile_size)
+    num_cameras = cam_from_ego.shape[1]
+    gaussian_scene = torch.repeat_interleave(
+        torch.arange(len(scenes), device=means.device),
+        upload(torch.tensor(sizes), means.device), output_size=means.shape[0])
+    flat_pixels = [p for per_scene in pixels for p in per_scene]
+    with torch.autocast(means.device.type, enabled=False):
+        results = _render_scenes(means, scales, rotations, opacities, features, gaussian_scene,
+                                 num_cameras, cam_from_ego.flatten(0, 1), intrinsics.flatten(0, 1),
+                                 flat_pixels, height, width, near, tile_size, checks)
+    return [results[k * num_cameras:(k + 1) * num_cameras] for k in range(len(scenes))]
+
+
+def scene_inputs(scenes, cam_from_ego, intrinsics, pixels, image_hw, near, tile_size):
+    """What render_scenes and gsplat's do first: clear errors for malformed shapes, every
+    scene's Gaussians concatenated (in float32 if half) and the value checks of all of them,
+    unread (as in _check_inputs). Returns ((H, W), (means, scales, rotations, opacities,
+    features) of all scenes, the scenes' Gaussian counts, checks)."""
+    _check_scenes(scenes, cam_from_ego, intrinsics, pixels)
+    # every value check below covers all scenes in one read
+    gaussians = [torch.cat([scene[i] for scene in scenes]) for i in range(5)]
+    flat_pixels = [p for per_scene in pixels for p in per_scene]
+    hw, gaussians, checks = _gaussians_and_checks(
+        *gaussians, cam_from_ego.flatten(0, 1), intrinsics.flatten(0, 1), flat_pixels,
+        image_hw, near, tile_size)
+    return hw, gaussians, [int(scene[0].shape[0]) for scene in scenes], checks
+
+
+def _check_scenes(scenes, cam_from_ego, intrinsics, pixels) -> None:
     if cam_from_ego.ndim != 4 or intrinsics.ndim != 4 or len(scenes) != cam_from_ego.shape[0]:
         raise ValueError(f"{len(scenes)} scenes need cam_from_ego [K={len(scenes)}, N, 4, 4] "
                          f"and intrinsics [K, N, 3, 3], got {tuple(cam_from_ego.shape)} and "
                          f"{tuple(intrinsics.shape)}")
     if len(pixels) != len(scenes):
         raise ValueError(f"got {len(pixels)} pixel lists for {len(scenes)} scenes")
-    if not scenes:
-        return []
-    num_cameras = cam_from_ego.shape[1]
     for k, scene in enumerate(scenes):
         if len(scene) != 5:
             raise ValueError(f"scene {k} must be (means, scales, rotations, opacities, "
@@ -149,21 +180,6 @@ def render_scenes(scenes: Sequence[Sequence[torch.Tensor]], cam_from_ego: torch.
             raise ValueError(f"scene {k} is {scene[0].dtype} on {scene[0].device} with "
                              f"{scene[4].shape[1]} features; scene 0 is {first[0].dtype} on "
                              f"{first[0].device} with {first[4].shape[1]}")
-    # every value check below covers all scenes in one read
-    gaussians = [torch.cat([scene[i] for scene in scenes]) for i in range(5)]
-    flat_pixels = [p for per_scene in pixels for p in per_scene]
-    (height, width), (means, scales, rotations, opacities, features), checks = \
-        _gaussians_and_checks(*gaussians, cam_from_ego.flatten(0, 1), intrinsics.flatten(0, 1),
-                              flat_pixels, image_hw, near, tile_size)
-    gaussian_scene = torch.repeat_interleave(
-        torch.arange(len(scenes), device=means.device),
-        torch.tensor([scene[0].shape[0] for scene in scenes], device=means.device),
-        output_size=means.shape[0])
-    with torch.autocast(means.device.type, enabled=False):
-        results = _render_scenes(means, scales, rotations, opacities, features, gaussian_scene,
-                                 num_cameras, cam_from_ego.flatten(0, 1), intrinsics.flatten(0, 1),
-                                 flat_pixels, height, width, near, tile_size, checks)
-    return [results[k * num_cameras:(k + 1) * num_cameras] for k in range(len(scenes))]
 
 
 def checked_gaussians(means, scales, rotations, opacities, features, cam_from_ego, intrinsics,
@@ -203,7 +219,7 @@ def _render_scenes(means, scales, rotations, opacities, features, gaussian_scene
         means.new_zeros(0, 2)
     pixel_camera = torch.repeat_interleave(
         torch.arange(num_cameras, device=means.device),
-        torch.tensor(counts, device=means.device, dtype=torch.long), output_size=sum(counts))
+        upload(torch.tensor(counts, dtype=torch.long), means.device), output_size=sum(counts))
 
     candidates, visible = project_candidates(
         means, scales, rotations, opacities, cam_from_ego.to(means.dtype),

@@ -235,6 +235,7 @@ def test_augmentation_never_waits_for_the_device(flip_probability):
     from odg_ros.data.batch import collate, to_device
     from odg_ros.train.census import Census, CensusMode, batch_host_tensors
     batch = to_device(collate([make_batch(0), make_batch(1)]), "cpu")
+    augment_batch(batch, PC_RANGE, flip_probability=1.0)   # a first step makes the constants
     census = Census()
     with CensusMode(census, None, batch_host_tensors(batch)):
         out = augment_batch(batch, PC_RANGE, zoom=(1.05, 1.1),
