@@ -37,8 +37,9 @@ class ODGCriterion:
     render: False for the ablation "without rendering supervision".
     render_pixels_per_camera: supervised LiDAR pixels per camera and call (random, seeded);
         <= 0 uses all of them.
-    renderer: None for ours (every layer and sample in one ``render_scenes`` call), or a
-        callable with the signature of ``odg_ros.render.render_cameras`` (one call each).
+    renderer: the render loss's renderer, called once for every layer and sample: None for
+        ours (``render_scenes``), or a callable with its signature (gsplat's:
+        ``render.gsplat_backend.render_scenes_gsplat``).
     nn_method: nearest-neighbour search of the Chamfer loss ("auto", "kdtree", "cdist").
 
     After each call ``last_stats`` holds counts worth logging (samples without occupied voxel,

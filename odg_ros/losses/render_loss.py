@@ -21,11 +21,10 @@ Choices the paper leaves open, and ours:
 * Layer weights: lambda_l = 0.05 for the first and the last layer, 0.01 for the others.
 
 The renderer is ours, ``odg_ros.render`` (gsplat conventions, docs/architecture.md sec. 5):
-``render_losses`` draws every layer of every sample in one ``render_scenes`` call. A callable
-with the signature of ``render_cameras`` (the N cameras of one sample)
-``(means, scales, rotations, opacities, features, cam_from_ego [N,4,4], intrinsics [N,3,3],
-pixels N x [P_n,2], image_hw, near=) -> N x RenderResult(depth, features, alpha)`` can be
-passed instead; it is called once per layer and sample.
+``render_losses`` draws every layer of every sample in one ``render_scenes`` call. Another
+renderer with the signature of ``render_scenes`` can be passed instead (gsplat's,
+``render.gsplat_backend.render_scenes_gsplat``), and ``one_call_per_scene`` makes one of a
+renderer with the signature of ``render_cameras`` (the N cameras of one scene).
 """
 from __future__ import annotations
 
@@ -105,9 +104,9 @@ def render_losses(layers: Sequence[Sequence[torch.Tensor]],
     """render_loss of L layers that share the targets and cameras, in one renderer call.
 
     layers: L tuples (means, scales, rotations, opacities, logits) shaped as in render_loss,
-    each with its own number of Gaussians G_l. Our renderer (renderer None) draws every
-    (layer, sample) scene in one render_scenes call, so what a call costs the host is paid
-    once per step, not per layer; another renderer is called once per scene.
+    each with its own number of Gaussians G_l. Every (layer, sample) scene is drawn in one
+    call of ``renderer`` (None: ours, render_scenes; else one with its signature), so what a
+    call costs the host is paid once per step, not per layer.
     Returns (L RenderLossResults, targets_finite): a 0-dim device bool, false if any target
     holds a NaN or inf (left unread: the caller reads it with its own flags; depth and label
     are not checked otherwise, and make the losses NaN).
@@ -143,17 +142,15 @@ def render_losses(layers: Sequence[Sequence[torch.Tensor]],
                 opacities[b].float(), probs[l][b]), b)
               for l, (means, scales, rotations, opacities, _) in enumerate(layers)
               for b in rendered_samples]
-    if renderer is None and scenes:
-        from ..render import render_scenes
-        rendered = render_scenes(
+    rendered = []
+    if scenes:
+        if renderer is None:
+            from ..render import render_scenes as renderer
+        rendered = renderer(
             [gaussians for gaussians, _ in scenes],
             torch.stack([cam_from_ego[b] for _, b in scenes]).float(),
             torch.stack([intrinsics[b] for _, b in scenes]).float(),
             [[t[:, :2] for t in targets[b]] for _, b in scenes], tuple(image_hw), near=near)
-    else:
-        rendered = [renderer(*gaussians, cam_from_ego[b].float(), intrinsics[b].float(),
-                             [t[:, :2] for t in targets[b]], tuple(image_hw), near=near)
-                    for gaussians, b in scenes]
     rendered = iter(rendered)
     num_pixels = sum(joined[b].shape[0] for b in rendered_samples)
     results = []
@@ -179,3 +176,12 @@ def render_losses(layers: Sequence[Sequence[torch.Tensor]],
             semantic=sem_sum / torch.as_tensor(num_labelled).clamp(min=1),
             num_pixels=num_pixels, num_labelled=num_labelled))
     return results, targets_finite
+
+
+def one_call_per_scene(renderer: Callable) -> Callable:
+    """A renderer with the signature of ``render_scenes`` that calls ``renderer`` (with the
+    signature of ``render_cameras``) once per scene."""
+    def render_each(scenes, cam_from_ego, intrinsics, pixels, image_hw, near=NEAR_PLANE):
+        return [renderer(*scene, cam_from_ego[k], intrinsics[k], pixels[k], image_hw, near=near)
+                for k, scene in enumerate(scenes)]
+    return render_each

@@ -139,8 +139,8 @@ def training_renderer(name: str, device: torch.device):
     except ImportError as error:
         raise ValueError("--renderer gsplat needs gsplat (pip install gsplat==1.5.3)") \
             from error
-    from ..render.gsplat_backend import render_cameras_gsplat
-    return render_cameras_gsplat
+    from ..render.gsplat_backend import render_scenes_gsplat
+    return render_scenes_gsplat
 
 
 def channels_last_convolutions(model: ODG) -> None:

@@ -8,6 +8,7 @@ import pytest
 import torch
 
 from odg_ros.losses import LAMBDA_3D, ODGCriterion, encode_boxes
+from odg_ros.losses.render_loss import one_call_per_scene
 
 from testing.losses import B, CFG, all_output_tensors, make_batch, make_output
 from testing import REPOSITORY
@@ -120,7 +121,8 @@ def test_all_layers_in_one_render_call_equal_one_call_per_layer():
     results = []
     for renderer in (None, per_scene):
         out = make_output()
-        losses = ODGCriterion(CFG, render_pixels_per_camera=16, renderer=renderer)(
+        losses = ODGCriterion(CFG, render_pixels_per_camera=16,
+                              renderer=renderer and one_call_per_scene(renderer))(
             out, make_batch())
         losses["loss"].backward()
         results.append((losses, [t.grad for t in all_output_tensors(out)]))

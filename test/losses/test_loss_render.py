@@ -6,8 +6,8 @@ from typing import NamedTuple
 import pytest
 import torch
 
-from odg_ros.losses.render_loss import (SEMANTIC_EPS, render_layer_weights, render_loss,
-                                        sample_render_targets)
+from odg_ros.losses.render_loss import (SEMANTIC_EPS, one_call_per_scene, render_layer_weights,
+                                        render_loss, sample_render_targets)
 
 H, W = 32, 64
 K = torch.tensor([[50.0, 0, 32.0], [0, 50.0, 16.0], [0, 0, 1]])
@@ -81,7 +81,7 @@ def test_render_loss_hand_checked_with_stand_in_renderer():
     cams = CAM_FROM_EGO.expand(2, 2, 4, 4)
     ks = K.expand(2, 2, 3, 3)
     res = render_loss(means, scales, rotations, opacities, logits, targets, cams, ks, (H, W),
-                      renderer=half_of_first_gaussian)
+                      renderer=one_call_per_scene(half_of_first_gaussian))
     z = [0.5 * means[b, 0, 2].item() for b in range(2)]
     depth = (abs(z[0] - 4) + abs(z[0] - 9) + abs(z[1] - 2) + abs(z[1] - 1)) / 4
     probs = torch.softmax(logits.detach()[:, 0], -1)
@@ -99,7 +99,7 @@ def test_no_lidar_pixel_is_zero_not_nan():
     means, scales, rotations, opacities, logits = gaussians(1, 2)
     res = render_loss(means, scales, rotations, opacities, logits,
                       [[torch.zeros(0, 4), torch.zeros(0, 4)]], CAM_FROM_EGO.expand(1, 2, 4, 4),
-                      K.expand(1, 2, 3, 3), (H, W), renderer=half_of_first_gaussian)
+                      K.expand(1, 2, 3, 3), (H, W), renderer=one_call_per_scene(half_of_first_gaussian))
     assert res.depth.item() == 0 and res.semantic.item() == 0
     assert res.num_pixels == 0 and res.num_labelled == 0
 
@@ -110,11 +110,11 @@ def test_bad_targets_raise():
     with pytest.raises(ValueError, match="non-finite"):
         render_loss(means, scales, rotations, opacities, logits, [[bad]],
                     CAM_FROM_EGO.expand(1, 1, 4, 4), K.expand(1, 1, 3, 3), (H, W),
-                    renderer=half_of_first_gaussian)
+                    renderer=one_call_per_scene(half_of_first_gaussian))
     with pytest.raises(ValueError, match="cameras"):
         render_loss(means, scales, rotations, opacities, logits, [[bad, bad]],
                     CAM_FROM_EGO.expand(1, 1, 4, 4), K.expand(1, 1, 3, 3), (H, W),
-                    renderer=half_of_first_gaussian)
+                    renderer=one_call_per_scene(half_of_first_gaussian))
 
 
 def test_gaussians_of_another_batch_size_raise():
@@ -123,11 +123,11 @@ def test_gaussians_of_another_batch_size_raise():
     with pytest.raises(ValueError, match="Gaussian attributes must be"):
         render_loss(means[:1], scales, rotations, opacities, logits, [[target], [target]],
                     CAM_FROM_EGO.expand(2, 1, 4, 4), K.expand(2, 1, 3, 3), (H, W),
-                    renderer=half_of_first_gaussian)
+                    renderer=one_call_per_scene(half_of_first_gaussian))
     with pytest.raises(ValueError, match="Gaussian attributes must be"):
         render_loss(means[:1], scales[:1], rotations[:1], opacities[:1], logits[:1],
                     [[target], [target]], CAM_FROM_EGO.expand(2, 1, 4, 4),
-                    K.expand(2, 1, 3, 3), (H, W), renderer=half_of_first_gaussian)
+                    K.expand(2, 1, 3, 3), (H, W), renderer=one_call_per_scene(half_of_first_gaussian))
 
 
 # --- the real renderer ------------------------------------------------------------------------

@@ -246,7 +246,8 @@ def _rasterize_without_cuda(means2d, conics, colors, opacities, width, height, t
                             packed=False, absgrad=False):
     """RasterizeToPixels3DGSFwd.cu's rules, tile by tile over the tile's depth-sorted list."""
     assert not packed and backgrounds is None and masks is None
-    images, tiles_y, tiles_x = isect_offsets.shape
+    image_dims, (tiles_y, tiles_x) = isect_offsets.shape[:-2], isect_offsets.shape[-2:]
+    images = isect_offsets[..., 0, 0].numel()
     ends = torch.cat([isect_offsets.flatten()[1:].long(),
                       torch.tensor([flatten_ids.numel()])])
     means2d, conics = means2d.reshape(-1, 2), conics.reshape(-1, 3)
@@ -276,7 +277,8 @@ def _rasterize_without_cuda(means2d, conics, colors, opacities, width, height, t
             transmittance = torch.where(hit, next_t, transmittance)
         out[image, rows, cols] = value
         alpha_out[image, rows, cols, 0] = 1.0 - transmittance
-    return out, alpha_out
+    return (out.reshape(*image_dims, *out.shape[1:]),
+            alpha_out.reshape(*image_dims, *alpha_out.shape[1:]))
 
 
 @pytest.fixture
@@ -332,7 +334,7 @@ def test_render_loss_takes_the_gsplat_backend(gsplat_kernels_on_cpu):
     """The render loss (float32, LiDAR-like targets at pixel centres) is the same with either
     renderer, gradients included: what ``odg train --renderer gsplat`` changes is the kernels."""
     from odg_ros.losses.render_loss import render_loss
-    from odg_ros.render.gsplat_backend import render_cameras_gsplat
+    from odg_ros.render.gsplat_backend import render_scenes_gsplat
     rng = np.random.default_rng(9)
     cam_from_ego, intrinsics = rig(rng, 2)
     g = random_gaussians(rng, 200)
@@ -342,7 +344,7 @@ def test_render_loss_takes_the_gsplat_backend(gsplat_kernels_on_cpu):
                            torch.tensor(rng.integers(0, 18, (300, 1)))], dim=-1).float()
                 for rows in (rng.choice(len(centres), 300, replace=False) for _ in range(2))]]
     losses = []
-    for renderer in (None, render_cameras_gsplat):
+    for renderer in (None, render_scenes_gsplat):
         result = render_loss(g["means"][None], g["scales"][None], g["rotations"][None],
                              g["opacities"][None], logits, targets, cam_from_ego[None],
                              intrinsics[None], HW, renderer=renderer, near=NEAR)
@@ -377,3 +379,39 @@ def test_gsplat_cuda_kernels_render_what_ours_does():
     theirs_grads = torch.autograd.grad((theirs * weights).sum(), list(g.values()))
     for name, a, b in zip(g, ours_grads, theirs_grads):
         assert (b - a).norm() <= 1e-2 * a.norm(), name
+
+
+def test_scenes_of_different_sizes_in_one_gsplat_call(gsplat_kernels_on_cpu, monkeypatch):
+    """render_scenes_gsplat: scenes of 300, 120 and 40 Gaussians (padded to 300 with culled
+    ones) in one rasterization call give what our renderer gives for each scene, gradients
+    included."""
+    import gsplat
+    from odg_ros.render import render_scenes
+    from odg_ros.render.gsplat_backend import render_scenes_gsplat
+    calls = []
+    rasterization = gsplat.rasterization
+    monkeypatch.setattr(gsplat, "rasterization",
+                        lambda *a, **k: calls.append(1) or rasterization(*a, **k))
+    rng = np.random.default_rng(11)
+    names = ("means", "scales", "rotations", "opacities", "features")
+    scenes, cams, ks = [], [], []
+    for size in (300, 120, 40):
+        cam_from_ego, intrinsics = rig(rng, 2)
+        g = random_gaussians(rng, size)
+        scenes.append([g[n].requires_grad_(True) for n in names])
+        cams.append(cam_from_ego)
+        ks.append(intrinsics)
+    centres = torch.stack(pixel_centres(), dim=-1)
+    pixels = [[centres, centres.flip(0)]] * 3
+
+    def rendered(renderer):
+        results = renderer(scenes, torch.stack(cams), torch.stack(ks), pixels, HW, near=NEAR)
+        return torch.cat([torch.cat([r.features, r.depth[:, None], r.alpha[:, None]], -1)
+                          for per_scene in results for r in per_scene])
+    ours, theirs = rendered(render_scenes), rendered(render_scenes_gsplat)
+    assert len(calls) == 1 and (ours[:, -1] > 0.1).float().mean() > 0.3
+    np.testing.assert_allclose(theirs.detach().numpy(), ours.detach().numpy(), rtol=1e-7,
+                               atol=1e-9)
+    inputs = [t for scene in scenes for t in scene]
+    assert_same_gradients(theirs, ours, dict(enumerate(inputs)),
+                          torch.tensor(rng.normal(size=ours.shape)))

@@ -59,9 +59,9 @@ def test_each_process_trains_on_its_own_gpu(monkeypatch):
 
 
 def test_render_loss_renderer_is_ours_or_gsplat_on_cuda():
-    from odg_ros.render.gsplat_backend import render_cameras_gsplat
+    from odg_ros.render.gsplat_backend import render_scenes_gsplat
     assert training_renderer("torch", torch.device("cpu")) is None   # the criterion's default
-    assert training_renderer("gsplat", torch.device("cuda", 0)) is render_cameras_gsplat
+    assert training_renderer("gsplat", torch.device("cuda", 0)) is render_scenes_gsplat
     with pytest.raises(ValueError, match="needs a CUDA device"):
         training_renderer("gsplat", torch.device("cpu"))
     with pytest.raises(ValueError, match="torch or gsplat"):
