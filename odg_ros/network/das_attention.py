@@ -17,7 +17,8 @@ from torch.nn.attention.flex_attention import flex_attention
 def use_flex_attention(query: torch.Tensor, training: bool) -> bool:
     """FlexAttention adds the distance bias inside its kernel, never writing [B, H, Q, Q];
     it is fast only compiled (the node's compiled / graphs step on CUDA). Eagerly, on the
-    CPU, or in training the SDPA path with a materialised bias runs."""
+    CPU, or in training the SDPA path with a materialised bias runs. Both compute the bias
+    and the softmax in float32 (at least), so bf16 gives one answer in every mode."""
     return query.is_cuda and not training and torch.compiler.is_compiling()
 
 
@@ -40,6 +41,30 @@ def flex_das_attention(q, k, v, centroids, tau, num_dynamic: int | None):
     return flex_attention(q, k, v, score_mod=distance_bias)
 
 
+def sdpa_das_attention(q, k, v, centroids, tau, num_dynamic: int | None,
+                       dropout: float = 0.0):
+    """flex_das_attention's attention by scaled_dot_product_attention on a materialised
+    [B, H, Q, Q] bias. The bias and the attention in float32 (at least), as FlexAttention's
+    kernel scores: in bf16 the distance would step by 0.25 m at 40 m. Half-precision q, k, v
+    are widened exactly. Returns q's dtype."""
+    dtype = torch.promote_types(q.dtype, torch.float32)
+    # norms of coordinate differences, as the flex kernel computes them (cdist's
+    # |a|^2 + |b|^2 - 2ab loses millimetres to cancellation at 40 m; its direct mode has
+    # no ONNX export)
+    centroids = centroids.to(dtype)
+    dist = torch.linalg.vector_norm(centroids[:, :, None] - centroids[:, None], dim=-1)
+    bias = dist.unsqueeze(1) * -tau.to(dtype).unsqueeze(-1)            # [B, H, Q, Q]
+    if num_dynamic is not None:
+        is_dyn = torch.arange(q.shape[2], device=q.device) < num_dynamic
+        cross = is_dyn[:, None] != is_dyn[None, :]
+        bias = bias.masked_fill(cross, float("-inf"))
+    if q.dtype == dtype:
+        return F.scaled_dot_product_attention(q, k, v, attn_mask=bias, dropout_p=dropout)
+    with torch.autocast(q.device.type, enabled=False):   # it would go back to half precision
+        return F.scaled_dot_product_attention(q.to(dtype), k.to(dtype), v.to(dtype),
+                                              attn_mask=bias, dropout_p=dropout).to(q.dtype)
+
+
 class DaSAttention(nn.Module):
     def __init__(self, embed_dims: int, num_heads: int, dropout: float = 0.1,
                  mix_sets: bool = True):
@@ -59,21 +84,10 @@ class DaSAttention(nn.Module):
         H = self.num_heads
         q, k, v = self.qkv(query).view(B, Q, 3, H, E // H).permute(2, 0, 3, 1, 4)
         split = not self.mix_sets and 0 < num_dynamic < Q
+        tau = self.gen_tau(query).permute(0, 2, 1)                      # [B, H, Q]
         if use_flex_attention(query, self.training):
-            tau = self.gen_tau(query).permute(0, 2, 1)                  # [B, H, Q]
             out = flex_das_attention(q, k, v, centroids, tau, num_dynamic if split else None)
-            return self.proj(out.transpose(1, 2).reshape(B, Q, E))
-        # the [B, H, Q, Q] bias is made directly in the attention's dtype: under bf16 / fp16
-        # autocast no float32 copy of it (4 bytes x heads x Q^2, ~740 MB per layer at 4,800
-        # queries and 8 heads) is written and read back before the cast
-        dist = torch.cdist(centroids, centroids).to(q.dtype)           # [B, Q, Q]
-        tau = self.gen_tau(query).permute(0, 2, 1).to(q.dtype)         # [B, H, Q]
-        bias = dist.unsqueeze(1) * -tau.unsqueeze(-1)                  # [B, H, Q, Q]
-        if split:
-            is_dyn = torch.arange(Q, device=query.device) < num_dynamic
-            cross = is_dyn[:, None] != is_dyn[None, :]
-            bias = bias.masked_fill(cross, float("-inf"))
-        out = F.scaled_dot_product_attention(
-            q, k, v, attn_mask=bias,
-            dropout_p=self.dropout if self.training else 0.0)
+        else:
+            out = sdpa_das_attention(q, k, v, centroids, tau, num_dynamic if split else None,
+                                     self.dropout if self.training else 0.0)
         return self.proj(out.transpose(1, 2).reshape(B, Q, E))
