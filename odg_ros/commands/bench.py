@@ -85,6 +85,9 @@ def add_arguments(parser):
 
 def run(args) -> int:
     args.device = resolve_device(args.device)
+    # fixed shapes, as in the node: cuDNN's measured fastest algorithms (process-wide, so set
+    # here where the benchmark starts, as the node's main does)
+    torch.backends.cudnn.benchmark = True
     if args.threads:
         torch.set_num_threads(args.threads)
     if args.iters is None:

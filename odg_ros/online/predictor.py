@@ -72,6 +72,28 @@ def resolve_mode(mode: str, device, compiled_step: bool = False) -> str:
     return mode
 
 
+class CudaGraphStep:
+    """The step captured once into a CUDA graph, after two runs on a side stream (cuBLAS and
+    the allocator settle there). The graph reads the static input buffers it was captured
+    with, and ``replay()`` returns the output tensors of the capture, rewritten: a result
+    must be copied out before the next replay."""
+
+    def __init__(self, function, images: torch.Tensor, packed: torch.Tensor, device):
+        side = torch.cuda.Stream(device)
+        side.wait_stream(torch.cuda.current_stream(device))
+        with torch.cuda.stream(side):
+            for _ in range(2):
+                function(images, packed)
+        torch.cuda.current_stream(device).wait_stream(side)
+        self.graph = torch.cuda.CUDAGraph()
+        with torch.cuda.graph(self.graph):
+            self.outputs = function(images, packed)
+
+    def replay(self):
+        self.graph.replay()
+        return self.outputs
+
+
 class OnlinePredictor:
     """Not thread-safe: one worker thread calls ``step``."""
 
@@ -127,7 +149,7 @@ class OnlinePredictor:
         elif self.mode != "eager":
             self._function = torch.compile(self.online_step, fullgraph=True, dynamic=False)
         self._graph = None
-        self._outputs = self._host_outputs = None
+        self._host_outputs = None
         self._warm_up()
         self.startup_seconds = time.perf_counter() - start
         LOG.info("online step: %s mode%s, start-up (compile / load, capture) %.1f s", self.mode,
@@ -158,29 +180,21 @@ class OnlinePredictor:
         self.layout.pack(self._packed_host.numpy(), 0.0, np.broadcast_to(np.eye(4), (k, 4, 4)),
                          0.0, 0, 0)
         self._packed.copy_(self._packed_host)
-        if self.mode != "graphs":
-            # on the CPU as ``step`` passes images (a tensor over a NumPy array, made in
-            # inference mode): compiled, another kind of tensor would compile a second graph
-            images = torch.from_numpy(self._images_host.numpy()) \
-                if self.device.type == "cpu" else self._images
-            self._function(images, self._packed)
+        if self.mode == "graphs":
+            self._graph = CudaGraphStep(self._function, self._images, self._packed, self.device)
             return
-        side = torch.cuda.Stream(self.device)
-        side.wait_stream(torch.cuda.current_stream(self.device))
-        with torch.cuda.stream(side):
-            for _ in range(2):
-                self._function(self._images, self._packed)
-        torch.cuda.current_stream(self.device).wait_stream(side)
-        self._graph = torch.cuda.CUDAGraph()
-        with torch.cuda.graph(self._graph):
-            self._outputs = self._function(self._images, self._packed)
+        # on the CPU as ``step`` passes images (a tensor over a NumPy array, made in
+        # inference mode): compiled, another kind of tensor would compile a second graph
+        images = torch.from_numpy(self._images_host.numpy()) \
+            if self.device.type == "cpu" else self._images
+        self._function(images, self._packed)
 
     def _run(self, images: torch.Tensor):
-        """The device step -> its output tensors (a CUDA graph reads the static buffers)."""
+        """The device step -> its output tensors (a graph reads the static buffers and
+        rewrites the same output tensors at every replay)."""
         if self._graph is None:
             return self._function(images, self._packed)
-        self._graph.replay()
-        return self._outputs
+        return self._graph.replay()
 
     def _pack_geometry(self, frames, slots, bounds) -> None:
         """History frames (newest first) stored in ring ``slots`` -> the packed buffer, in
@@ -233,7 +247,7 @@ class OnlinePredictor:
         images_in = self._images
         if isinstance(images, torch.Tensor):       # decoded on the device already
             self._images.copy_(images, non_blocking=True)
-        elif self.device.type == "cpu":
+        elif self.device.type == "cpu" and self._graph is None:
             # the step reads the set's own array: on the CPU, copying it into a static
             # buffer first would only cost time (no graph reads fixed addresses there)
             images_in = torch.from_numpy(np.ascontiguousarray(images, dtype=np.uint8))
@@ -257,10 +271,11 @@ class OnlinePredictor:
             copied.synchronize()                          # the step's only wait
             outputs = self._host_outputs
         t2 = time.perf_counter()
+        rewritten = cuda or self._graph is not None
         labels, confidence, boxes, score, label, valid, observed = (
-            # copies of their own where the pinned buffers are rewritten by the next step;
-            # the CPU step's outputs are new tensors each time
-            o.numpy().copy() if cuda else o.numpy() for o in outputs)
+            # copies of their own where the next step rewrites the buffers (the pinned host
+            # copies, a graph's outputs); the CPU step's outputs are new tensors each time
+            o.numpy().copy() if rewritten else o.numpy() for o in outputs)
         X, Y, Z = self.cfg.grid_shape
         boxes = box_dicts(boxes, score, label, valid)
         model_seconds = started.elapsed_time(finished) / 1e3 if cuda else t2 - t1

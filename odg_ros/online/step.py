@@ -99,18 +99,19 @@ class OnlineStep(nn.Module):
                              persistent=False)
         self.register_buffer("std", torch.tensor(IMAGENET_STD, device=device),
                              persistent=False)
-        self.backbone, self.neck = folded_for_inference(model.backbone), model.neck
+        # backbone and FPN channels-last end to end, as the images come (NHWC): weights in
+        # that layout too, or each convolution would re-lay them out inside its kernel
+        self.backbone = folded_for_inference(model.backbone)
+        self.neck = copy.deepcopy(model.neck).to(memory_format=torch.channels_last)
         self.half = half_dtype(precision)
         if self.half is not None:
             # weights stored in the compute dtype: autocast would cast every weight again at
             # every step (one kernel each); the geometry stays float32 (sampling.full_precision)
             self.backbone = self.backbone.to(self.half)
-            self.neck = with_half_matrix_weights(model.neck, self.half)
+            self.neck = with_half_matrix_weights(self.neck, self.half)
             self.model = copy.copy(model)                # shares all but the decoder
             self.model._modules = dict(model._modules)
             self.model.decoder = with_half_matrix_weights(model.decoder, self.half)
-        if self.device.type == "cuda":   # fixed shapes: cuDNN's measured fastest algorithms
-            torch.backends.cudnn.benchmark = True
         self.ring = FeatureRing(capacity, cfg.num_groups)
         with torch.no_grad():                                               # shapes only
             H, W = cfg.image_size

@@ -40,6 +40,7 @@ from pathlib import Path
 import numpy as np
 import rclpy
 import rclpy.logging
+import torch
 import yaml
 from nav_msgs.msg import Odometry
 from rcl_interfaces.msg import ParameterDescriptor, ParameterType
@@ -441,6 +442,9 @@ def main(args=None) -> int:
     # KeyboardInterrupt can land inside rclpy's Task construction and leave a half-built task
     # that errors when collected (seen at the end of the demo).
     stop = threading.Event()
+    # The step's shapes are fixed: cuDNN may measure its fastest algorithms once. A process-wide
+    # setting, so made here where the node's process starts (and in odg bench), not by the step.
+    torch.backends.cudnn.benchmark = True
     problem = params_file_problem(argv)       # checked here: rcl would log its own error too
     if problem is None:
         try:
