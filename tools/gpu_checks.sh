@@ -8,6 +8,10 @@
 # Where one job may run at most ten minutes, run the parts as jobs on one machine (carry .whl;
 # PART may list several, comma-separated), most wanted first. Times are estimates from the
 # first H100 run (ODG-T trained at 2.98 s a step then; torch.compile took ~90 s per model):
+#   0. first           one 9-minute call on a bare machine, no gsplat build: ODG-T's node
+#                      step, eager and graphs, fp32 and bf16 (2 compiles, ~4 min); ODG-T
+#                      trained 12 steps at batch 1 and 4 (~2 min, the world ~1 min); the
+#                      sync-debug count of a training step (~1 min); the backbone (~30 s)
 #   1. build,speed     gsplat JIT (90 s); 3 ODG-T runs + odg_cpu, 12 steps each (~5 min)
 #   2. node_t          4 compiles of ODG-T's step (~6-8 min)
 #   3. profile,compile census + profiler (~1 min); --compile (~3 min), checkpointing (~1 min)
@@ -18,6 +22,9 @@
 #   8. bench,sweep     64 s, 7 min;  9. presets  4 min
 #
 # PART ("all" runs every one in this order):
+#   first    the first call on a machine (above): node_first.json, train_odg_t_b{1,4}.csv,
+#            sync_debug_b{1,4}.json (the waits of a training step under
+#            torch.cuda.set_sync_debug_mode("warn"), against the census), backbone.json
 #   build    gsplat's CUDA kernels, JIT-compiled into .torch_extensions/ (kept for the next
 #            parts on the same machine), and what the machine is
 #   tests    the tests that only run on CUDA: gsplat against our renderer (values and
@@ -119,7 +126,7 @@ if [ "$DEVICE" = cuda ]; then
     export TORCH_CUDA_ARCH_LIST=${TORCH_CUDA_ARCH_LIST:-$arch}
 fi
 
-part_build() {
+machine() {  # what the machine is: OUT/machine.json
     $PY - <<'PYEOF' > "$OUT/machine.json"
 import json, platform, torch
 info = {"python": platform.python_version(), "torch": torch.__version__,
@@ -137,6 +144,11 @@ print(json.dumps(info, indent=1))
 PYEOF
     cat "$OUT/machine.json"
     command -v nvidia-smi >/dev/null && nvidia-smi > "$OUT/nvidia-smi.txt"
+    return 0
+}
+
+part_build() {
+    machine
     if [ "$DEVICE" = cuda ]; then
         step "gsplat CUDA kernels (JIT)" $PY -c "from gsplat.cuda._backend import _C; assert _C is not None, 'gsplat found no CUDA toolkit'"
     fi
@@ -276,12 +288,34 @@ part_compile() {
     gpu_sampling stop
 }
 
-node_bench() {  # node_bench NAME ARGS...: the node's step in every mode, fp32 and bf16
-    local name=$1 modes=eager,compiled,graphs iters=20 warmup=3
+node_bench() {  # node_bench NAME ARGS...: the node's step in each of MODES, fp32 and bf16
+    local name=$1 modes=${MODES:-eager,compiled,graphs} iters=20 warmup=3
     shift
     [ "$DEVICE" = cpu ] && [ "$CHECK" = run ] && modes=eager,compiled iters=2 warmup=1
     step "node step $name" into "$OUT/node_$name.json" odg bench --compile $modes \
         --precision fp32,bf16 --device "$DEVICE" --iters $iters --warmup $warmup --json "$@"
+}
+
+part_first() {
+    machine
+    MODES=eager,graphs node_bench first --preset odg_t --frames 8
+    world
+    resnet50_weights
+    for b in 1 4; do
+        train_run odg_t_b$b odg_t 12 --batch-size $b --renderer torch --log-every 4
+        [ "$DEVICE" = cpu ] && [ "$CHECK" = run ] && break   # ODG-T: tens of seconds a step
+    done
+    # the census with the CUDA paths on the CPU at batch 1 (batch 4's takes minutes: CI pins it)
+    step "host waits of a training step at batch 1" tool tools/sync_debug_step.py \
+        --data "$WORLD/infos_all.pkl" --backbone-weights "$R50" --batch-size 1 \
+        --device "$DEVICE" --json "$OUT/sync_debug_b1.json"
+    step "host waits of a training step at batch 4" tool tools/sync_debug_step.py \
+        --data "$WORLD/infos_all.pkl" --backbone-weights "$R50" --batch-size 4 \
+        --device "$DEVICE" --no-cpu-census --json "$OUT/sync_debug_b4.json"
+    if [ "$DEVICE" = cuda ] || [ "$CHECK" = parse ]; then
+        step "the node step's backbone" tool tools/bench_backbone.py --preset odg_t \
+            --precision bf16 --json "$OUT/backbone.json"
+    fi
 }
 
 part_node_t() { node_bench odg_t --preset odg_t --frames 8; }
@@ -311,7 +345,7 @@ part_node() {
         --sets 30 --model-ms 15
 }
 
-PARTS="build tests train speed profile compile node_t node_l node_cpu aoti node bench sweep presets"
+PARTS="first build tests train speed profile compile node_t node_l node_cpu aoti node bench sweep presets"
 [ "$PART" = all ] && PART=${PARTS// /,}
 for part in ${PART//,/ }; do
     if [[ " $PARTS " != *" $part "* ]]; then

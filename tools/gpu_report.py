@@ -4,8 +4,9 @@ of ``tools/gpu_checks.sh`` in OUT: paste them, then write what they say.
     python -m tools.gpu_report OUT [--skip-steps 4] > tables.md
 
 Reads what is there (every part is optional): machine.json, tests*.xml, train_*.csv,
-gpu_util_*.csv, profile_*.json, node_*.json, bench.json, eval_*.json, demo.json. A file that cannot be
-read is named in one line in the output instead of its table.
+gpu_util_*.csv, profile_*.json, sync_debug_*.json, node_*.json, backbone.json, bench.json,
+eval_*.json, demo.json. A file that cannot be read is named in one line in the output instead
+of its table.
 """
 from __future__ import annotations
 
@@ -125,6 +126,44 @@ def profile(out: Path) -> str:
     return text
 
 
+def host_waits(out: Path) -> str:
+    """A training step's host waits: CUDA's sync-debug warnings against the census."""
+    rows, differing = [], []
+    for path in sorted(out.glob("sync_debug_*.json")):
+        r = json.loads(path.read_text())
+        warned = r.get("sync_debug_waits")
+        census = r.get("census_cuda_paths_waits", r.get("census_cuda_waits"))
+        rows.append([f"{r['preset']} {r['image_size'][0]} x {r['image_size'][1]}, "
+                     f"{r['frames']} frames", r["batch_size"], fmt(warned),
+                     fmt(r.get("census_cuda_waits"), 0), fmt(r.get("census_cuda_paths_waits"), 0),
+                     fmt(r.get("census_cuda_paths_ops"), 0),
+                     "-" if warned is None or census is None else
+                     ("yes" if warned == census else "no")])
+        lines = {"sync-debug": r.get("sync_debug_lines") or {},
+                 "census": r.get("census_cuda_paths_lines") or r.get("census_cuda_lines") or {}}
+        for line in sorted(set().union(*lines.values())):
+            counts = [lines[k].get(line, 0) for k in lines]
+            if warned is not None and counts[0] != counts[1]:
+                differing.append([r["batch_size"], line] + [fmt(c, 0) for c in counts])
+    text = table(["step", "batch", "sync-debug warnings", "census on CUDA",
+                  "census, CUDA paths on the CPU", "launched ops (census)",
+                  "sync-debug = census"], rows)
+    if differing:
+        text += ("\n\nSource lines where the counts differ:\n\n"
+                 + table(["batch", "line", "sync-debug", "census"], differing))
+    return text
+
+
+def backbone(out: Path) -> str:
+    r = json.loads((out / "backbone.json").read_text())
+    rows = [[mode] + [fmt(v, 3) for v in times.values()] for mode, times in r["ms"].items()]
+    header = ["mode"] + [f"{k} ms" if "/" not in k else k
+                         for k in next(iter(r["ms"].values()))]
+    return (f"{r['preset']}, {r['precision']}, input {' x '.join(map(str, r['input']))}, "
+            f"{r['device']}; target: ours / fastest reference <= 1.2\n\n"
+            + table(header, rows))
+
+
 def node(out: Path) -> str:
     rows, errors = [], []
     for path in sorted(out.glob("node_*.json")):
@@ -179,7 +218,11 @@ def report(out: Path, skip_steps: int = 4) -> str:
                 ("Training speed", "train_*.csv", lambda out: train(out, skip_steps)),
                 ("GPU utilisation", "gpu_util_*.csv", gpu_util),
                 ("Training step on the GPU (odg profile train)", "profile_*.json", profile),
+                ("Host waits of a training step: CUDA's sync-debug mode against the census",
+                 "sync_debug_*.json", host_waits),
                 ("The node's step (odg bench --compile)", "node_*.json", node),
+                ("The node step's backbone against a plain forward", "backbone.json",
+                 backbone),
                 ("One online step, eager, per stage (odg bench)", "bench.json", bench),
                 ("The shipped checkpoint scored", "eval_*.json", scores),
                 ("odg demo end to end", "demo.json", demo)]

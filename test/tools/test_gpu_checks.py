@@ -55,8 +55,26 @@ def test_every_command_line_of_every_part_parses(tmp_path):
     train = [line for line in lines if line[:2] == ["odg", "train"] and "odg_t" in line]
     assert train and all("--backbone-weights" in line for line in train)
     bench = [line for line in lines if line[:2] == ["odg", "bench"] and "--compile" in line]
-    assert bench and "eager,compiled,graphs" in bench[0] and "fp32,bf16" in bench[0]
-    assert "29 command lines, 0 refused" in result.stdout
+    assert any("eager,compiled,graphs" in line and "fp32,bf16" in line for line in bench)
+    assert "35 command lines, 0 refused" in result.stdout
+
+
+def test_the_first_part_is_one_call_of_the_first_questions(tmp_path):
+    """``first``: the node step in graphs mode against eager, fp32 and bf16; ODG-T trained at
+    batch 1 and 4 with our renderer; the sync-debug count of a training step at both batch
+    sizes; the backbone against a plain forward. No gsplat build (minutes of a 9-minute call)."""
+    result = gpu_checks("first", tmp_path, DEVICE="cpu", CHECK="parse")
+    assert result.returncode == 0, result.stdout + result.stderr
+    lines = [json.loads(line) for line in (tmp_path / "commands.jsonl").read_text().splitlines()]
+    bench = [line for line in lines if line[:2] == ["odg", "bench"]]
+    assert len(bench) == 1 and "eager,graphs" in bench[0] and "fp32,bf16" in bench[0]
+    train = [line for line in lines if line[:2] == ["odg", "train"]]
+    assert [line[line.index("--batch-size") + 1] for line in train] == ["1", "4"]
+    assert all(line[line.index("--renderer") + 1] == "torch" for line in train)
+    waits = [line for line in lines if line[0] == "tools/sync_debug_step.py"]
+    assert [line[line.index("--batch-size") + 1] for line in waits] == ["1", "4"]
+    assert any(line[0] == "tools/bench_backbone.py" for line in lines)
+    assert "gsplat CUDA kernels" not in result.stdout
 
 
 def test_a_typo_in_a_command_line_fails_the_parse_check(tmp_path):
@@ -96,7 +114,21 @@ def test_report_tables_from_the_results_of_a_run(tmp_path):
         "gpu": {"wall_s": 0.5, "kernel_s": 0.4, "busy": 0.8,
                 "top_kernels": [{"name": "sm90_gemm", "calls": 300, "seconds": 0.1}]}}))
     (tmp_path / "demo.json").write_text("{not json")
+    (tmp_path / "sync_debug_b4.json").write_text(json.dumps({
+        "preset": "odg_t", "image_size": [32, 88], "frames": 2, "batch_size": 4,
+        "sync_debug_waits": 7, "sync_debug_lines": {"losses/box.py:120": 1, "x.py:1": 6},
+        "census_cuda_waits": 6.0, "census_cuda_paths_waits": 6.0, "census_cuda_paths_ops": 9000.0,
+        "census_cuda_paths_lines": {"losses/box.py:120": 1, "x.py:1": 5}}))
+    (tmp_path / "backbone.json").write_text(json.dumps({
+        "preset": "odg_t", "precision": "bf16", "input": [6, 3, 256, 704], "device": "H100",
+        "ms": {"eager": {"ours": 2.0, "reference NCHW": 4.0, "reference channels-last": 2.5,
+                         "ours / fastest reference": 0.8},
+               "graph": {"ours": 1.2, "reference NCHW": 3.0, "reference channels-last": 1.0,
+                         "ours / fastest reference": 1.2}}}))
     text = report(tmp_path)
+    assert "| odg_t 32 x 88, 2 frames | 4 | 7 | 6 | 6 | 9,000 | no |" in text
+    assert "| 4 | x.py:1 | 6 | 5 |" in text and "| 4 | losses/box.py:120 |" not in text
+    assert "| graph | 1.200 | 3.000 | 1.000 | 1.200 |" in text
     # median of the steps after the first 4: 0.75 s a step of 4 samples
     assert "| odg_t_b4 | 12 | 4 | 0.750 | 0.188 | 5.33 | 36.0 s | 0 skipped |" in text
     assert "| speed | 3 | 60 | 90 | 4.0 |" in text
