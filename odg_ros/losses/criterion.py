@@ -62,26 +62,45 @@ class ODGCriterion:
         self.last_stats: dict[str, int] = {}
 
     def __call__(self, output, batch: dict) -> dict[str, torch.Tensor]:
-        cfg = self.cfg
-        if len(output.layers) != cfg.num_layers:
-            raise ValueError(f"output has {len(output.layers)} layers, config {cfg.num_layers}")
-        semantics, mask_camera = batch["occ_semantics"], batch["occ_mask_camera"]
-        B = semantics.shape[0]
+        if len(output.layers) != self.cfg.num_layers:
+            raise ValueError(f"output has {len(output.layers)} layers, config "
+                             f"{self.cfg.num_layers}")
         device = output.init_means.device
-        # checked and extracted where the batch keeps the grids (the host in training, where
-        # the number of occupied voxels is known without waiting), then uploaded
-        targets = [occupancy_target(semantics[b], mask_camera[b], cfg.pc_range, cfg.voxel_size,
-                                    free_label=cfg.free_label, method=self.nn_method).to(device)
-                   for b in range(B)]
+        targets = self._occupancy_targets(batch, device)
         stats = {"samples_without_occ_gt": sum(t.num == 0 for t in targets),
                  "boxes_matched": 0, "nonfinite_match_costs": 0, "nonfinite_box_targets": 0,
                  "render_pixels": 0, "render_labelled_pixels": 0}
         if self.use_render:
-            render_targets = sample_render_targets(batch["render_targets"],
-                                                   self.render_pixels_per_camera, self.generator)
-            cam_from_ego = batch["cam_from_ego"].to(device)
-            intrinsics = batch["intrinsics"].to(device)
+            render_inputs = self._render_inputs(batch, device)
+        self._check_outputs(output, device)
+        boxes = self._match_boxes(output, batch, device) if self.use_boxes else None
+        rendered, targets_finite = None, torch.ones((), dtype=torch.bool, device=device)
+        if self.use_render:
+            rendered, targets_finite = self._render(output, *render_inputs)
+        losses = self._layer_losses(output, targets, boxes, rendered, stats)
+        self._check_losses(losses, targets_finite, stats)
+        self.last_stats = stats
+        return losses
 
+    def _occupancy_targets(self, batch: dict, device) -> list:
+        """Every sample's occupied voxels: checked and extracted where the batch keeps the
+        grids (the host in training, where their number is known without waiting), then
+        uploaded."""
+        cfg = self.cfg
+        semantics, mask_camera = batch["occ_semantics"], batch["occ_mask_camera"]
+        return [occupancy_target(semantics[b], mask_camera[b], cfg.pc_range, cfg.voxel_size,
+                                 free_label=cfg.free_label, method=self.nn_method).to(device)
+                for b in range(semantics.shape[0])]
+
+    def _render_inputs(self, batch: dict, device):
+        """(the LiDAR pixels kept, cam_from_ego, intrinsics) of the render loss."""
+        render_targets = sample_render_targets(batch["render_targets"],
+                                               self.render_pixels_per_camera, self.generator)
+        return render_targets, batch["cam_from_ego"].to(device), batch["intrinsics"].to(device)
+
+    def _check_outputs(self, output, device) -> None:
+        """One read checks every network output before any loss (the FloatingPointError of
+        _require_finite)."""
         try:
             _require_finite(network_outputs(output))
         except FloatingPointError:
@@ -91,33 +110,40 @@ class ODGCriterion:
                 for _ in output.layers:
                     matched_normaliser(0, device)
             raise
-        if self.use_boxes:
-            for l, layer in enumerate(output.layers, start=1):
-                if layer.boxes is None or layer.box_logits is None:
-                    raise ValueError(f"layer {l} has no boxes but cfg.dual_queries is True")
-            matches = match_layers([(layer.boxes, layer.box_logits) for layer in output.layers],
-                                   batch["gt_boxes"], batch["gt_labels"])
-            # uploaded once for the six layers' box losses (the matching reads the host copy)
-            gt_boxes = [upload(b, device) for b in batch["gt_boxes"]]
-            gt_labels = [upload(b, device) for b in batch["gt_labels"]]
 
-        targets_finite = torch.ones((), dtype=torch.bool, device=device)
-        if self.use_render:
-            # every layer in one renderer call: its reads of sizes are paid once per step
-            render_layers = []
-            for l, layer in enumerate(output.layers, start=1):
-                if layer.scales is None or layer.rotations is None or layer.opacities is None:
-                    raise ValueError(f"layer {l} has no scales/rotations/opacities (Phi MLPs not "
-                                     "run); the rendering loss needs them")
-                means = layer.means.reshape(B, -1, 3)
-                G = means.shape[1]
-                render_layers.append((means, layer.scales.reshape(B, G, 3),
-                                      layer.rotations.reshape(B, G, 4),
-                                      layer.opacities.reshape(B, G),
-                                      layer.logits.reshape(B, G, -1)))
-            rendered, targets_finite = render_losses(render_layers, render_targets, cam_from_ego,
-                                                     intrinsics, cfg.image_size, self.renderer)
+    def _match_boxes(self, output, batch: dict, device):
+        """(every layer's Hungarian matches, the GT boxes and labels on the device)."""
+        for l, layer in enumerate(output.layers, start=1):
+            if layer.boxes is None or layer.box_logits is None:
+                raise ValueError(f"layer {l} has no boxes but cfg.dual_queries is True")
+        matches = match_layers([(layer.boxes, layer.box_logits) for layer in output.layers],
+                               batch["gt_boxes"], batch["gt_labels"])
+        # uploaded once for the six layers' box losses (the matching reads the host copy)
+        gt_boxes = [upload(b, device) for b in batch["gt_boxes"]]
+        gt_labels = [upload(b, device) for b in batch["gt_labels"]]
+        return matches, gt_boxes, gt_labels
 
+    def _render(self, output, render_targets, cam_from_ego, intrinsics):
+        """(every layer's RenderLossResult, the render targets' finiteness flag): every
+        layer in one renderer call, so that its reads of sizes are paid once per step."""
+        B = len(render_targets)
+        render_layers = []
+        for l, layer in enumerate(output.layers, start=1):
+            if layer.scales is None or layer.rotations is None or layer.opacities is None:
+                raise ValueError(f"layer {l} has no scales/rotations/opacities (Phi MLPs not "
+                                 "run); the rendering loss needs them")
+            means = layer.means.reshape(B, -1, 3)
+            G = means.shape[1]
+            render_layers.append((means, layer.scales.reshape(B, G, 3),
+                                  layer.rotations.reshape(B, G, 4),
+                                  layer.opacities.reshape(B, G),
+                                  layer.logits.reshape(B, G, -1)))
+        return render_losses(render_layers, render_targets, cam_from_ego, intrinsics,
+                             self.cfg.image_size, self.renderer)
+
+    def _layer_losses(self, output, targets, boxes, rendered, stats: dict) -> dict:
+        """Every term of every layer and their weighted total ``loss``; counts into stats."""
+        cfg, B = self.cfg, len(targets)
         losses: dict[str, torch.Tensor] = {}
         init = occupancy_loss(output.init_means.reshape(B, -1, 3), None, targets, cfg.pc_range)
         losses["occ_chamfer_l0"] = init.chamfer
@@ -130,7 +156,8 @@ class ODGCriterion:
             losses[f"occ_chamfer_l{l}"], losses[f"occ_focal_l{l}"] = occ.chamfer, occ.focal
             total = total + occ.chamfer + occ.focal
 
-            if self.use_boxes:
+            if boxes is not None:
+                matches, gt_boxes, gt_labels = boxes
                 box = box_loss(layer.boxes, layer.box_logits, gt_boxes, gt_labels,
                                matches=matches[l - 1])
                 losses[f"box_l1_l{l}"], losses[f"box_focal_l{l}"] = box.l1, box.focal
@@ -139,15 +166,17 @@ class ODGCriterion:
                 stats["nonfinite_match_costs"] += box.num_nonfinite_costs
                 stats["nonfinite_box_targets"] += box.num_nonfinite_targets
 
-            if self.use_render:
+            if rendered is not None:
                 ren = rendered[l - 1]
                 losses[f"render_depth_l{l}"], losses[f"render_sem_l{l}"] = ren.depth, ren.semantic
                 total = total + self.render_weights[l - 1] * (ren.depth + ren.semantic)
                 stats["render_pixels"] += ren.num_pixels
                 stats["render_labelled_pixels"] += ren.num_labelled
-
         losses["loss"] = total
-        # one host read for every term, the total and the render targets
+        return losses
+
+    def _check_losses(self, losses: dict, targets_finite: torch.Tensor, stats: dict) -> None:
+        """One host read for every term, the total and the render targets."""
         bad = nonfinite_names({**losses, NONFINITE_TARGET: torch.where(targets_finite, 0.0,
                                                                        float("nan"))})
         if NONFINITE_TARGET in bad:
@@ -157,8 +186,6 @@ class ODGCriterion:
         if stats["nonfinite_match_costs"]:
             log.warning("%d NaN/inf box matching costs replaced this step",
                         stats["nonfinite_match_costs"])
-        self.last_stats = stats
-        return losses
 
 
 # the loss term each network output enters first, for the error message
