@@ -145,8 +145,9 @@ class Census:
 
 
 def _storage(t: torch.Tensor) -> int:
-    """Identity of a strided tensor's memory (shared by its views); -1 for sparse ones."""
-    return t.untyped_storage().data_ptr() if t.layout == torch.strided else -1
+    """Identity of a strided tensor's memory, shared by its views (the storage object: the
+    address of the data would be 0 for every empty one); -1 for sparse tensors."""
+    return t.untyped_storage()._cdata if t.layout == torch.strided else -1
 
 
 def _tensors(args, kwargs) -> list[torch.Tensor]:
@@ -193,9 +194,9 @@ class CensusMode(TorchDispatchMode):
 
     # -------------------------------------------------------------- where tensors are
     def _mark(self, t: torch.Tensor, kind: str, roots: frozenset = frozenset()) -> None:
-        if t.layout != torch.strided:
-            return
         storage = _storage(t)
+        if storage == -1:
+            return
         self._fresh.pop(storage, None)
         self._host.discard(storage)
         self._factory.discard(storage)
@@ -207,7 +208,7 @@ class CensusMode(TorchDispatchMode):
 
     def _mark_factory(self, out) -> None:
         for t in (out if isinstance(out, (list, tuple)) else (out,)):
-            if isinstance(t, torch.Tensor) and t.layout == torch.strided:
+            if isinstance(t, torch.Tensor) and _storage(t) != -1:
                 self._factory.add(_storage(t))
                 self._kept.append(t.untyped_storage())
 
@@ -230,8 +231,8 @@ class CensusMode(TorchDispatchMode):
 
     def _uploads_of(self, t: torch.Tensor, kind: str) -> int:
         """Waits for a host or fresh tensor ``t`` given to an op on the device."""
-        if t.dim() == 0:
-            return 0                                # a scalar: passed by value
+        if t.dim() == 0 or not t.numel():
+            return 0                                # a scalar, passed by value; or empty
         if kind == self.HOST:
             return 1                                # an implicit copy of host data
         roots = self._fresh[_storage(t)]
@@ -344,8 +345,8 @@ class CensusMode(TorchDispatchMode):
         out = func(*args, **kwargs)
         if self.device_type is None:
             self._mark(out, self.FRESH)              # where it is made: decided by its use
-        elif out.device.type == self.device_type:
-            self._count(func, [("upload", int(out.dim() > 0))])
+        elif out.device.type == self.device_type:    # made on the device (a CPU run: no copy)
+            self._count(func, [("upload", int(out.dim() > 0 and self.device_type != "cpu"))])
         return out
 
     def _copy(self, func, args, kwargs):
