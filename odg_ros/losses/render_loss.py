@@ -59,7 +59,9 @@ def sample_render_targets(render_targets: Sequence[Sequence[torch.Tensor]], max_
                 raise ValueError(f"render targets must be [P, 4], got {tuple(t.shape)}")
             if 0 < max_pixels < t.shape[0]:
                 keep = torch.randperm(t.shape[0], generator=generator)[:max_pixels]
-                t = t[upload(keep.sort().values, t.device)]
+                keep = keep.sort().values
+                # the targets stay where they are: on the host in training, no copy at all
+                t = t[keep if keep.device == t.device else upload(keep, t.device)]
             cams.append(t)
         out.append(cams)
     return out
