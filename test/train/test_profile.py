@@ -73,8 +73,9 @@ def test_profile_command_prints_phases_and_lines(split, tmp_path, capsys):
                                   for k, v in tiny_config(num_frames=2).to_dict().items()}))
     out = tmp_path / "census.json"
     assert main(["profile", "train", "--preset", str(preset), "--data", str(split),
-                 "--cuda-paths", "--top", "3", "--json", str(out)]) == 0
+                 "--cuda-paths", "--renderer", "gsplat", "--top", "3", "--json", str(out)]) == 0
     text = capsys.readouterr().out
+    assert "renderer gsplat, CUDA paths forced" in text
     for phase in ("forward", "losses", "backward", "optimizer", "total"):
         assert f"\n{phase}" in text
     assert "host waits per step by kind: read" in text
@@ -83,4 +84,5 @@ def test_profile_command_prints_phases_and_lines(split, tmp_path, capsys):
     assert sum(p["ops"] for p in saved["by_phase"].values()) == saved["ops_per_step"]
     assert saved["by_phase"]["backward"]["ops"] > 0 and saved["gpu"] is None
     assert set(saved["waits_by_kind"]) == {"read", "download", "shape", "upload"}
+    assert saved["renderer"] == "gsplat" and saved["waits_by_kind"]["read"] >= 2
     assert main(["profile", "train", "--data", str(tmp_path / "missing.pkl")]) == 2
