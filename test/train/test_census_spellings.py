@@ -52,6 +52,8 @@ PLANTED = {
     "masked_select": ("shape", lambda x, h, i: x.masked_select(x > 0)),
     "boolean index": ("shape", lambda x, h, i: x[x > 0]),
     "boolean index_put": ("shape", masked_write),
+    "boolean index of an empty device tensor, beside empty host data": (
+        "shape", lambda x, h, i: (h[:0].clone(), x[:0].clone()[x[:0] > 0])),
     "unique": ("shape", lambda x, h, i: torch.unique(x)),
     "unique(return_counts)": ("shape", lambda x, h, i: torch.unique(i, return_counts=True)),
     "unique_consecutive": ("shape", lambda x, h, i: torch.unique_consecutive(i)),
