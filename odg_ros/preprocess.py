@@ -10,6 +10,8 @@ import numpy as np
 import torch
 from PIL import Image
 
+from .transfer import device_constant
+
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
 
@@ -89,7 +91,6 @@ def resize_crop(image: np.ndarray, dst_hw) -> np.ndarray:
 
 def normalize(images_uint8: torch.Tensor) -> torch.Tensor:
     """[..., H, W, 3] uint8 RGB -> [..., 3, H, W] float32, ImageNet mean/std normalised."""
-    from .data.batch import device_constant
     x = images_uint8.float().div_(255.0)
     mean = device_constant(IMAGENET_MEAN, x.device, x.dtype)
     std = device_constant(IMAGENET_STD, x.device, x.dtype)

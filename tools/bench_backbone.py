@@ -7,7 +7,7 @@ in eval mode, fp32 weights under autocast (bf16), on NCHW input, and on channels
 with channels-last weights. Each runs eagerly and replayed as a CUDA graph (the node's
 ``graphs`` mode), on the preset's cameras at its input size; times are CUDA-event medians.
 
-    python tools/bench_backbone.py [--preset odg_t] [--precision bf16] [--iters 50] [--json OUT]
+    python -m tools.bench_backbone [--preset odg_t] [--precision bf16] [--iters 50] [--json OUT]
 
 The target: ours within 1.2x of the fastest reference in each execution mode.
 """
@@ -16,18 +16,15 @@ from __future__ import annotations
 import argparse
 import copy
 import json
-import os
 import statistics
 import sys
 from pathlib import Path
 
-sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+import torch
 
-import torch  # noqa: E402
-
-from odg_ros.config import load_preset             # noqa: E402
-from odg_ros.network.backbone import ResNet, folded_for_inference  # noqa: E402
-from odg_ros.network.precision import half_dtype   # noqa: E402
+from odg_ros.config import load_preset
+from odg_ros.network.backbone import ResNet, folded_for_inference
+from odg_ros.network.precision import half_dtype
 
 
 def timed(function, x: torch.Tensor, iters: int, warmup: int, graph: bool) -> float:

@@ -306,14 +306,14 @@ part_first() {
         [ "$DEVICE" = cpu ] && [ "$CHECK" = run ] && break   # ODG-T: tens of seconds a step
     done
     # the census with the CUDA paths on the CPU at batch 1 (batch 4's takes minutes: CI pins it)
-    step "host waits of a training step at batch 1" tool tools/sync_debug_step.py \
+    step "host waits of a training step at batch 1" tool tools.sync_debug_step \
         --data "$WORLD/infos_all.pkl" --backbone-weights "$R50" --batch-size 1 \
         --device "$DEVICE" --json "$OUT/sync_debug_b1.json"
-    step "host waits of a training step at batch 4" tool tools/sync_debug_step.py \
+    step "host waits of a training step at batch 4" tool tools.sync_debug_step \
         --data "$WORLD/infos_all.pkl" --backbone-weights "$R50" --batch-size 4 \
         --device "$DEVICE" --no-cpu-census --json "$OUT/sync_debug_b4.json"
     if [ "$DEVICE" = cuda ] || [ "$CHECK" = parse ]; then
-        step "the node step's backbone" tool tools/bench_backbone.py --preset odg_t \
+        step "the node step's backbone" tool tools.bench_backbone --preset odg_t \
             --precision bf16 --json "$OUT/backbone.json"
     fi
 }

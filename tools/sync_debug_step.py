@@ -12,7 +12,7 @@ camera, augmentation on, our renderer), on the first ``--batch-size`` keyframes 
 after one warm-up step; every run starts from the same seed. The batch is pinned and uploaded
 before the step, as the training loop's prefetcher does.
 
-    python tools/sync_debug_step.py --data INFOS --backbone-weights R50.pth [--batch-size 4]
+    python -m tools.sync_debug_step --data INFOS --backbone-weights R50.pth [--batch-size 4]
 
 Prints the counts and the lines that differ, and ``--json`` writes them. On a machine without
 CUDA (``--device cpu``) only the third count is made.
@@ -22,22 +22,24 @@ from __future__ import annotations
 import argparse
 import collections
 import json
-import os
 import sys
 import tempfile
 import time
 import warnings
 from pathlib import Path
 
-sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+import torch
 
-import torch  # noqa: E402
-
-from odg_ros.config import load_preset                                      # noqa: E402
-from odg_ros.data.batch import collate, to_device                           # noqa: E402
-from odg_ros.train.census import (Census, CensusMode, batch_host_tensors,    # noqa: E402
-                                  census_of_steps, optimizer_host_tensors)
-from odg_ros.train.trainer import Trainer, TrainOptions                     # noqa: E402
+from odg_ros.config import load_preset
+from odg_ros.data.batch import collate, to_device
+from odg_ros.train.census import (
+    Census,
+    CensusMode,
+    batch_host_tensors,
+    census_of_steps,
+    optimizer_host_tensors,
+)
+from odg_ros.train.trainer import Trainer, TrainOptions
 
 PACKAGE = str(Path(__file__).resolve().parents[1] / "odg_ros") + "/"
 
@@ -57,7 +59,7 @@ def host_batch(trainer: Trainer, size: int) -> dict:
 
 
 def line_of(filename: str, lineno: int) -> str:
-    name = filename[len(PACKAGE):] if filename.startswith(PACKAGE) else filename
+    name = filename.removeprefix(PACKAGE)
     return f"{name}:{lineno}"
 
 

@@ -27,7 +27,7 @@ import torch
 import torch.nn.functional as F
 
 from ..preprocess import IMAGENET_MEAN, IMAGENET_STD
-from .batch import device_constant, upload
+from ..transfer import device_constant, upload
 
 ZOOM = (0.9, 1.1)
 FLIP_PROBABILITY = 0.5

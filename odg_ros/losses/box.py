@@ -28,7 +28,7 @@ from typing import Sequence
 import torch
 import torch.distributed as dist
 
-from ..data.batch import device_constant, upload
+from ..transfer import device_constant, upload
 from .focal import FOCAL_ALPHA, FOCAL_GAMMA, one_hot_targets, sigmoid_focal_loss
 from .matcher import box_match_cost, hungarian_match
 

@@ -48,7 +48,7 @@ import torch.nn.functional as F
 from scipy.spatial import cKDTree
 
 from ..classes import FREE_LABEL, OCC_CLASS_WEIGHTS
-from ..data.batch import device_constant, upload
+from ..transfer import device_constant, upload
 from .focal import FOCAL_ALPHA, FOCAL_GAMMA, one_hot_targets, sigmoid_focal_loss
 
 CHAMFER_BETA = 0.2         # SmoothL1 beta (m)

@@ -18,7 +18,7 @@ from typing import Callable
 import torch
 
 from ..config import ModelConfig
-from ..data.batch import upload
+from ..transfer import upload
 from .box import box_loss, match_layers, matched_normaliser
 from .chamfer import occupancy_loss, occupancy_target
 from .render_loss import (NONFINITE_TARGET, render_layer_weights, render_losses,

@@ -23,7 +23,7 @@ import torch
 import torch.nn.functional as F
 from scipy.optimize import linear_sum_assignment
 
-from ..data.batch import device_constant
+from ..transfer import device_constant
 from .focal import FOCAL_ALPHA, FOCAL_GAMMA
 
 log = logging.getLogger(__name__)

@@ -33,7 +33,7 @@ from typing import Callable, Sequence
 
 import torch
 
-from ..data.batch import upload
+from ..transfer import upload
 
 RENDER_WEIGHT_OUTER = 0.05   # layers 1 and L
 RENDER_WEIGHT_INNER = 0.01   # the others

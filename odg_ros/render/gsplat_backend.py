@@ -26,7 +26,7 @@ from typing import Sequence
 
 import torch
 
-from ..data.batch import upload
+from ..transfer import upload
 from .projection import BLUR_PX2
 from .splat import TILE_SIZE, RenderResult, _raise_failed, scene_inputs
 

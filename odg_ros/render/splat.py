@@ -46,7 +46,7 @@ from typing import NamedTuple, Sequence
 
 import torch
 
-from ..data.batch import upload
+from ..transfer import upload
 from .projection import (ALPHA_MAX, ALPHA_MIN, Splats, depth_order, project_candidates,
                          splat_power)
 
@@ -341,39 +341,14 @@ def _composite(splats: Splats, pixel_uv: torch.Tensor, pixel_camera: torch.Tenso
         while first < len(splats):
             with torch.no_grad():
                 if bounds is None:
-                    # The batch's bounds and candidate count on the device, read in one copy:
-                    # whole splats while the active pixels under their boxes add up to at
-                    # most CANDIDATE_CHUNK (at least one splat).
-                    through = torch.cumsum(_pixels_in_boxes(
-                        grid, tile_count, splats.camera[first:],
-                        *(edge[first:] for edge in boxes)), 0)
-                    count = torch.searchsorted(through, through.new_full(
-                        (1,), CANDIDATE_CHUNK), right=True).clamp_min(1)
-                    bounds = torch.cat([splat_first_st[first:first + 1],
-                                        splat_first_st.index_select(0, first + count),
-                                        first + count,
-                                        through.index_select(0, count - 1)]).tolist()
-                a, b, last, num_candidates = bounds
+                    bounds = _next_batch_bounds(grid, tile_count, splats, boxes, first,
+                                                splat_first_st)
+                pair_splat, pair_pixel, stops, last = _kept_pairs_of_batch(
+                    params, pixel_uv, num_pixels, st_splat, st_tile,
+                    (pixels_by_tile, tile_count, tile_first), bounds, log_t)
                 bounds = None
-                pair_splat, pair_pixel = _candidate_pairs(
-                    st_splat[a:b], st_tile[a:b], pixels_by_tile, tile_count, tile_first,
-                    num_candidates)
-                # By pixel, then depth: the candidates come in splat order, which is the
-                # depth order, so a stable sort by pixel keeps it within each pixel.
-                order = torch.argsort(pair_pixel, stable=True)
-                pair_splat, pair_pixel = pair_splat[order], pair_pixel[order]
-                alpha = _pair_alpha(params.detach(), pixel_uv, pair_splat, pair_pixel)
-                # pairs below alpha 1/255 are skipped: they leave T as it is
-                contributes = alpha >= ALPHA_MIN
-                log_one_minus = torch.log1p(-torch.where(contributes, alpha, 0).double())
-                include = (_log_transmittance(log_one_minus, pair_pixel, log_t)
-                           + log_one_minus > math.log(TRANSMITTANCE_MIN) + STOP_LOG_MARGIN)
-                kept = (include & contributes).nonzero(as_tuple=True)[0]     # the one wait
-                stops = _counts(pair_pixel, num_pixels, ~include)
-                pair_splat = pair_splat.index_select(0, kept)
-                pair_pixel = pair_pixel.index_select(0, kept)
             first = last
-            if kept.shape[0]:
+            if pair_splat.shape[0]:
                 # The kept pairs of a pixel are a prefix of its contributing pairs, so T from
                 # the kept pairs alone is the same T, now differentiable.
                 alpha = _pair_alpha(params, pixel_uv, pair_splat, pair_pixel)
@@ -394,6 +369,46 @@ def _composite(splats: Splats, pixel_uv: torch.Tensor, pixel_camera: torch.Tenso
         empty = torch.zeros(0, dtype=torch.long, device=device)
         return params[:0, 0] * 0, empty, empty
     return torch.cat(weights), torch.cat(pair_pixels), torch.cat(pair_splats)
+
+
+def _next_batch_bounds(grid: "_TileGrid", tile_count: torch.Tensor, splats: Splats, boxes,
+                       first: int, splat_first_st: torch.Tensor) -> list:
+    """The next depth batch from splat ``first``: whole splats while the active pixels under
+    their boxes add up to at most CANDIDATE_CHUNK (at least one splat). Its bounds in the
+    (splat, tile) list, its end and its candidate count, read in one copy."""
+    through = torch.cumsum(_pixels_in_boxes(grid, tile_count, splats.camera[first:],
+                                            *(edge[first:] for edge in boxes)), 0)
+    count = torch.searchsorted(through, through.new_full((1,), CANDIDATE_CHUNK),
+                               right=True).clamp_min(1)
+    return torch.cat([splat_first_st[first:first + 1],
+                      splat_first_st.index_select(0, first + count),
+                      first + count,
+                      through.index_select(0, count - 1)]).tolist()
+
+
+def _kept_pairs_of_batch(params: torch.Tensor, pixel_uv: torch.Tensor, num_pixels: int,
+                         st_splat: torch.Tensor, st_tile: torch.Tensor, binned, bounds,
+                         log_t: torch.Tensor):
+    """One depth batch, without autograd: its candidate (splat, pixel) pairs sorted by
+    (pixel, depth), the exact alpha test and the early stop -> the kept pairs' splat and
+    pixel, the stopped pairs per pixel and the batch's end."""
+    pixels_by_tile, tile_count, tile_first = binned
+    a, b, last, num_candidates = bounds
+    pair_splat, pair_pixel = _candidate_pairs(st_splat[a:b], st_tile[a:b], pixels_by_tile,
+                                              tile_count, tile_first, num_candidates)
+    # By pixel, then depth: the candidates come in splat order, which is the depth order, so
+    # a stable sort by pixel keeps it within each pixel.
+    order = torch.argsort(pair_pixel, stable=True)
+    pair_splat, pair_pixel = pair_splat[order], pair_pixel[order]
+    alpha = _pair_alpha(params.detach(), pixel_uv, pair_splat, pair_pixel)
+    # pairs below alpha 1/255 are skipped: they leave T as it is
+    contributes = alpha >= ALPHA_MIN
+    log_one_minus = torch.log1p(-torch.where(contributes, alpha, 0).double())
+    include = (_log_transmittance(log_one_minus, pair_pixel, log_t)
+               + log_one_minus > math.log(TRANSMITTANCE_MIN) + STOP_LOG_MARGIN)
+    kept = (include & contributes).nonzero(as_tuple=True)[0]     # the one wait
+    stops = _counts(pair_pixel, num_pixels, ~include)
+    return pair_splat.index_select(0, kept), pair_pixel.index_select(0, kept), stops, last
 
 
 def _log_transmittance(log_one_minus: torch.Tensor, pair_pixel: torch.Tensor,

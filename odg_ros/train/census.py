@@ -30,7 +30,7 @@ things a CPU run cannot see directly are inferred:
   ``from_numpy``) is made: where it is first used. If it first meets a device tensor in an op,
   a CUDA run made it on the device (an upload); if it meets host data or is moved by ``.to()``,
   it was made on the host;
-* pinned memory: ``pin_memory()`` marks a host copy as pinned, and ``batch.upload`` pins as on
+* pinned memory: ``pin_memory()`` marks a host copy as pinned, and ``transfer.upload`` pins as on
   CUDA. The training device is the CPU here too, so ``.to(d)`` with a ``torch.device`` moves to
   the device; only ``"cpu"`` spelt as a string names the host.
 """
@@ -46,7 +46,7 @@ from pathlib import Path
 import torch
 from torch.utils._python_dispatch import TorchDispatchMode
 
-from ..data import batch as batch_module
+from .. import transfer
 from ..data.batch import HOST_KEYS, tensors_in
 
 aten = torch.ops.aten
@@ -190,7 +190,7 @@ class CensusMode(TorchDispatchMode):
             self._mark(t, self.HOST)
         self._originals = {name: getattr(torch.Tensor, name) for name in
                            _HOST_READS + ("cpu", "to", "pin_memory", "is_pinned")}
-        self._stages = batch_module.stages_in_pinned_memory
+        self._stages = transfer.stages_in_pinned_memory
 
     # -------------------------------------------------------------- where tensors are
     def _mark(self, t: torch.Tensor, kind: str, roots: frozenset = frozenset()) -> None:
@@ -394,7 +394,7 @@ class CensusMode(TorchDispatchMode):
             torch.Tensor.pin_memory = lambda tensor, *a, **k: self._pin_memory(tensor)
             torch.Tensor.is_pinned = lambda tensor, *args, **kwargs: (
                 _storage(tensor) in self._pinned)
-            batch_module.stages_in_pinned_memory = lambda tensor, device: (
+            transfer.stages_in_pinned_memory = lambda tensor, device: (
                 self._kind(tensor) != self.DEVICE and _storage(tensor) not in self._pinned)
         self.active = True
         return super().__enter__()
@@ -402,7 +402,7 @@ class CensusMode(TorchDispatchMode):
     def __exit__(self, *exc):
         for name, original in self._originals.items():
             setattr(torch.Tensor, name, original)
-        batch_module.stages_in_pinned_memory = self._stages
+        transfer.stages_in_pinned_memory = self._stages
         self.active = False
         return super().__exit__(*exc)
 

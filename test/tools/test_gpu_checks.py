@@ -4,7 +4,6 @@ import json
 import os
 import subprocess
 import sys
-from pathlib import Path
 
 import pytest
 import torch
@@ -71,9 +70,9 @@ def test_the_first_part_is_one_call_of_the_first_questions(tmp_path):
     train = [line for line in lines if line[:2] == ["odg", "train"]]
     assert [line[line.index("--batch-size") + 1] for line in train] == ["1", "4"]
     assert all(line[line.index("--renderer") + 1] == "torch" for line in train)
-    waits = [line for line in lines if line[0] == "tools/sync_debug_step.py"]
+    waits = [line for line in lines if line[0] == "tools.sync_debug_step"]
     assert [line[line.index("--batch-size") + 1] for line in waits] == ["1", "4"]
-    assert any(line[0] == "tools/bench_backbone.py" for line in lines)
+    assert any(line[0] == "tools.bench_backbone" for line in lines)
     assert "gsplat CUDA kernels" not in result.stdout
 
 

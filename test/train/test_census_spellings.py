@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from odg_ros.data.batch import device_constant, upload
+from odg_ros.transfer import device_constant, upload
 from odg_ros.train.census import Census, CensusMode
 
 
