@@ -161,7 +161,9 @@ class Harness:
 
     def wait_for_node(self, child, log, timeout=90.0):
         ok = self.spin_until(
-            lambda: all(p.get_subscription_count() > 0 for p in self.images.values())
+            # the camera infos too: one published before its subscription matched is lost
+            lambda: all(p.get_subscription_count() > 0
+                        for p in (*self.images.values(), *self.infos.values()))
             and self.node.count_publishers(f"{NODE}/occupancy") > 0
             and self.node.count_publishers("/diagnostics") > 0, timeout, child, log)
         if not ok:
@@ -207,6 +209,21 @@ class Harness:
             msg.format = fmt
             msg.data = encode(image)
             self.images[c].publish(msg)
+
+    def feed_until(self, predicate, t0, child, log, timeout=60.0):
+        """Camera infos, poses and a new set every 2 s until ``predicate``: the node reads
+        them best effort (sensor QoS), and what is sent before its readers have matched ours
+        is lost, which a loaded machine shows; each set is newer than the last."""
+        deadline = time.monotonic() + timeout
+        start = t0 + 0.2
+        while time.monotonic() < deadline:
+            self.publish_infos()
+            self.publish_poses(start - 0.7, start + 0.8, t0)
+            self.publish_set(start, set_images(0))
+            if self.spin_until(predicate, 2.0, child, log):
+                return True
+            start += 0.5
+        return False
 
     def counters(self):
         """The latest diagnostics counters of the node."""
@@ -602,16 +619,16 @@ def test_unknown_space_timing_and_inputs(ros_context, rclpy_module, checkpoint, 
     child, params, log = start_node(checkpoint, **FAST)
     h = Harness(rclpy_module, ros_context)
     debug = {"processing": [], "latency": []}
-    for key, topic in (("processing", "processing_time_ms"), ("latency", "pipeline_latency_ms")):
-        h.node.create_subscription(Float64, f"{NODE}/debug/{topic}",
-                                   lambda m, k=key: debug[k].append(m.data), 10)
+    subscriptions = [h.node.create_subscription(Float64, f"{NODE}/debug/{topic}",
+                                                lambda m, k=key: debug[k].append(m.data), 10)
+                     for key, topic in (("processing", "processing_time_ms"),
+                                        ("latency", "pipeline_latency_ms"))]
     h.wait_for_node(child, log)
-    t0 = time.time() - 5.0
-    h.publish_infos()
-    h.publish_poses(t0 - 0.5, t0 + 1.0, t0)
-    h.publish_set(t0 + 0.2, set_images(0))
-    assert h.spin_until(lambda: h.received["grid"] and h.received["bev"] and
-                        h.received["cloud"] and debug["latency"], 60, child, log)
+    assert h.spin_until(lambda: all(s.get_publisher_count() > 0 for s in subscriptions), 30,
+                        child, log)
+    assert h.feed_until(lambda: h.received["grid"] and h.received["bev"] and
+                        h.received["cloud"] and debug["latency"], time.time() - 5.0,
+                        child, log), message(h)
     grid = h.received["grid"][-1]
     observed = np.frombuffer(bytes(grid.observed), np.uint8)
     assert observed.size == len(grid.labels) and set(np.unique(observed)) == {0, 1}
@@ -667,10 +684,7 @@ def test_visibility_false_turns_it_off(ros_context, rclpy_module, checkpoint, st
     child, params, log = start_node(checkpoint, visibility=False, **FAST)
     h = Harness(rclpy_module, ros_context)
     h.wait_for_node(child, log)
-    t0 = time.time() - 5.0
-    h.publish_infos()
-    h.publish_poses(t0 - 0.5, t0 + 1.0, t0)
-    h.publish_set(t0 + 0.2, set_images(0))
-    assert h.spin_until(lambda: h.received["grid"] and h.received["bev"], 60, child, log)
+    assert h.feed_until(lambda: h.received["grid"] and h.received["bev"], time.time() - 5.0,
+                        child, log), message(h)
     assert len(h.received["grid"][-1].observed) == 0
     assert -1 not in set(h.received["bev"][-1].data)
