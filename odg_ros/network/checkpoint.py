@@ -15,6 +15,7 @@ from .odg import ODG
 
 
 INT8_PREFIX = "__int8__"
+BUDGET_HEADS = "decoder.budget_heads."       # network/budget.py: optional in a checkpoint
 
 
 def quantize_int8(t: torch.Tensor) -> dict:
@@ -101,17 +102,22 @@ def grow_state_dict(state: dict, model: ODG) -> dict:
       a grid of neighbouring voxels (x, y) so they start in different voxels;
     * more dynamic queries: the trained dynamic and static queries are kept, the new dynamic
       ones start as ``model`` initialised them (zero features, uniform means and boxes).
-    Any other shape difference is an error."""
+    Any other shape difference is an error. The query-budget heads are never grown: a state
+    without them (from before query budgets) or with heads of another shape gets the model's
+    own untrained ones (``trained`` false: it runs the full query budget only)."""
     own = model.state_dict()
     num_dynamic = model.cfg.dynamic_queries
     old_dynamic = len(state.get("queries.init_box", own["queries.init_box"]))
-    grown = dict(state)
-    for key, tensor in state.items():
+    budget_heads = {k: v for k, v in own.items() if k.startswith(BUDGET_HEADS)}
+    if all(k in state and state[k].shape == v.shape for k, v in budget_heads.items()):
+        budget_heads = {k: state[k] for k in budget_heads}
+    grown = {k: v for k, v in state.items() if not k.startswith(BUDGET_HEADS)}
+    for key, tensor in list(grown.items()):
         if key.startswith("queries.") and key in own and old_dynamic != num_dynamic:
             grown[key] = _grow_queries(key, tensor, own[key], old_dynamic, num_dynamic)
         elif key in own and own[key].shape != tensor.shape:
             grown[key] = _grow_point_head(key, tensor, own[key], model.cfg)
-    return grown
+    return {**grown, **budget_heads}
 
 
 def _grow_queries(key, tensor, fresh, old_dynamic, num_dynamic):

@@ -17,6 +17,7 @@ from torch import nn
 
 from ..config import ModelConfig
 from .box_head import BoxEncoder, BoxHead
+from .budget import BudgetHeads, QueryBudget, gather_queries, ranked_queries
 from .das_attention import DaSAttention
 from .gaussian_heads import GaussianAttributes, PointHead
 from .grid_range import GridRange
@@ -103,15 +104,23 @@ class Decoder(nn.Module):
             DecoderLayer(cfg, k_prev, k, with_boxes=num_dynamic > 0)
             for k_prev, k in zip(prev_points, cfg.points_per_layer))
         self.attributes = GaussianAttributes(cfg.embed_dims, cfg.pc_range)
+        # inference only, trained apart on a trained model (train/budget_heads.py): no
+        # gradient in the model's own training
+        self.budget_heads = BudgetHeads(cfg.embed_dims, cfg.points_per_layer[-1],
+                                        cfg.num_classes).requires_grad_(False)
 
     def forward(self, query, means, boxes, mlvl_feats, geometry,
-                gaussian_attributes: bool = True, prune: "PruneRule | None" = None
-                ) -> list[LayerOutput]:
+                gaussian_attributes: bool = True, prune: "PruneRule | None" = None,
+                budget: QueryBudget | None = None):
         """gaussian_attributes: run Phi_s/r/sigma (rendering supervision needs them, the grid
-        does not). prune: adaptive inference, see ``PruneRule``."""
+        does not). prune: adaptive inference, see ``PruneRule``. budget: the queries the
+        layers after ``budget.after_layer`` refine (budget.py; None: all, no keep-scores).
+        -> (layer outputs, keep-scores [B, Q] of the budget's layer or None)."""
+        if budget is not None:
+            self._check_budget(budget, gaussian_attributes, prune)
         outputs = []
         num_dynamic = self.num_dynamic
-        query_index = None
+        query_index = keep_scores = skipped = None
         for index, layer in enumerate(self.layers):
             # Refinements are detached between layers (OPUS/SparseBEV); the learnable
             # initial box is not, or it would get no gradient at all (the initial means
@@ -128,6 +137,17 @@ class Decoder(nn.Module):
             outputs.append(LayerOutput(means, logits, scales, rotations, opacities,
                                        boxes_new, box_logits, query_index, num_dynamic))
             boxes = boxes_new
+            if budget is not None and index + 1 == budget.after_layer:
+                keep_scores = self.budget_heads.scores(query, logits, box_logits, num_dynamic)
+                if not budget.is_full(self.cfg.static_queries, num_dynamic):
+                    query_index, skipped = ranked_queries(keep_scores, num_dynamic, budget)
+                    kept_dynamic = min(budget.dynamic, num_dynamic)
+                    skipped = self._skip_output(outputs[-1], query, skipped,
+                                                num_dynamic - kept_dynamic)
+                    query, means = (gather_queries(t, query_index) for t in (query, means))
+                    num_dynamic = kept_dynamic
+                    if boxes is not None:
+                        boxes = gather_queries(boxes, query_index[:, :num_dynamic])
             if prune is not None and index + 1 >= prune.after_layer and \
                     index + 1 < len(self.layers):
                 keep = prune.keep(logits, box_logits, num_dynamic)
@@ -136,7 +156,56 @@ class Decoder(nn.Module):
                 boxes = boxes[:, kept_dynamic] if boxes is not None else None
                 num_dynamic = len(kept_dynamic)
                 query_index = keep if query_index is None else query_index[keep]
-        return outputs
+        if skipped is not None:
+            outputs[-1] = merged_layer(outputs[-1], query_index, skipped, self.num_dynamic)
+        return outputs, keep_scores
+
+    def _check_budget(self, budget: QueryBudget, gaussian_attributes: bool, prune) -> None:
+        if not 1 <= budget.after_layer < len(self.layers):
+            raise ValueError(f"query budget after layer {budget.after_layer}: the decoder has "
+                             f"{len(self.layers)} layers")
+        full = budget.is_full(self.cfg.static_queries, self.num_dynamic)
+        if not full and not self.budget_heads.is_trained:
+            raise ValueError("this model's keep-score and skip heads are not trained: it runs "
+                             "the full query budget only")
+        if not full and (gaussian_attributes or prune is not None):
+            raise ValueError("a query budget is for inference: no Gaussian attributes, no "
+                             "PruneRule")
+
+    def _skip_output(self, layer_output: LayerOutput, query, skipped,
+                     skipped_dynamic: int) -> LayerOutput:
+        """The skipped queries' last-layer output: the skip head's points around the centroid
+        of their means after the budget's layer, and that layer's boxes (the first
+        ``skipped_dynamic`` of ``skipped`` [B, Q''] are dynamic queries)."""
+        means = gather_queries(layer_output.means, skipped)
+        centroid, _ = sampling_centres(means)
+        means, logits = self.budget_heads.skip_points(gather_queries(query, skipped), centroid)
+        boxes = box_logits = None
+        if layer_output.boxes is not None:
+            dynamic = skipped[:, :skipped_dynamic]
+            boxes = gather_queries(layer_output.boxes, dynamic)
+            box_logits = gather_queries(layer_output.box_logits, dynamic)
+        return LayerOutput(means, logits, None, None, None, boxes, box_logits, skipped,
+                           skipped_dynamic)
+
+
+def merged_layer(refined: LayerOutput, kept: torch.Tensor, skipped: LayerOutput,
+                 num_dynamic: int) -> LayerOutput:
+    """The last layer over all Q queries in their own order: the refined ones (``kept``
+    [B, Q']) and the skip head's (``skipped.query_index``); one static-shape gather each."""
+    inverse = torch.cat([kept, skipped.query_index], dim=1).argsort(dim=1)
+    means, logits = (gather_queries(torch.cat([a, b], dim=1), inverse)
+                     for a, b in ((refined.means, skipped.means),
+                                  (refined.logits, skipped.logits)))
+    boxes = box_logits = None
+    if refined.boxes is not None:
+        kept_dynamic = refined.num_dynamic
+        order = torch.cat([kept[:, :kept_dynamic],
+                           skipped.query_index[:, :skipped.num_dynamic]], dim=1).argsort(dim=1)
+        boxes, box_logits = (gather_queries(torch.cat([a, b], dim=1), order)
+                             for a, b in ((refined.boxes, skipped.boxes),
+                                          (refined.box_logits, skipped.box_logits)))
+    return LayerOutput(means, logits, None, None, None, boxes, box_logits, None, num_dynamic)
 
 
 class PruneRule:

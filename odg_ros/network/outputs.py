@@ -18,8 +18,9 @@ class LayerOutput:
     boxes      [B, D, 10]    (cx, cy, cz, log w, log l, log h, sin yaw, cos yaw, vx, vy) or None
     box_logits [B, D, 10]    box class logits (classes.BOX_CLASSES order) or None
     scales, rotations, opacities are None when the Phi MLPs were not run (inference).
-    query_index [Q'] indices of the queries this layer ran on when earlier layers pruned
-                some (adaptive inference), else None; num_dynamic: D of this layer.
+    query_index indices of the queries this layer ran on when earlier layers dropped some
+                (adaptive inference: [Q'] after a ``PruneRule``, [B, Q'] under a query
+                budget), else None; num_dynamic: D of this layer.
     """
     means: torch.Tensor
     logits: torch.Tensor
@@ -34,10 +35,13 @@ class LayerOutput:
 
 @dataclass
 class ODGOutput:
-    """init_means [B, Q, 1, 3]: the learnable initial points (supervised by Chamfer, Eq. 9)."""
+    """init_means [B, Q, 1, 3]: the learnable initial points (supervised by Chamfer, Eq. 9).
+    keep_scores [B, Q]: under a query budget, every query's keep-score (network/budget.py),
+    else None."""
     init_means: torch.Tensor
     layers: list[LayerOutput]
     num_dynamic: int
+    keep_scores: torch.Tensor | None = None
 
     @property
     def last(self) -> LayerOutput:
@@ -51,4 +55,6 @@ class ODGOutput:
             return replace(layer, **{name: value.clone() for name, value in values.items()
                                      if isinstance(value, torch.Tensor)})
         return replace(self, init_means=self.init_means.clone(),
-                       layers=[own(layer) for layer in self.layers])
+                       layers=[own(layer) for layer in self.layers],
+                       keep_scores=None if self.keep_scores is None
+                       else self.keep_scores.clone())
