@@ -108,19 +108,30 @@ class BudgetHeads(nn.Module):
         self.static_score = KeepScore(embed_dims)
         self.dynamic_score = KeepScore(embed_dims)
         self.skip_points = PointHead(embed_dims, last_points, num_classes)
-        # saved with the weights; ``is_trained`` mirrors it on the host, so that a step never
-        # reads a device flag
+        # saved with the weights and mirrored on the host (``is_trained``, ``threshold``,
+        # ``after_layer``), so that a step never reads them from the device: whether the heads
+        # are trained, the keep-score above which a query counts as needed
+        # (``needed_queries``), and the layer after which they were trained to rank
         self.register_buffer("trained", torch.zeros((), dtype=torch.bool))
-        self.is_trained = False
+        self.register_buffer("need_threshold", torch.zeros(()))
+        self.register_buffer("trained_after_layer", torch.tensor(AFTER_LAYER))
+        self.is_trained, self.threshold, self.after_layer = False, 0.0, AFTER_LAYER
 
-    def set_trained(self, trained: bool) -> None:
+    def set_trained(self, trained: bool, need_threshold: float = 0.0,
+                    after_layer: int = AFTER_LAYER) -> None:
         self.trained.fill_(bool(trained))
-        self.is_trained = bool(trained)
+        self.need_threshold.fill_(float(need_threshold))
+        self.trained_after_layer.fill_(int(after_layer))
+        self._mirror()
 
-    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
-        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
-        if prefix + "trained" in state_dict:
-            self.is_trained = bool(state_dict[prefix + "trained"])
+    def _mirror(self) -> None:
+        self.is_trained = bool(self.trained)
+        self.threshold = float(self.need_threshold)
+        self.after_layer = int(self.trained_after_layer)
+
+    def _load_from_state_dict(self, *args, **kwargs):
+        super()._load_from_state_dict(*args, **kwargs)
+        self._mirror()                           # at load time, on the host
 
     def scores(self, query, logits, box_logits, num_dynamic: int) -> torch.Tensor:
         """Keep-score of every query [B, Q] (dynamic first) from the budget layer's output."""

@@ -165,9 +165,13 @@ class Decoder(nn.Module):
             raise ValueError(f"query budget after layer {budget.after_layer}: the decoder has "
                              f"{len(self.layers)} layers")
         full = budget.is_full(self.cfg.static_queries, self.num_dynamic)
-        if not full and not self.budget_heads.is_trained:
+        heads = self.budget_heads
+        if not full and not heads.is_trained:
             raise ValueError("this model's keep-score and skip heads are not trained: it runs "
                              "the full query budget only")
+        if not full and budget.after_layer != heads.after_layer:
+            raise ValueError(f"query budget after layer {budget.after_layer}: this model's "
+                             f"keep-scores rank after layer {heads.after_layer}")
         if not full and (gaussian_attributes or prune is not None):
             raise ValueError("a query budget is for inference: no Gaussian attributes, no "
                              "PruneRule")

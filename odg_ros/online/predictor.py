@@ -25,6 +25,8 @@ from ..geometry import invert_transforms
 from ..network.outputs import ODGOutput
 from ..network.postprocess import box_dicts
 from ..network.precision import precision_context
+from ..network.budget import budget_ladder, budget_of
+from .budget_policy import BudgetPolicy
 from .history import Frame, FrameHistory
 from .step import MODES, OnlineStep
 
@@ -41,7 +43,9 @@ class Prediction:
     (upload: geometry + images to the device; model: the device step; download: results
     back and into Python objects);
     num_frames: frames the decoder saw; history_reset: why the history restarted, or None;
-    observed: bool [X, Y, Z], the voxels a camera sees (None without visibility)."""
+    observed: bool [X, Y, Z], the voxels a camera sees (None without visibility);
+    query_budget: the budget the step ran ("full", or a ``QueryBudget`` name such as
+    "s72-d28") and refined_fraction: the share of the queries its later layers refined."""
 
     grid: np.ndarray
     confidence: np.ndarray
@@ -49,6 +53,8 @@ class Prediction:
     timings: dict[str, float]
     num_frames: int
     history_reset: str | None = None
+    query_budget: str = "full"
+    refined_fraction: float = 1.0
     output: ODGOutput | None = field(default=None, repr=False)
     observed: np.ndarray | None = None
 
@@ -94,6 +100,30 @@ class CudaGraphStep:
         return self.outputs
 
 
+def resolve_budget(query_budget, model, cfg):
+    """query_budget "full" | "auto" | a fraction in (0, 1] -> (the budgets the step runs,
+    None standing for the full one; the ``BudgetPolicy`` of "auto" or None)."""
+    if query_budget in ("full", None):
+        return [None], None
+    heads = model.decoder.budget_heads
+    if query_budget == "auto":
+        ladder = budget_ladder(cfg, after_layer=heads.after_layer)
+        policy = BudgetPolicy(ladder)
+    else:
+        try:
+            fraction = float(query_budget)
+        except (TypeError, ValueError):
+            raise ValueError(f"query_budget {query_budget!r}: expected full, auto or a "
+                             "fraction in (0, 1]") from None
+        if fraction == 1.0:
+            return [None], None
+        ladder, policy = [budget_of(cfg, fraction, after_layer=heads.after_layer)], None
+    if not heads.is_trained:
+        raise ValueError(f"query_budget {query_budget}: this checkpoint's keep-score and skip "
+                         "heads are not trained; use query_budget full")
+    return ladder, policy
+
+
 class OnlinePredictor:
     """Not thread-safe: one worker thread calls ``step``."""
 
@@ -101,7 +131,7 @@ class OnlinePredictor:
                  max_gap: float = 1.0, num_frames: int | None = None,
                  keep_output: bool = False, min_interval: float = 0.0,
                  precision: str = "fp32", compile: str = "eager", compiled_step=None,
-                 visibility: bool = True):
+                 visibility: bool = True, query_budget="full"):
         """num_frames: history length k (current set included), at most cfg.num_frames
         (None = cfg.num_frames); max_gap: seconds between sets that restart the history;
         min_interval: seconds between the history frames kept, so the decoder sees the
@@ -116,7 +146,10 @@ class OnlinePredictor:
         of ``odg export --aoti`` run instead of compiling (artifact.py; refused with a
         StaleArtifact if built for another model, configuration, precision, history length,
         device or torch). The grid's free label is the model's class count (cfg.num_classes).
-        visibility: also compute which voxels the cameras observe (online/visibility.py)."""
+        visibility: also compute which voxels the cameras observe (online/visibility.py).
+        query_budget: full, auto (each step's budget chosen from the one before,
+        online/budget_policy.py) or a fraction of the queries (network/budget.py); every
+        budget is its own static-shape step, compiled and captured at start-up."""
         k = cfg.num_frames if num_frames is None else int(num_frames)
         if not 1 <= k <= cfg.num_frames:
             raise ValueError(f"history of {k} frames; the model takes 1..{cfg.num_frames}")
@@ -129,6 +162,10 @@ class OnlinePredictor:
         precision_context(precision, self.device)      # an unknown / unusable one fails here
         self.precision = precision
         self.mode = resolve_mode(compile, self.device, compiled_step is not None)
+        self.budgets, self.policy = resolve_budget(query_budget, model, cfg)
+        if compiled_step is not None and self.budgets != [None]:
+            raise ValueError("a compiled step file runs the full query budget only: use "
+                             "query_budget full with compiled_step")
         start = time.perf_counter()
         self.visibility = bool(visibility)
         self.online_step = OnlineStep(model, cfg, k, self.device, precision,
@@ -148,8 +185,7 @@ class OnlinePredictor:
             self._function = self._load_compiled_step(compiled_step, model, k, precision)
         elif self.mode != "eager":
             self._function = torch.compile(self.online_step, fullgraph=True, dynamic=False)
-        self._graph = None
-        self._host_outputs = None
+        self._graphs, self._host_outputs = {}, {}
         self._warm_up()
         self.startup_seconds = time.perf_counter() - start
         LOG.info("online step: %s mode%s, start-up (compile / load, capture) %.1f s", self.mode,
@@ -171,30 +207,49 @@ class OnlinePredictor:
     def reset(self) -> None:
         self.history.clear()
         self.ring.clear()
+        if self.policy is not None:
+            self.policy.reset()
+
+    @property
+    def budget(self):
+        """The query budget of the next step (None: the full one)."""
+        return self.policy.budget if self.policy is not None else self.budgets[0]
 
     @torch.inference_mode()
     def _warm_up(self) -> None:
-        """Run the step on blank inputs (compiling it); for graphs, capture it after that.
-        The ring slot it writes is rewritten before any step reads it."""
+        """Run the step of every budget on blank inputs (compiling each); for graphs,
+        capture one CUDA graph per budget after that (in one memory pool: one step runs at a
+        time and its outputs are copied out before the next). The ring slot it writes is
+        rewritten before any step reads it."""
         k = self.layout.capacity
         self.layout.pack(self._packed_host.numpy(), 0.0, np.broadcast_to(np.eye(4), (k, 4, 4)),
                          0.0, 0, 0)
         self._packed.copy_(self._packed_host)
-        if self.mode == "graphs":
-            self._graph = CudaGraphStep(self._function, self._images, self._packed, self.device)
+        if self.mode == "graphs":     # one graph per budget, each captured once
+            for budget in self.budgets:
+                self._graphs[budget] = CudaGraphStep(
+                    lambda images, packed, budget=budget: self._call(images, budget),
+                    self._images, self._packed, self.device)
             return
         # on the CPU as ``step`` passes images (a tensor over a NumPy array, made in
         # inference mode): compiled, another kind of tensor would compile a second graph
         images = torch.from_numpy(self._images_host.numpy()) \
             if self.device.type == "cpu" else self._images
-        self._function(images, self._packed)
+        for budget in self.budgets:
+            self._call(images, budget)
 
-    def _run(self, images: torch.Tensor):
-        """The device step -> its output tensors (a graph reads the static buffers and
-        rewrites the same output tensors at every replay)."""
-        if self._graph is None:
+    def _call(self, images, budget):
+        if budget is None:                # the full budget: the step as it always was
             return self._function(images, self._packed)
-        return self._graph.replay()
+        return self._function(images, self._packed, budget)
+
+    def _run(self, images: torch.Tensor, budget):
+        """The device step of ``budget`` -> its output tensors (a graph reads the static
+        buffers and rewrites the same output tensors at every replay)."""
+        graph = self._graphs.get(budget)
+        if graph is None:
+            return self._call(images, budget)
+        return graph.replay()
 
     def _pack_geometry(self, frames, slots, bounds) -> None:
         """History frames (newest first) stored in ring ``slots`` -> the packed buffer, in
@@ -238,6 +293,8 @@ class OnlinePredictor:
                                         stamp=float(stamp)), replace_newest=replace)
         if reset is not None:
             self.ring.clear()
+            if self.policy is not None:           # a new drive: the full budget first
+                self.policy.reset()
         self.ring.advance(replace_newest=replace)
         frames = self.history.frames()
         assert len(frames) == len(self.ring)
@@ -247,7 +304,7 @@ class OnlinePredictor:
         images_in = self._images
         if isinstance(images, torch.Tensor):       # decoded on the device already
             self._images.copy_(images, non_blocking=True)
-        elif self.device.type == "cpu" and self._graph is None:
+        elif self.device.type == "cpu" and not self._graphs:
             # the step reads the set's own array: on the CPU, copying it into a static
             # buffer first would only cost time (no graph reads fixed addresses there)
             images_in = torch.from_numpy(np.ascontiguousarray(images, dtype=np.uint8))
@@ -261,45 +318,60 @@ class OnlinePredictor:
         if cuda:   # CUDA events: no synchronize inside the step
             started, finished = (torch.cuda.Event(enable_timing=True) for _ in range(2))
             started.record()
-        outputs = self._run(images_in)
+        budget = self.budget
+        outputs = self._run(images_in, budget)
         if cuda:
             finished.record()
-            for host, value in zip(self._host_outputs_for(outputs), outputs):
+            for host, value in zip(self._host_outputs_for(budget, outputs), outputs):
                 host.copy_(value, non_blocking=True)
             copied = torch.cuda.Event()
             copied.record()
             copied.synchronize()                          # the step's only wait
-            outputs = self._host_outputs
+            outputs = self._host_outputs[budget]
         t2 = time.perf_counter()
-        rewritten = cuda or self._graph is not None
-        labels, confidence, boxes, score, label, valid, observed = (
+        rewritten = cuda or bool(self._graphs)
+        labels, confidence, boxes, score, label, valid, observed, *needed = (
             # copies of their own where the next step rewrites the buffers (the pinned host
             # copies, a graph's outputs); the CPU step's outputs are new tensors each time
             o.numpy().copy() if rewritten else o.numpy() for o in outputs)
         X, Y, Z = self.cfg.grid_shape
         boxes = box_dicts(boxes, score, label, valid)
+        if self.policy is not None:
+            self.policy.update(int(needed[0][0]), int(needed[0][1]), len(boxes))
         model_seconds = started.elapsed_time(finished) / 1e3 if cuda else t2 - t1
         timings = {"upload": t1 - t0, "model": model_seconds,
                    "download": max(0.0, time.perf_counter() - t1 - model_seconds)}
         return Prediction(grid=labels.reshape(X, Y, Z), confidence=confidence.reshape(X, Y, Z),
                           boxes=boxes, timings=timings, num_frames=len(frames),
-                          history_reset=reset,
-                          output=self._raw_output() if self.keep_output else None,
+                          history_reset=reset, query_budget=self._budget_name(budget),
+                          refined_fraction=self._refined_fraction(budget),
+                          output=self._raw_output(budget) if self.keep_output else None,
                           observed=observed.reshape(X, Y, Z).astype(bool)
                           if self.visibility else None)
 
-    def _host_outputs_for(self, outputs):
-        if self._host_outputs is None:
-            self._host_outputs = [torch.empty_like(o, device="cpu").pin_memory()
-                                  for o in outputs]
-        return self._host_outputs
+    def _budget_name(self, budget) -> str:
+        return "full" if budget is None else budget.name
 
-    def _raw_output(self) -> ODGOutput:
+    def _refined_fraction(self, budget) -> float:
+        if budget is None:
+            return 1.0
+        cfg = self.cfg
+        return (min(budget.static, cfg.static_queries) +
+                min(budget.dynamic, cfg.dynamic_queries)) / cfg.num_queries
+
+    def _host_outputs_for(self, budget, outputs):
+        if budget not in self._host_outputs:
+            self._host_outputs[budget] = [torch.empty_like(o, device="cpu").pin_memory()
+                                          for o in outputs]
+        return self._host_outputs[budget]
+
+    def _raw_output(self, budget=None) -> ODGOutput:
         """The decoder's full output over the ring as the step just saw it (tests)."""
         ego2img, warps, deltas, frame_index, _ = self.layout.unpack(self._packed)
         with precision_context(self.precision, self.device):
             return self.online_step.model._decode_stored(self.ring.all_levels(), ego2img, warps,
-                                                         deltas, frame_index, False, None)
+                                                         deltas, frame_index, False, None,
+                                                         budget)
 
 
 def _inverse(matrices: np.ndarray) -> np.ndarray:

@@ -27,6 +27,7 @@ from torch import nn
 
 from ..config import ModelConfig
 from ..network.backbone import folded_for_inference
+from ..network.budget import QueryBudget, needed_queries
 from ..network.feature_ring import FeatureRing
 from ..network.padding import pad_occupancy
 from ..network.postprocess import ranked_boxes, voxelise
@@ -127,16 +128,28 @@ class OnlineStep(nn.Module):
             x = x.to(self.half)
         return [f.unsqueeze(0) for f in self.neck(self.backbone(x))]
 
-    def forward(self, images: torch.Tensor, packed: torch.Tensor):
+    def forward(self, images: torch.Tensor, packed: torch.Tensor,
+                budget: QueryBudget | None = None):
         """images uint8 [N, H, W, 3]; packed float32 [layout.size] -> labels, confidence
         uint8 [X*Y*Z]; boxes [D, 9], score [D], label [D], valid [D] (by score); observed
-        uint8 [X*Y*Z] (1: a camera sees the voxel; [0] without visibility)."""
+        uint8 [X*Y*Z] (1: a camera sees the voxel; [0] without visibility); with a query
+        ``budget`` (network/budget.py) also the queries its keep-scores call needed [2]
+        (static, dynamic), from which the host picks the next step's budget."""
         ego2img, ego_warp, time_delta, frame_index, slot = self.layout.unpack(packed)
         x = ((images.float() / 255.0 - self.mean) / self.std).movedim(-1, -3)
         self.ring.write_slot(self.features(x), slot)
         with precision_context(self.precision, self.device):
             output = self.model._decode_stored(self.ring.all_levels(), ego2img, ego_warp,
-                                               time_delta, frame_index, False, None)
+                                               time_delta, frame_index, False, None, budget)
+        results = self._results(output, packed)
+        if budget is None:
+            return results
+        heads = self.model.decoder.budget_heads
+        return (*results, needed_queries(output.keep_scores, output.num_dynamic,
+                                         heads.threshold)[0])
+
+    def _results(self, output, packed):
+        """The grid and the ranked boxes of ``output`` (see ``forward``)."""
         layer = output.last
         labels, confidence = voxelise(layer.means, layer.logits, self.cfg, self.free_label)
         if self.cfg.occupancy_padding:      # static shapes too: filters over the whole grid

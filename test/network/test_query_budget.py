@@ -13,8 +13,8 @@ from odg_ros.network.sampling import camera_rows_layout, sampling_centres
 from odg_ros.train.census import Census, CensusMode
 
 
-def budget_model(trained=True, seed=0):
-    cfg = tiny_config()
+def budget_model(trained=True, seed=0, **overrides):
+    cfg = tiny_config(**overrides)
     torch.manual_seed(seed)
     model = ODG(cfg).eval()
     model.decoder.budget_heads.set_trained(trained)
@@ -182,7 +182,7 @@ def test_one_graph_per_budget_and_compiled_equals_eager():
     """fullgraph=True, dynamic=False, a backend that counts the graphs it is given: each
     budget traces once (a data-dependent shape would break the graph), a budget used again
     reuses its graph, and every traced graph gives eager's outputs."""
-    model, cfg = budget_model()
+    model, cfg = budget_model(num_layers=3, points_per_layer=(1, 2, 4))   # quicker to trace
     graphs = []
 
     def counting_backend(graph_module, example_inputs):

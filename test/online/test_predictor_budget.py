@@ -1,0 +1,123 @@
+"""The online step under a query budget: each budget is one static-shape step with no host
+read, compiled == eager, one graph per budget; ``query_budget auto`` follows the scene."""
+import numpy as np
+import pytest
+import torch
+from helpers import published_grid, tiny_config
+from test_online_predictor import make_sets
+from test_online_step import HostSyncCounter
+
+from odg_ros.geometry import ego_warp
+from odg_ros.network import ODG
+from odg_ros.network.budget import budget_ladder, budget_of
+from odg_ros.network.feature_ring import FeatureRing
+from odg_ros.online.predictor import OnlinePredictor
+from odg_ros.preprocess import normalize
+
+
+def budget_model(need_threshold=0.0, **overrides):
+    """Trained-flagged random heads; no box passes its threshold (no object tracked)."""
+    cfg = tiny_config(score_threshold=0.0, box_score_threshold=1.0, **overrides)
+    torch.manual_seed(0)
+    model = ODG(cfg).eval()
+    model.decoder.budget_heads.set_trained(True, need_threshold)
+    return model, cfg
+
+
+def ring_outputs(model, cfg, sets, budget):
+    """The dynamic ring path (``ODG.decode_ring`` over the filled slots) under ``budget``."""
+    ring, held, outputs = FeatureRing(cfg.num_frames, cfg.num_groups), [], []
+    with torch.inference_mode():
+        for images, ego2img, pose, stamp in sets:
+            ring.push(model.extract_features(normalize(torch.from_numpy(images))[None]))
+            held = [(ego2img, pose, stamp)] + held[:cfg.num_frames - 1]
+            e2i = torch.tensor(np.stack([h[0] for h in held]), dtype=torch.float32)[None]
+            warps = torch.tensor(np.stack([ego_warp(held[0][1], h[1]) for h in held]),
+                                 dtype=torch.float32)[None]
+            deltas = torch.tensor([held[0][2] - h[2] for h in held], dtype=torch.float32)[None]
+            outputs.append(model.decode_ring(ring, e2i, warps, deltas, budget=budget))
+    return outputs
+
+
+def test_a_fixed_budget_step_equals_the_budget_decoder_over_the_ring():
+    model, cfg = budget_model()
+    budget = budget_of(cfg, 0.5)
+    sets = make_sets(cfg, 4)
+    predictor = OnlinePredictor(model, cfg, "cpu", max_gap=1.0, query_budget=0.5)
+    full = OnlinePredictor(model, cfg, "cpu", max_gap=1.0)
+    expected = ring_outputs(model, cfg, sets, budget)
+    for s, output in zip(sets, expected):
+        got, plain = predictor.step(*s), full.step(*s)
+        assert got.query_budget == budget.name and got.refined_fraction == pytest.approx(
+            (budget.static + budget.dynamic) / cfg.num_queries)
+        assert plain.query_budget == "full" and plain.refined_fraction == 1.0
+        np.testing.assert_array_equal(got.grid, published_grid(output, cfg)[0][0].numpy())
+        assert (got.grid != plain.grid).any()      # the budget changes the output
+
+
+def test_auto_steps_down_on_calm_scenes_and_back_up_when_needed():
+    """Needs forced through the keep-score threshold: none needed -> one rung down after
+    every three calm steps; all needed -> the full budget at once; a reset -> full."""
+    model, cfg = budget_model(need_threshold=1e9)
+    ladder = budget_ladder(cfg)
+    predictor = OnlinePredictor(model, cfg, "cpu", max_gap=1.0, query_budget="auto")
+    sets = make_sets(cfg, 9)
+    used = [predictor.step(*s).query_budget for s in sets[:7]]
+    names = [b.name for b in ladder]
+    assert used == [names[0]] * 3 + [names[1]] * 3 + [names[2]]
+    model.decoder.budget_heads.threshold = -1e9     # every query needed from now on
+    used = [predictor.step(*s).query_budget for s in sets[7:]]
+    assert used == [names[2], names[0]]
+    model.decoder.budget_heads.threshold = 1e9
+    result = predictor.step(*sets[0])               # back in time: a new drive
+    assert result.history_reset == "time_backwards" and result.query_budget == names[0]
+
+
+def test_a_budget_step_reads_nothing_back():
+    model, cfg = budget_model()
+    predictor = OnlinePredictor(model, cfg, "cpu", max_gap=1.0, query_budget="auto")
+    for s in make_sets(cfg, 2):
+        predictor.step(*s)
+    for budget in budget_ladder(cfg)[1:]:
+        with torch.inference_mode(), HostSyncCounter() as counter:
+            predictor.online_step(predictor._images, predictor._packed, budget)
+        assert counter.ops > 1000 and counter.syncs == [], counter.syncs
+
+
+def test_auto_compiles_one_graph_per_budget_and_equals_eager():
+    """fullgraph, dynamic=False, a counting backend: the warm-up traces each rung once, the
+    steps (which walk down the ladder) trace nothing more, and equal eager auto's. (Three
+    decoder layers: tracing time grows with them.)"""
+    model, cfg = budget_model(need_threshold=1e9, num_layers=3, points_per_layer=(1, 2, 4))
+    graphs = []
+
+    def counting_backend(graph_module, example_inputs):
+        graphs.append(graph_module)
+        return graph_module.forward
+
+    predictor = OnlinePredictor(model, cfg, "cpu", max_gap=1.0, query_budget="auto")
+    predictor._function = torch.compile(predictor.online_step, backend=counting_backend,
+                                        fullgraph=True, dynamic=False)
+    torch._dynamo.reset()
+    predictor._warm_up()
+    assert len(graphs) == len(budget_ladder(cfg))
+    eager = OnlinePredictor(model, cfg, "cpu", max_gap=1.0, query_budget="auto")
+    predictor.policy.patience = eager.policy.patience = 1
+    used = []
+    for s in make_sets(cfg, 4):
+        a, b = predictor.step(*s), eager.step(*s)
+        np.testing.assert_array_equal(a.grid, b.grid)
+        assert a.boxes == b.boxes and a.query_budget == b.query_budget
+        used.append(a.query_budget)
+    assert used == [b.name for b in budget_ladder(cfg)] + [used[-1]] and len(graphs) == 3
+
+
+def test_budget_settings_are_checked():
+    model, cfg = budget_model()
+    for bad in ("some", "0", "1.5", "nan"):
+        with pytest.raises(ValueError, match="query_budget|fraction"):
+            OnlinePredictor(model, cfg, "cpu", query_budget=bad)
+    assert OnlinePredictor(model, cfg, "cpu", query_budget="1.0").budgets == [None]
+    model.decoder.budget_heads.set_trained(False)
+    with pytest.raises(ValueError, match="not trained; use query_budget full"):
+        OnlinePredictor(model, cfg, "cpu", query_budget="auto")
