@@ -17,7 +17,7 @@ from torch import nn
 
 from ..config import ModelConfig
 from .box_head import BoxEncoder, BoxHead
-from .budget import BudgetHeads, QueryBudget, gather_queries, ranked_queries
+from .budget import AFTER_LAYER, BudgetHeads, QueryBudget, gather_queries, ranked_queries
 from .das_attention import DaSAttention
 from .gaussian_heads import GaussianAttributes, PointHead
 from .grid_range import GridRange
@@ -106,15 +106,17 @@ class Decoder(nn.Module):
         self.attributes = GaussianAttributes(cfg.embed_dims, cfg.pc_range)
         # inference only, trained apart on a trained model (train/budget_heads.py): no
         # gradient in the model's own training
-        self.budget_heads = BudgetHeads(cfg.embed_dims, cfg.points_per_layer[-1],
-                                        cfg.num_classes).requires_grad_(False)
+        skip_from = cfg.points_per_layer[min(AFTER_LAYER, cfg.num_layers) - 1]
+        skip_layer = DecoderLayer(cfg, skip_from, cfg.points_per_layer[-1],
+                                  with_boxes=num_dynamic > 0)
+        self.budget_heads = BudgetHeads(cfg.embed_dims, skip_layer).requires_grad_(False)
 
     def forward(self, query, means, boxes, mlvl_feats, geometry,
                 gaussian_attributes: bool = True, prune: "PruneRule | None" = None,
                 budget: QueryBudget | None = None):
         """gaussian_attributes: run Phi_s/r/sigma (rendering supervision needs them, the grid
         does not). prune: adaptive inference, see ``PruneRule``. budget: the queries the
-        layers after ``budget.after_layer`` refine (budget.py; None: all, no keep-scores).
+        layers after ``budget.AFTER_LAYER`` refine (budget.py; None: all, no keep-scores).
         -> (layer outputs, keep-scores [B, Q] of the budget's layer or None)."""
         if budget is not None:
             self._check_budget(budget, gaussian_attributes, prune)
@@ -137,13 +139,14 @@ class Decoder(nn.Module):
             outputs.append(LayerOutput(means, logits, scales, rotations, opacities,
                                        boxes_new, box_logits, query_index, num_dynamic))
             boxes = boxes_new
-            if budget is not None and index + 1 == budget.after_layer:
-                keep_scores = self.budget_heads.scores(query, logits, box_logits, num_dynamic)
+            if budget is not None and index + 1 == AFTER_LAYER:
+                keep_scores = self.budget_heads.scores(query, means, logits, box_logits,
+                                                       num_dynamic, self.cfg.pc_range)
                 if not budget.is_full(self.cfg.static_queries, num_dynamic):
                     query_index, skipped = ranked_queries(keep_scores, num_dynamic, budget)
                     kept_dynamic = min(budget.dynamic, num_dynamic)
-                    skipped = self._skip_output(outputs[-1], query, skipped,
-                                                num_dynamic - kept_dynamic)
+                    skipped = self.skip_output(query, means, boxes, skipped,
+                                               num_dynamic - kept_dynamic, geometry, mlvl_feats)
                     query, means = (gather_queries(t, query_index) for t in (query, means))
                     num_dynamic = kept_dynamic
                     if boxes is not None:
@@ -161,34 +164,29 @@ class Decoder(nn.Module):
         return outputs, keep_scores
 
     def _check_budget(self, budget: QueryBudget, gaussian_attributes: bool, prune) -> None:
-        if not 1 <= budget.after_layer < len(self.layers):
-            raise ValueError(f"query budget after layer {budget.after_layer}: the decoder has "
-                             f"{len(self.layers)} layers")
+        if len(self.layers) <= AFTER_LAYER:
+            raise ValueError(f"a query budget needs more than {AFTER_LAYER} decoder layers; "
+                             f"the decoder has {len(self.layers)}")
         full = budget.is_full(self.cfg.static_queries, self.num_dynamic)
         heads = self.budget_heads
         if not full and not heads.is_trained:
             raise ValueError("this model's keep-score and skip heads are not trained: it runs "
                              "the full query budget only")
-        if not full and budget.after_layer != heads.after_layer:
-            raise ValueError(f"query budget after layer {budget.after_layer}: this model's "
-                             f"keep-scores rank after layer {heads.after_layer}")
         if not full and (gaussian_attributes or prune is not None):
             raise ValueError("a query budget is for inference: no Gaussian attributes, no "
                              "PruneRule")
 
-    def _skip_output(self, layer_output: LayerOutput, query, skipped,
-                     skipped_dynamic: int) -> LayerOutput:
-        """The skipped queries' last-layer output: the skip head's points around the centroid
-        of their means after the budget's layer, and that layer's boxes (the first
-        ``skipped_dynamic`` of ``skipped`` [B, Q''] are dynamic queries)."""
-        means = gather_queries(layer_output.means, skipped)
-        centroid, _ = sampling_centres(means)
-        means, logits = self.budget_heads.skip_points(gather_queries(query, skipped), centroid)
-        boxes = box_logits = None
-        if layer_output.boxes is not None:
-            dynamic = skipped[:, :skipped_dynamic]
-            boxes = gather_queries(layer_output.boxes, dynamic)
-            box_logits = gather_queries(layer_output.box_logits, dynamic)
+    def skip_output(self, query, means, boxes, skipped, skipped_dynamic: int, geometry,
+                    mlvl_feats) -> LayerOutput:
+        """The skipped queries' last-layer output: the skip layer over their query, means and
+        boxes after AFTER_LAYER (``skipped`` [B, Q'']: query indices, the first
+        ``skipped_dynamic`` of them dynamic)."""
+        if boxes is not None:
+            boxes = gather_queries(boxes, skipped[:, :skipped_dynamic])
+        query, means, logits, boxes, box_logits = self.budget_heads.skip_layer(
+            gather_queries(query, skipped), gather_queries(means, skipped).detach(), boxes,
+            skipped_dynamic, geometry, mlvl_feats,
+            velocity_warp=self.cfg.motion_compensation, ego_warp=self.cfg.ego_compensation)
         return LayerOutput(means, logits, None, None, None, boxes, box_logits, skipped,
                            skipped_dynamic)
 

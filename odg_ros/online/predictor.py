@@ -107,7 +107,7 @@ def resolve_budget(query_budget, model, cfg):
         return [None], None
     heads = model.decoder.budget_heads
     if query_budget == "auto":
-        ladder = budget_ladder(cfg, after_layer=heads.after_layer)
+        ladder = budget_ladder(cfg)
         policy = BudgetPolicy(ladder)
     else:
         try:
@@ -117,7 +117,7 @@ def resolve_budget(query_budget, model, cfg):
                              "fraction in (0, 1]") from None
         if fraction == 1.0:
             return [None], None
-        ladder, policy = [budget_of(cfg, fraction, after_layer=heads.after_layer)], None
+        ladder, policy = [budget_of(cfg, fraction)], None
     if not heads.is_trained:
         raise ValueError(f"query_budget {query_budget}: this checkpoint's keep-score and skip "
                          "heads are not trained; use query_budget full")
@@ -353,11 +353,7 @@ class OnlinePredictor:
         return "full" if budget is None else budget.name
 
     def _refined_fraction(self, budget) -> float:
-        if budget is None:
-            return 1.0
-        cfg = self.cfg
-        return (min(budget.static, cfg.static_queries) +
-                min(budget.dynamic, cfg.dynamic_queries)) / cfg.num_queries
+        return 1.0 if budget is None else budget.refined_fraction(self.cfg)
 
     def _host_outputs_for(self, budget, outputs):
         if budget not in self._host_outputs:

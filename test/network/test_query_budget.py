@@ -1,5 +1,5 @@
 """Query budgets (network/budget.py): the full budget is the plain decoder; a smaller one
-refines the top keep-scores and gives the rest the skip head's output, in static shapes,
+refines the top keep-scores and gives the rest the skip layer's output, in static shapes,
 with no host read, one graph per budget and compiled == eager."""
 import pytest
 import torch
@@ -9,7 +9,7 @@ from odg_ros.network import ODG
 from odg_ros.network.budget import (QueryBudget, budget_ladder, budget_of, gather_queries,
                                     ranked_queries)
 from odg_ros.network.checkpoint import load_model, save_checkpoint
-from odg_ros.network.sampling import camera_rows_layout, sampling_centres
+from odg_ros.network.sampling import camera_rows_layout
 from odg_ros.train.census import Census, CensusMode
 
 
@@ -24,6 +24,7 @@ def budget_model(trained=True, seed=0, **overrides):
 def test_ladders_and_fractions():
     cfg = tiny_config()                                       # 20 static, 6 dynamic
     assert budget_ladder(cfg) == [QueryBudget(20, 6), QueryBudget(12, 4), QueryBudget(8, 4)]
+    assert QueryBudget(12, 4).refined_fraction(cfg) == pytest.approx(16 / 26)
     assert budget_of(cfg, 0.01) == QueryBudget(4, 4)          # at least one multiple of 4
     big = cfg.replace(num_static=4000, num_dynamic=800)
     assert [(b.static, b.dynamic) for b in budget_ladder(big)] == [(4000, 800), (2400, 400),
@@ -31,8 +32,8 @@ def test_ladders_and_fractions():
     for bad in (0.0, 1.5, float("nan"), -0.2):
         with pytest.raises(ValueError, match="0 < fraction <= 1"):
             budget_of(cfg, bad)
-    with pytest.raises(ValueError, match="after layer 6"):
-        budget_of(cfg, 0.5, after_layer=6)
+    with pytest.raises(ValueError, match="needs more than 2 decoder layers"):
+        budget_of(cfg.replace(num_layers=2, points_per_layer=(1, 2)), 0.5)
 
 
 def test_full_budget_is_the_plain_decoder_with_keep_scores():
@@ -56,12 +57,12 @@ def test_untrained_heads_refuse_a_smaller_budget():
 
 def forced_scores(model, scores):
     """Make the keep-score heads return ``scores`` [B, Q]."""
-    model.decoder.budget_heads.scores_of = lambda query, point, box, num_dynamic: scores
+    model.decoder.budget_heads.scores_of = lambda query, inputs, num_dynamic: scores
 
 
 def reference_budget(model, cfg, inputs, kept, skipped):
     """The budget decoder written out with plain per-sample indexing (dynamic shapes): layers
-    1-2 on every query, 3-6 on ``kept`` (a list of index lists per sample), the skip head on
+    1-2 on every query, 3-6 on ``kept`` (a list of index lists per sample), the skip layer on
     ``skipped``, the last layer put back together in query order."""
     decoder, D = model.decoder, cfg.num_dynamic
     images, ego2img, warp, dt = inputs
@@ -81,9 +82,10 @@ def reference_budget(model, cfg, inputs, kept, skipped):
                                                             levels, True, True)
         keep, skip = torch.tensor(kept[b]), torch.tensor(skipped[b])
         skip_dynamic = skip[skip < D]
-        skip_centroid, _ = sampling_centres(means[:, skip])
-        skip_means, skip_logits = decoder.budget_heads.skip_points(query[:, skip], skip_centroid)
-        skip_boxes, skip_box_logits = boxes[:, skip_dynamic], box_logits[:, skip_dynamic]
+        _, skip_means, skip_logits, skip_boxes, skip_box_logits = \
+            decoder.budget_heads.skip_layer(query[:, skip], means[:, skip],
+                                            boxes[:, skip_dynamic], len(skip_dynamic), geometry,
+                                            levels, True, True)
         kept_dynamic = keep[keep < D]
         q, m, bx = query[:, keep], means[:, keep], boxes[:, kept_dynamic]
         for layer in decoder.layers[2:]:
@@ -128,7 +130,7 @@ def test_a_budget_refines_the_top_scores_and_skips_the_rest():
     for got, want in ((last.means, means), (last.logits, logits), (last.boxes, boxes),
                       (last.box_logits, box_logits)):
         torch.testing.assert_close(got, want, rtol=1e-4, atol=1e-4)
-    # the skipped queries really take the skip head's output (not the last layer's)
+    # the skipped queries really take the skip layer's output (not the last layer's)
     with torch.no_grad():
         full = model(*inputs)
     skip = torch.tensor(skipped[0])
