@@ -52,27 +52,78 @@ def predicted_grid(output, cfg) -> np.ndarray:
 @torch.no_grad()
 def predict_split(model, dataset: OccDataset, limit: int | None = None, device="cpu",
                   workers: int = 0, progress: bool = True, desc: str = "eval",
-                  **decode_options):
+                  budget_for=None, **decode_options):
     """Run ``model`` over the first ``limit`` samples of ``dataset``: yields (index, batch on
-    ``device``, output), one sample at a time. decode_options go to ``ODG.decode``."""
+    ``device``, output), one sample at a time. decode_options go to ``ODG.decode``;
+    budget_for(index), if given, is called right before a sample runs (after the caller has
+    seen the previous output) for its query budget."""
     indices = list(range(len(dataset)))[:limit]
     loader = torch.utils.data.DataLoader(torch.utils.data.Subset(dataset, indices),
                                          batch_size=1, collate_fn=collate, num_workers=workers)
     model.eval()
     for index, batch in zip(indices, tqdm(loader, desc=desc, disable=not progress)):
         batch = to_device(batch, device)
+        if budget_for is not None:
+            decode_options["budget"] = budget_for(index)
         yield index, batch, model(batch["images"], batch["ego2img"], batch["ego_warp"],
                                   batch["time_delta"], **decode_options)
+
+
+class BudgetUse:
+    """The query budget of each keyframe of an evaluation: a fixed ``QueryBudget``, or the
+    ``BudgetPolicy`` of ``query_budget: auto`` fed each keyframe's needs (reset at every new
+    scene, as the node resets at a new drive), and how many queries each one refined."""
+
+    def __init__(self, budget, infos: list[dict], cfg):
+        from ..online.budget_policy import BudgetPolicy
+        self.policy = budget if isinstance(budget, BudgetPolicy) else None
+        self.fixed = None if self.policy is not None else budget
+        self.infos, self.cfg = infos, cfg
+        self.used: list[str] = []
+        self.refined: list[float] = []
+        self._scene = self.current = None
+
+    def __call__(self, index: int):
+        """The budget of keyframe ``index`` (called right before it runs)."""
+        self.current = self.fixed
+        if self.policy is not None:
+            scene = self.infos[index].get("scene_token")
+            if scene != self._scene:
+                self.policy.reset()
+                self._scene = scene
+            self.current = self.policy.budget
+        return self.current
+
+    def record(self, output, model) -> None:
+        """After the keyframe ran: count its budget, feed its needs to the policy."""
+        from ..network.budget import needed_queries
+        cfg, budget = self.cfg, self.current
+        self.used.append(budget.name)
+        self.refined.append(budget.refined_fraction(cfg))
+        if self.policy is not None:
+            needed = needed_queries(output.keep_scores, output.num_dynamic,
+                                    model.decoder.budget_heads.threshold)[0].tolist()
+            objects = len(box_list(output, cfg)[0])
+            self.policy.update(needed[0], needed[1], objects)
+
+    def result(self) -> dict:
+        counts = {name: self.used.count(name) for name in dict.fromkeys(self.used)}
+        return {"mode": "auto" if self.policy is not None else self.fixed.name,
+                "mean_refined_fraction": round(float(np.mean(self.refined)), 4),
+                "keyframes_per_budget": counts}
 
 
 @torch.no_grad()
 def evaluate(model, cfg, infos, occ_root=None, save_pred: str | None = None, device="cpu",
              rayiou: bool = True, limit: int | None = None, progress: bool = True,
              workers: int = 0, frames: int | None = None, miou_convention: str = "sparseocc",
-             **decode_options) -> dict:
+             budget=None, **decode_options) -> dict:
     """frames: history length fed to the model (<= cfg.num_frames; the model repeats the
-    oldest frame for the rest). miou_convention: see metrics/miou.py. decode_options go to
-    ``ODG.decode`` (e.g. prune=...). The result also says whether the grid was padded."""
+    oldest frame for the rest). miou_convention: see metrics/miou.py. budget: a
+    ``network.budget.QueryBudget`` for every keyframe, or an ``online.budget_policy.
+    BudgetPolicy`` (query_budget auto), or None (every query); the result then says which
+    budgets ran (``query_budget``). decode_options go to ``ODG.decode`` (e.g. prune=...).
+    The result also says whether the grid was padded."""
     data_cfg = cfg if frames is None else cfg.replace(num_frames=frames)
     dataset = OccDataset(infos, data_cfg, occ_root=occ_root, train=False)
     score = OccScore(dataset.dataset, rayiou=rayiou, miou_convention=miou_convention)
@@ -80,8 +131,11 @@ def evaluate(model, cfg, infos, occ_root=None, save_pred: str | None = None, dev
     origins = LidarOrigins(dataset.infos) if rayiou else None
     if save_pred:
         Path(save_pred).mkdir(parents=True, exist_ok=True)
+    use = BudgetUse(budget, dataset.infos, cfg) if budget is not None else None
     for index, batch, output in predict_split(model, dataset, limit, device, workers, progress,
-                                              **decode_options):
+                                              budget_for=use, **decode_options):
+        if use is not None:
+            use.record(output, model)
         grid = predicted_grid(output, cfg)
         if save_pred:
             np.savez_compressed(Path(save_pred) / f"{batch['token'][0]}.npz", semantics=grid)
@@ -97,4 +151,6 @@ def evaluate(model, cfg, infos, occ_root=None, save_pred: str | None = None, dev
     result["occupancy_padding"] = bool(cfg.occupancy_padding)
     if boxes is not None:
         result["boxes"] = boxes.result()
+    if use is not None:
+        result["query_budget"] = use.result()
     return result
