@@ -1,0 +1,207 @@
+"""Where the online step's time goes, per stage and per decoder layer part, at each query
+budget of the ladder (network/budget.py), and what a smaller budget saves: milliseconds
+(medians, the budgets taking turns step by step in one process, so a busy machine slows them
+alike), ATen ops and FLOPs per part of the decoder.
+
+    OMP_NUM_THREADS=1 python -m tools.profile_budget --presets odg_cpu odg_t odg_l \
+        --iters 3 --out profile.json
+
+Random weights (timing only; ``--checkpoint`` for a trained model of the first preset); the
+budget heads are marked trained so that every budget runs. The backbone does not depend on
+the budget: it is timed once per step. FLOPs: torch's counter (matrix products, convolutions,
+attention) plus bilinear grid sampling at 8 FLOPs per channel and point.
+"""
+from __future__ import annotations
+
+import argparse
+import collections
+import json
+import statistics
+import sys
+
+import torch
+from torch.utils._python_dispatch import TorchDispatchMode
+from torch.utils.flop_counter import flop_registry, shape_wrapper
+from tqdm import tqdm
+
+from odg_ros.benchmark import LAYER_PARTS, DecoderHooks, StageTimer, layer_table, online_inputs
+from odg_ros.config import load_preset
+from odg_ros.network import ODG
+from odg_ros.network.budget import budget_ladder
+from odg_ros.network.checkpoint import load_model
+from odg_ros.network.feature_ring import FeatureRing
+from odg_ros.network.postprocess import box_list, occupancy_grid
+from odg_ros.train.census import Census, CensusMode
+
+aten = torch.ops.aten
+# decoder source files -> the part of a layer they hold (census lines are per file)
+PART_FILES = {"das_attention.py": "attention", "sampling.py": "sampling",
+              "mixing.py": "mixing", "gaussian_heads.py": "heads", "box_head.py": "heads",
+              "budget.py": "budget", "decoder.py": "other", "queries.py": "other",
+              "grid_range.py": "other", "odg.py": "other", "feature_ring.py": "other"}
+PART_NAMES = {"points": "heads", "boxes": "heads", "box_position": "position"}
+
+
+def grid_sample_flops(input_shape, grid_shape, *args, out_shape=None, **kwargs) -> int:
+    """Bilinear: 4 taps, a multiply and an add each, per channel and output point."""
+    return 8 * input_shape[0] * input_shape[1] * grid_shape[1] * grid_shape[2]
+
+
+FLOPS = {**flop_registry, aten.grid_sampler_2d: shape_wrapper(grid_sample_flops)}
+
+
+class PartFlops(TorchDispatchMode):
+    """FLOPs per decoder part: torch's formulas, attributed to the part whose forward is
+    running (forward hooks on every layer part and on the budget heads set ``part``)."""
+
+    def __init__(self, model):
+        super().__init__()
+        self.flops, self.part, self.handles = collections.Counter(), "other", []
+        for layer in model.decoder.layers:
+            for name in LAYER_PARTS:
+                if getattr(layer, name, None) is not None:
+                    self._hook(getattr(layer, name), PART_NAMES.get(name, name))
+        for head in model.decoder.budget_heads.children():
+            self._hook(head, "budget")
+
+    def _hook(self, module, name):
+        def pre(*_):
+            self.part = name
+
+        def post(*_):
+            self.part = "other"
+        self.handles += [module.register_forward_pre_hook(pre),
+                         module.register_forward_hook(post)]
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        kwargs = kwargs or {}
+        out = func(*args, **kwargs)
+        formula = FLOPS.get(func.overloadpacket)
+        if formula is not None:
+            self.flops[self.part] += formula(*args, **kwargs, out_val=out)
+        return out
+
+    def __exit__(self, *exc):
+        for handle in self.handles:
+            handle.remove()
+        return super().__exit__(*exc)
+
+
+def flops_by_part(model, run) -> dict[str, float]:
+    """GFLOPs of ``run()`` per decoder part."""
+    with PartFlops(model) as counter:
+        run()
+    parts = dict(counter.flops)
+    parts["total"] = sum(counter.flops.values())
+    return {k: round(v / 1e9, 4) for k, v in parts.items()}
+
+
+def ops_by_part(run) -> dict[str, float]:
+    census = Census()
+    with CensusMode(census, device_type=None):
+        run()
+    parts = collections.Counter()
+    for (_, line), n in census.ops.items():
+        file = line.split(":")[0].split("/")[-1]
+        parts[PART_FILES.get(file, "other")] += n
+    parts["total"] = sum(census.ops.values())
+    parts["host_syncs"] = sum(census.syncs.values())
+    return dict(parts)
+
+
+def profile_preset(cfg, model, iters: int, warmup: int, progress: bool = True) -> dict:
+    model.decoder.budget_heads.set_trained(True)
+    budgets = budget_ladder(cfg)
+    images, ego2img, ego_warp, time_delta = online_inputs(cfg, cfg.num_frames, "cpu")
+    ring = FeatureRing(cfg.num_frames, cfg.num_groups)
+    with torch.no_grad():
+        current = model.extract_features(images)
+    for _ in range(cfg.num_frames):
+        ring.push(current)
+    timers = {b.name: StageTimer("cpu") for b in budgets}
+    backbone = []
+
+    @torch.no_grad()
+    def decode(budget):
+        return model.decode_ring(ring, ego2img, ego_warp, time_delta, budget=budget)
+
+    def step(budget, timer):
+        with timer.stage("decoder"):
+            output = decode(budget)
+        with torch.no_grad(), timer.stage("postprocess"):
+            occupancy_grid(output, cfg)
+            box_list(output, cfg)
+
+    for i in tqdm(range(warmup + iters), desc=cfg.name, disable=not progress):
+        start = StageTimer("cpu")
+        with torch.no_grad(), start.stage("backbone"):
+            ring.push(model.extract_features(images))
+        if i >= warmup:
+            backbone.append(start.medians()["backbone"])
+        for budget in budgets:
+            timer = timers[budget.name] if i >= warmup else StageTimer("cpu")
+            with DecoderHooks(model, timer):
+                step(budget, timer)
+    rows = []
+    full = None
+    for budget in budgets:
+        medians = timers[budget.name].medians()
+        layers = layer_table(medians, cfg.num_layers)
+        def run():
+            decode(budget)
+        flops, ops = flops_by_part(model, run), ops_by_part(run)
+        row = {"budget": budget.name, "static": budget.static, "dynamic": budget.dynamic,
+               "queries_refined": budget.static + budget.dynamic,
+               "decoder_ms": round(medians["decoder"], 2),
+               "postprocess_ms": round(medians["postprocess"], 2),
+               "decoder_layers_ms": layers, "gflops": flops, "ops": ops}
+        full = full or row
+        row["decoder_vs_full"] = round(row["decoder_ms"] / full["decoder_ms"], 3)
+        row["gflops_vs_full"] = round(flops["total"] / full["gflops"]["total"], 3)
+        rows.append(row)
+    return {"preset": cfg.name, "queries": cfg.num_queries, "frames": cfg.num_frames,
+            "input": [cfg.num_cams, 3, *cfg.image_size], "threads": torch.get_num_threads(),
+            "iters": iters, "backbone_ms": round(statistics.median(backbone), 2),
+            "budgets": rows}
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--presets", nargs="+", default=["odg_cpu", "odg_t", "odg_l"])
+    parser.add_argument("--checkpoint", default=None)
+    parser.add_argument("--iters", type=int, default=3)
+    parser.add_argument("--warmup", type=int, default=1)
+    parser.add_argument("--out", default=None)
+    args = parser.parse_args(argv)
+    results = []
+    for index, preset in enumerate(args.presets):
+        torch.manual_seed(0)
+        if index == 0 and args.checkpoint:
+            model, cfg = load_model(args.checkpoint)
+        else:
+            cfg = load_preset(preset)
+            model = ODG(cfg).eval()
+        results.append(profile_preset(cfg, model, args.iters, args.warmup))
+        print(json.dumps(summary(results[-1])), flush=True)
+        if args.out:
+            with open(args.out, "w") as f:
+                json.dump(results, f, indent=1)
+    return 0
+
+
+def summary(result: dict) -> dict:
+    """Per budget: decoder ms, its ratio to full, and ms per part summed over the layers."""
+    rows = {}
+    for row in result["budgets"]:
+        parts = collections.Counter()
+        for layer in row["decoder_layers_ms"]:
+            for part, ms in layer["parts"].items():
+                parts[part] += ms
+        rows[row["budget"]] = {"decoder_ms": row["decoder_ms"], "vs_full": row["decoder_vs_full"],
+                               "gflops_vs_full": row["gflops_vs_full"],
+                               "parts_ms": {k: round(v, 1) for k, v in parts.items()}}
+    return {"preset": result["preset"], "backbone_ms": result["backbone_ms"], "budgets": rows}
+
+
+if __name__ == "__main__":
+    sys.exit(main())
