@@ -8,6 +8,7 @@ import io
 import numpy as np
 import torch
 from PIL import Image
+from torch.utils._python_dispatch import TorchDispatchMode
 
 from odg_ros.geometry import make_transform
 from odg_ros.network import ODG
@@ -71,3 +72,29 @@ def feed_set(pipeline, start, images, now=None, encode=png):
                                        now=start + 0.1 if now is None else now,
                                        header=("stamp", start + offset))
     return completed
+
+
+# Operators that make the host wait for the device on CUDA (a value read back, an output
+# whose size depends on the data) or copy host data to the device inside the step.
+HOST_SYNC_OPS = {"_local_scalar_dense", "item", "nonzero", "_unique2", "unique_dim",
+                 "unique_consecutive", "masked_select", "bincount", "is_nonzero", "equal",
+                 "lift_fresh", "lift_fresh_copy", "allclose", "_assert_async"}
+
+
+class HostSyncCounter(TorchDispatchMode):
+    """Counts the ATen ops run inside it and names those in HOST_SYNC_OPS."""
+
+    def __init__(self):
+        super().__init__()
+        self.syncs, self.ops = [], 0
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        self.ops += 1
+        name = func.overloadpacket.__name__
+        boolean_index = name.startswith("index") and any(
+            isinstance(i, torch.Tensor) and i.dtype == torch.bool
+            for i in (args[1] if len(args) > 1 and isinstance(args[1], (list, tuple)) else ()))
+        if name in HOST_SYNC_OPS or boolean_index or name == "repeat_interleave" and \
+                "output_size" not in (kwargs or {}):
+            self.syncs.append("boolean index" if boolean_index else name)
+        return func(*args, **(kwargs or {}))

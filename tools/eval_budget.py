@@ -33,7 +33,7 @@ from odg_ros.network.checkpoint import load_model
 from odg_ros.network.decoder import PruneRule
 from odg_ros.network.postprocess import box_list
 from odg_ros.online.budget_policy import BudgetPolicy
-from odg_ros.sweep import query_budget as smaller_query_set
+from odg_ros.bench.sweep import query_budget as smaller_query_set
 from odg_ros.train.evaluate import predicted_grid
 
 

@@ -24,7 +24,8 @@ from torch.utils._python_dispatch import TorchDispatchMode
 from torch.utils.flop_counter import flop_registry, shape_wrapper
 from tqdm import tqdm
 
-from odg_ros.benchmark import LAYER_PARTS, DecoderHooks, StageTimer, layer_table, online_inputs
+from odg_ros.bench.step import LAYER_PARTS, DecoderHooks, StageTimer, layer_table
+from odg_ros.rig import online_inputs
 from odg_ros.config import load_preset
 from odg_ros.network import ODG
 from odg_ros.network.budget import budget_ladder

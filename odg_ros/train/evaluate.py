@@ -15,6 +15,7 @@ from ..geometry import inside_bev_range
 from ..metrics.detection import DetectionScore
 from ..metrics.rayiou import LidarOrigins
 from ..metrics.score import OccScore
+from ..network.budget import QueryBudget, needed_queries
 from ..network.padding import pad_occupancy
 from ..network.postprocess import box_list, occupancy_grid
 
@@ -75,8 +76,8 @@ class BudgetUse:
     scene, as the node resets at a new drive), and how many queries each one refined."""
 
     def __init__(self, budget, infos: list[dict], cfg):
-        from ..online.budget_policy import BudgetPolicy
-        self.policy = budget if isinstance(budget, BudgetPolicy) else None
+        # a policy (online/budget_policy.py, a layer up) is anything not a fixed budget
+        self.policy = None if isinstance(budget, QueryBudget) else budget
         self.fixed = None if self.policy is not None else budget
         self.infos, self.cfg = infos, cfg
         self.used: list[str] = []
@@ -96,7 +97,6 @@ class BudgetUse:
 
     def record(self, output, model) -> None:
         """After the keyframe ran: count its budget, feed its needs to the policy."""
-        from ..network.budget import needed_queries
         cfg, budget = self.cfg, self.current
         self.used.append(budget.name)
         self.refined.append(budget.refined_fraction(cfg))

@@ -3,7 +3,6 @@ refines the top keep-scores and gives the rest the skip layer's output, in stati
 with no host read, one graph per budget and compiled == eager."""
 import pytest
 import torch
-from helpers import model_inputs, tiny_config
 
 from odg_ros.network import ODG
 from odg_ros.network.budget import (QueryBudget, budget_ladder, budget_of, gather_queries,
@@ -11,6 +10,7 @@ from odg_ros.network.budget import (QueryBudget, budget_ladder, budget_of, gathe
 from odg_ros.network.checkpoint import load_model, save_checkpoint
 from odg_ros.network.sampling import camera_rows_layout
 from odg_ros.train.census import Census, CensusMode
+from testing.helpers import model_inputs, tiny_config
 
 
 def budget_model(trained=True, seed=0, **overrides):

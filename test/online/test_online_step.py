@@ -11,7 +11,7 @@ from odg_ros.network.postprocess import box_list, occupancy_grid
 from odg_ros.online.predictor import OnlinePredictor, resolve_mode
 from odg_ros.preprocess import normalize
 from testing.helpers import assert_layers_close, published_grid
-from testing.online import make_model, make_sets
+from testing.online import HostSyncCounter, make_model, make_sets
 
 from testing import reference_postprocess
 
@@ -55,30 +55,6 @@ def test_static_step_equals_the_dynamic_ring_at_every_fill_level(capacity):
         assert [b["label"] for b in online.boxes] == [b["label"] for b in boxes]
         np.testing.assert_allclose([b["center"] for b in online.boxes],
                                    [b["center"] for b in boxes], atol=1e-4)
-
-
-# Operators that make the host wait for the device on CUDA (a value read back, an output
-# whose size depends on the data) or copy host data to the device inside the step.
-HOST_SYNC_OPS = {"_local_scalar_dense", "item", "nonzero", "_unique2", "unique_dim",
-                 "unique_consecutive", "masked_select", "bincount", "is_nonzero", "equal",
-                 "lift_fresh", "lift_fresh_copy", "allclose", "_assert_async"}
-
-
-class HostSyncCounter(TorchDispatchMode):
-    def __init__(self):
-        super().__init__()
-        self.syncs, self.ops = [], 0
-
-    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
-        self.ops += 1
-        name = func.overloadpacket.__name__
-        boolean_index = name.startswith("index") and any(
-            isinstance(i, torch.Tensor) and i.dtype == torch.bool
-            for i in (args[1] if len(args) > 1 and isinstance(args[1], (list, tuple)) else ()))
-        if name in HOST_SYNC_OPS or boolean_index or name == "repeat_interleave" and \
-                "output_size" not in (kwargs or {}):
-            self.syncs.append("boolean index" if boolean_index else name)
-        return func(*args, **(kwargs or {}))
 
 
 def test_the_step_reads_nothing_back_and_copies_nothing_up():

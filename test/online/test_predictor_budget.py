@@ -3,9 +3,6 @@ read, compiled == eager, one graph per budget; ``query_budget auto`` follows the
 import numpy as np
 import pytest
 import torch
-from helpers import published_grid, tiny_config
-from test_online_predictor import make_sets
-from test_online_step import HostSyncCounter
 
 from odg_ros.geometry import ego_warp
 from odg_ros.network import ODG
@@ -13,6 +10,8 @@ from odg_ros.network.budget import budget_ladder, budget_of
 from odg_ros.network.feature_ring import FeatureRing
 from odg_ros.online.predictor import OnlinePredictor
 from odg_ros.preprocess import normalize
+from testing.helpers import published_grid, tiny_config
+from testing.online import HostSyncCounter, make_sets
 
 
 def budget_model(need_threshold=0.0, **overrides):
