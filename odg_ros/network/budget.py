@@ -5,10 +5,10 @@ the queries (static and dynamic apart) by how much the remaining layers would im
 output, and a budget keeps the ``static`` + ``dynamic`` best of them: a fixed-size top-k
 gather, so every budget is one static-shape step (one compiled graph, one CUDA graph each).
 The later layers refine the kept queries only. Every other query still reaches the output:
-one skip layer (a decoder layer of its own: attention among the skipped queries, image
-sampling, mixing, the last layer's points and boxes) takes it from ``AFTER_LAYER`` straight to
-the output, so the last layer always has all Q queries, in their own order, and the grid and
-the box list need no change. An easy query (flat ground, empty road) thus gets three layers,
+one skip layer (decoder.SkipLayer: attention among the skipped queries, FFN, the last layer's
+points and boxes, no image sampling) takes it from ``AFTER_LAYER`` straight to the output,
+so the last layer always has all Q queries, in their own order, and the grid and the box list
+need no change. An easy query (flat ground, empty road) thus gets three layers,
 a hard one all of them.
 
 The full budget runs the plain decoder (the skip layer is not used); its keep-scores are
@@ -120,7 +120,7 @@ def keep_inputs(means: torch.Tensor, point: torch.Tensor, box: torch.Tensor, pc_
 
 class BudgetHeads(nn.Module):
     """The keep-scores of both query sets and the skip layer (built by the decoder: a
-    ``DecoderLayer`` from AFTER_LAYER's points to the last layer's). ``trained`` and
+    ``SkipLayer`` from AFTER_LAYER's points to the last layer's). ``trained`` and
     ``need_threshold`` (the keep-score above which a query counts as needed,
     ``needed_queries``) are saved with the weights and mirrored on the host (``is_trained``,
     ``threshold``) so that a step never reads them from the device. A checkpoint without

@@ -68,14 +68,7 @@ class DecoderLayer(nn.Module):
         (and frame_index, see ``SpatioTemporalSampling``).
         Returns the new query and (means, logits, boxes, box_logits)."""
         D = num_dynamic
-        position = self.position(prev_means)
-        if self.box_position is not None and D:
-            position = torch.cat([position[:, :D] + self.box_position(prev_boxes),
-                                  position[:, D:]], dim=1)
-        query = query + position
-        centroid, _ = sampling_centres(prev_means)
-        query = self.norm_attention(query + self.attention(query, centroid, D))
-
+        query, centroid = self._attend(query, prev_means, prev_boxes, D)
         velocity = None
         if velocity_warp and D:
             velocity = torch.zeros_like(centroid[..., :2])
@@ -85,13 +78,45 @@ class DecoderLayer(nn.Module):
                                 geometry["time_delta"], geometry["image_hw"],
                                 geometry.get("frame_index"))
         query = self.norm_mixing(self.mixing(sampled, query))
-        query = self.norm_ffn(query + self.ffn(query))
+        return self._outputs(query, centroid, prev_boxes, D)
 
+    def _attend(self, query, prev_means, prev_boxes, D: int):
+        """Position encoding and DaS attention -> (query, centroid of prev_means)."""
+        position = self.position(prev_means)
+        if self.box_position is not None and D:
+            position = torch.cat([position[:, :D] + self.box_position(prev_boxes),
+                                  position[:, D:]], dim=1)
+        query = query + position
+        centroid, _ = sampling_centres(prev_means)
+        return self.norm_attention(query + self.attention(query, centroid, D)), centroid
+
+    def _outputs(self, query, centroid, prev_boxes, D: int):
+        """FFN and heads -> (query, means, logits, boxes, box_logits)."""
+        query = self.norm_ffn(query + self.ffn(query))
         means, logits = self.points(query, centroid)
         boxes = box_logits = None
         if self.boxes is not None and D:
             boxes, box_logits = self.boxes(query[:, :D], prev_boxes)
         return query, means, logits, boxes, box_logits
+
+
+class SkipLayer(DecoderLayer):
+    """The query budget's skip layer (budget.py): a decoder layer without image sampling and
+    mixing, from AFTER_LAYER's points straight to the last layer's. Sampling and mixing are
+    most of a layer's time (docs/query_budget.md), so the queries a budget skips cost a
+    fraction of one layer instead of a layer each."""
+
+    def __init__(self, cfg: ModelConfig, num_prev_points: int, num_points: int,
+                 with_boxes: bool):
+        super().__init__(cfg, num_prev_points, num_points, with_boxes)
+        self.sampling = self.mixing = self.norm_mixing = None
+
+    def forward(self, query, prev_means, prev_boxes, num_dynamic, geometry, mlvl_feats,
+                velocity_warp: bool, ego_warp: bool):
+        """DecoderLayer.forward's arguments and results; geometry, mlvl_feats and the warps
+        are not read."""
+        query, centroid = self._attend(query, prev_means, prev_boxes, num_dynamic)
+        return self._outputs(query, centroid, prev_boxes, num_dynamic)
 
 
 class Decoder(nn.Module):
@@ -107,8 +132,8 @@ class Decoder(nn.Module):
         # inference only, trained apart on a trained model (train/budget_heads.py): no
         # gradient in the model's own training
         skip_from = cfg.points_per_layer[min(AFTER_LAYER, cfg.num_layers) - 1]
-        skip_layer = DecoderLayer(cfg, skip_from, cfg.points_per_layer[-1],
-                                  with_boxes=num_dynamic > 0)
+        skip_layer = SkipLayer(cfg, skip_from, cfg.points_per_layer[-1],
+                               with_boxes=num_dynamic > 0)
         self.budget_heads = BudgetHeads(cfg.embed_dims, skip_layer).requires_grad_(False)
 
     def forward(self, query, means, boxes, mlvl_feats, geometry,
