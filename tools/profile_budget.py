@@ -155,7 +155,8 @@ def profile_preset(cfg, model, iters: int, warmup: int, progress: bool = True) -
                "queries_refined": budget.static + budget.dynamic,
                "decoder_ms": round(medians["decoder"], 2),
                "postprocess_ms": round(medians["postprocess"], 2),
-               "decoder_layers_ms": layers, "gflops": flops, "ops": ops}
+               "decoder_layers_ms": layers, "budget_ms": budget_parts(medians),
+               "gflops": flops, "ops": ops}
         full = full or row
         row["decoder_vs_full"] = round(row["decoder_ms"] / full["decoder_ms"], 3)
         row["gflops_vs_full"] = round(flops["total"] / full["gflops"]["total"], 3)
@@ -164,6 +165,12 @@ def profile_preset(cfg, model, iters: int, warmup: int, progress: bool = True) -
             "input": [cfg.num_cams, 3, *cfg.image_size], "threads": torch.get_num_threads(),
             "iters": iters, "backbone_ms": round(statistics.median(backbone), 2),
             "budgets": rows}
+
+
+def budget_parts(medians: dict[str, float]) -> dict:
+    """The budget's own cost: keep-scores and the skip layer (total and per part), ms."""
+    return {name.replace("skip_layer.", "skip."): round(ms, 3) for name, ms in medians.items()
+            if name.startswith(("skip_layer", "keep_"))}
 
 
 def main(argv=None) -> int:
@@ -200,7 +207,10 @@ def summary(result: dict) -> dict:
                 parts[part] += ms
         rows[row["budget"]] = {"decoder_ms": row["decoder_ms"], "vs_full": row["decoder_vs_full"],
                                "gflops_vs_full": row["gflops_vs_full"],
-                               "parts_ms": {k: round(v, 1) for k, v in parts.items()}}
+                               "parts_ms": {k: round(v, 1) for k, v in parts.items()},
+                               "layers_ms": [round(r["total"], 1)
+                                             for r in row["decoder_layers_ms"]],
+                               "budget_ms": row["budget_ms"]}
     return {"preset": result["preset"], "backbone_ms": result["backbone_ms"], "budgets": rows}
 
 

@@ -81,6 +81,8 @@ class StageTimer:
 class DecoderHooks:
     """Times every decoder layer (``layer1`` ..) and its parts (``layer1.sampling`` ..) with
     forward hooks into a ``StageTimer``; ``with DecoderHooks(model, timer):`` installs them.
+    Under a query budget also the skip layer (``skip_layer``, ``skip_layer.attention`` ..)
+    and the keep-scores (``keep_static``, ``keep_dynamic``; network/budget.py).
     The decoder time outside the layers (history layout without a ring, queries, pruning,
     Phi MLPs) is the decoder stage minus the layers (``decoder_outside_layers``)."""
 
@@ -101,6 +103,13 @@ class DecoderHooks:
             for part in LAYER_PARTS:
                 if getattr(layer, part, None) is not None:
                     self._hook(getattr(layer, part), f"layer{index + 1}.{part}")
+        heads = self.model.decoder.budget_heads
+        self._hook(heads.skip_layer, "skip_layer")
+        for part in LAYER_PARTS:
+            if getattr(heads.skip_layer, part, None) is not None:
+                self._hook(getattr(heads.skip_layer, part), f"skip_layer.{part}")
+        self._hook(heads.static_score, "keep_static")
+        self._hook(heads.dynamic_score, "keep_dynamic")
         return self
 
     def __exit__(self, *exc):
@@ -137,7 +146,8 @@ class TimedOnlineStep:
     (``ODG.decode``), the decoder over the cached history, then the grid and the box list.
 
     ``prime(history)`` fills the cache with the older frames' features (untimed), newest
-    first, as earlier steps would have; ``__call__`` runs and times the step.
+    first, as earlier steps would have; ``__call__`` runs and times the step, at the query
+    ``budget`` set on it (network/budget.py; None: every query).
     """
 
     def __init__(self, model: ODG, cfg: ModelConfig, device, ring: bool = True, prune=None,
@@ -147,6 +157,7 @@ class TimedOnlineStep:
         self.prune = prune
         self.precision = precision
         self.history: list[list[torch.Tensor]] = []
+        self.budget = None
 
     @torch.no_grad()
     def prime(self, history_features: list[list[torch.Tensor]]) -> None:
@@ -174,10 +185,11 @@ class TimedOnlineStep:
             with timer.stage("decoder"):
                 if self.ring is not None:
                     output = self.model.decode_ring(self.ring, ego2img, ego_warp, time_delta,
-                                                    prune=self.prune)
+                                                    prune=self.prune, budget=self.budget)
                 else:
                     output = self.model.decode([current] + self.history, ego2img, ego_warp,
-                                               time_delta, prune=self.prune)
+                                               time_delta, prune=self.prune,
+                                               budget=self.budget)
             with timer.stage("postprocess"):
                 grid, _ = occupancy_grid(output, self.cfg)
                 boxes = box_list(output, self.cfg)
