@@ -23,6 +23,13 @@ def add_arguments(parser) -> None:
     parser.add_argument("--image-size", type=positive_int, nargs=2, default=list(DEFAULT_IMAGE_HW), metavar=("H", "W"),
                         help="camera image size (intrinsics are the nuScenes ones scaled from 900 x 1600)")
     parser.add_argument("--version", default="v1.0-trainval", help="name of the table folder")
+    parser.add_argument("--traffic", choices=("quiet", "normal", "dense"), default="normal",
+                        help="how many vehicles, cyclists and pedestrians: quiet (about a third "
+                             "of normal), normal, dense (default: normal)")
+    parser.add_argument("--roads", choices=("city", "open-road"), default="city",
+                        help="city: a grid of roads between blocks of buildings, parks and "
+                             "parking lots; open-road: one road through countryside, no "
+                             "crossings (default: city)")
     parser.add_argument("--layout", choices=("nuscenes", "waymo"), default="nuscenes",
                         help="nuscenes (tables, six cameras, Occ3D-nuScenes GT) or waymo (the "
                              "Occ3D-Waymo layout: five cameras, Waymo labels, one frame per "
@@ -30,9 +37,11 @@ def add_arguments(parser) -> None:
 
 
 def run(args) -> int:
+    from odg_ros.data.synth.city import SceneKind
     from odg_ros.data.synth.generate import generate
     options = dict(scenes=args.scenes, seconds=args.seconds, seed=args.seed,
-                   image_hw=tuple(args.image_size), version=args.version)
+                   image_hw=tuple(args.image_size), version=args.version,
+                   kind=SceneKind(args.traffic, args.roads))
     if args.layout == "waymo":
         from odg_ros.data.synth.waymo_layout import generate_waymo
         summary = generate_waymo(args.out, **options)

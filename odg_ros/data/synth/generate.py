@@ -25,7 +25,7 @@ from tqdm import tqdm
 
 from odg_ros.rig import CAMERA_NAMES
 from odg_ros.data.synth import occupancy, pictures, rig, sensors, shading
-from odg_ros.data.synth.city import build_world
+from odg_ros.data.synth.city import SceneKind, build_world
 from odg_ros.data.synth.tables import Tables, link_chain, quaternion_yaw, save_npz, token, visibility_token
 from odg_ros.data.synth.world import World
 from odg_ros.geometry import invert_transform, matrix_to_quaternion
@@ -56,10 +56,11 @@ def scene_name(index: int) -> str:
     return f"scene-{index + 1:04d}"
 
 
-def scene_world(seed: int, index: int, seconds: float) -> World:
+def scene_world(seed: int, index: int, seconds: float, kind: SceneKind = SceneKind()) -> World:
     """The world of scene ``index`` exactly as ``generate`` builds it (tests rebuild it)."""
     duration = (num_keyframes(seconds) - 1) / rig.KEYFRAME_HZ + 0.2
-    return build_world(np.random.SeedSequence([seed, index]), scene_name(index), duration)
+    return build_world(np.random.SeedSequence([seed, index]), scene_name(index), duration,
+                       kind)
 
 
 def keyframe_time(k: int) -> float:
@@ -100,12 +101,14 @@ def _pose_record(tok, timestamp, T):
 
 
 class _SceneWriter:
-    def __init__(self, out, version, tables: Tables, seed, index, seconds, image_hw):
+    def __init__(self, out, version, tables: Tables, seed, index, seconds, image_hw,
+                 kind: SceneKind):
         self.out, self.version, self.tables, self.seed = out, version, tables, seed
+        self.kind = kind
         self.index = index
         self.name = scene_name(index)
         self.keyframes = num_keyframes(seconds)
-        self.world: World = scene_world(seed, index, seconds)
+        self.world: World = scene_world(seed, index, seconds, kind)
         self.hw = tuple(int(v) for v in image_hw)
         self.cams = rig.cameras(self.hw)
         self.T_ego_lidar = rig.lidar_T_ego_from_lidar()
@@ -285,12 +288,14 @@ class _SceneWriter:
                                "last_annotation_token": recs[-1]["token"]})
         T.add("scene", {"token": self.scene_token, "log_token": self.log_token, "nbr_samples": len(self.samples),
                         "first_sample_token": self.samples[0]["token"], "last_sample_token": self.samples[-1]["token"],
-                        "name": self.name, "description": f"synthetic city, seed {self.seed}"})
+                        "name": self.name, "description": f"synthetic {self.kind.description}, seed {self.seed}"})
 
 
 def generate(out: str, scenes: int = 8, seconds: float = 6.0, seed: int = 0, image_hw=DEFAULT_IMAGE_HW,
-             version: str = "v1.0-trainval", progress: bool = True) -> dict:
-    """Generate the dataset. Returns a summary (counts, seconds, bytes)."""
+             version: str = "v1.0-trainval", progress: bool = True,
+             kind: SceneKind = SceneKind()) -> dict:
+    """Generate the dataset, every scene of ``kind``. Returns a summary (counts, seconds,
+    bytes)."""
     if scenes < 1 or seconds <= 0:
         raise ValueError("need at least one scene and a positive duration")
     if os.path.exists(os.path.join(out, version)) and os.listdir(os.path.join(out, version)):
@@ -305,7 +310,7 @@ def generate(out: str, scenes: int = 8, seconds: float = 6.0, seed: int = 0, ima
     bar = tqdm(total=scenes * keyframes, unit="keyframe", desc="odg synth", disable=not progress)
     names = []
     for i in range(scenes):
-        w = _SceneWriter(out, version, tables, seed, i, seconds, image_hw)
+        w = _SceneWriter(out, version, tables, seed, i, seconds, image_hw, kind)
         names.append(w.name)
         cps, lps = rig.CAMERA_SETS_PER_KEYFRAME, rig.SWEEPS_PER_KEYFRAME
         for k in range(w.keyframes):

@@ -137,6 +137,21 @@ def fill_blocks(layout: Layout, ground: GroundMap, rng, near):
                 ground.fill(bx0, bx1, by0, by1, M.GRASS)
 
 
+def fill_countryside(layout: Layout, ground: GroundMap, rng, near):
+    """The open road's surroundings: grass, and trees scattered beside the road where they
+    can be seen from the route (``near``)."""
+    ground.fill(layout.x0 - BORDER, layout.x1 + BORDER, layout.y0 - BORDER, layout.y1 + BORDER,
+                M.GRASS)
+    road = layout.main
+    for s in (-1, 1):
+        u = road.lo
+        while u < road.hi:
+            u += rng.uniform(6.0, 40.0)
+            y = road.c + s * (road.half(s) + road.sidewalk + rng.uniform(2.0, 25.0))
+            if near(u, y, 120.0):
+                tree(layout, rng, u, y)
+
+
 def _fill_block(layout, ground, rng, bx0, bx1, by0, by1, near_route):
     """One block inside its sidewalks: buildings along the edges, or a park, parking lot or
     building site. ``near_route``: add parked cars / machines only where they can be seen."""

@@ -114,6 +114,17 @@ def plan_roads(rng, travel, margin=110.0):
     return Layout(h_roads, v_roads, x0, x1, y0, y1, main=main), turn, turn_at
 
 
+def plan_open_road(rng, travel, margin=110.0):
+    """An open road instead of a city: the main road alone (no crossing road, no parking
+    lane, a narrow verge for a walkway) through countryside. Returns (layout, 0, None) like
+    ``plan_roads`` (the ego goes straight on)."""
+    main = random_road(rng, 0, 0.0, main=True)
+    main.park, main.sidewalk = (0.0, 0.0), float(rng.uniform(1.5, 2.5))
+    x0, x1, y0, y1 = -margin, travel + margin, -margin, margin
+    main.lo, main.hi = x0 - BORDER, x1 + BORDER
+    return Layout([main], [], x0, x1, y0, y1, main=main), 0, None
+
+
 def turn_pieces(road_in: Road, direction, lane, cross: Road, turn, lane_out, start_u, length_after):
     """Path pieces from ``start_u`` along ``road_in`` (heading ``direction``, lane ``lane``)
     turning ``turn`` (-1 right, +1 left) into ``cross``; returns (start_xy, yaw, pieces,

@@ -8,24 +8,24 @@ from odg_ros.data.synth.city.layout import Layout, Road
 from odg_ros.data.synth.motion import Path, speed_profile
 
 
-def place_pedestrians(layout: Layout, rng, span, duration, near):
+def place_pedestrians(layout: Layout, rng, span, duration, near, density: float = 1.0):
     """Pedestrians moving for ``span`` seconds, where they can be seen from the route
     (``near``, see ego.NearRoute); the crossing ones set off at any time of the scene's
-    ``duration``."""
+    ``duration``. ``density`` scales how many (1 draws exactly the normal city's)."""
     for road in layout.roads:
-        _sidewalk_pedestrians(layout, rng, road, span, near)
+        _sidewalk_pedestrians(layout, rng, road, span, near, density)
     for h, v in layout.intersections():
         if near(v.c, h.c, 90.0):
-            _crossing_pedestrians(layout, rng, h, v, span, duration)
+            _crossing_pedestrians(layout, rng, h, v, span, duration, density)
 
 
-def _sidewalk_pedestrians(layout: Layout, rng, road: Road, span, near):
+def _sidewalk_pedestrians(layout: Layout, rng, road: Road, span, near, density: float):
     """Adults and a few children along both sidewalks of ``road``, a quarter of them standing."""
     for s in (-1, 1):
         curb = road.c + s * road.half(s)
         u = road.lo
         while u < road.hi:
-            u += rng.exponential(14.0)
+            u += rng.exponential(14.0) / density
             lat = curb + s * rng.uniform(2.2, max(road.sidewalk - 0.5, 2.3))
             xy = (u, lat) if road.axis == 0 else (lat, u)
             if not near(*xy, dist=100.0):
@@ -40,9 +40,11 @@ def _sidewalk_pedestrians(layout: Layout, rng, road: Road, span, near):
             layout.things.append((shape, path, speeds, 0.0, "pedestrian", None))
 
 
-def _crossing_pedestrians(layout: Layout, rng, h: Road, v: Road, span, duration):
-    """Up to three people who wait at a crosswalk of the intersection h x v, then cross."""
-    for _ in range(int(rng.integers(0, 4))):
+def _crossing_pedestrians(layout: Layout, rng, h: Road, v: Road, span, duration,
+                          density: float):
+    """Up to three people (times ``density``) who wait at a crosswalk of the intersection
+    h x v, then cross."""
+    for _ in range(int(round(int(rng.integers(0, 4)) * density))):
         road, cross = (h, v) if rng.random() < 0.5 else (v, h)
         end = int(rng.choice([-1, 1]))
         u = cross.c + end * (cross.half(end) + 2.5)

@@ -2,12 +2,15 @@
 the order of the calls is part of every generated world."""
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from odg_ros.data.synth.city.collisions import resolve_collisions
 from odg_ros.data.synth.city.ego import NearRoute, ego_route, ego_speed_profile
-from odg_ros.data.synth.city.furniture import fill_blocks, place_street_furniture
-from odg_ros.data.synth.city.layout import BORDER, Layout, plan_roads
+from odg_ros.data.synth.city.furniture import (fill_blocks, fill_countryside,
+                                               place_street_furniture)
+from odg_ros.data.synth.city.layout import BORDER, Layout, plan_open_road, plan_roads
 from odg_ros.data.synth.city.pedestrians import place_pedestrians
 from odg_ros.data.synth.city.roads import pave_roads
 from odg_ros.data.synth.city.traffic import place_construction_zones, place_traffic
@@ -16,22 +19,68 @@ from odg_ros.data.synth.primitives import Primitives
 from odg_ros.data.synth.world import GroundMap, Lighting, Thing, World
 
 
-def build_world(seed_seq: np.random.SeedSequence, name: str, duration: float) -> World:
-    """Generate one scene of ``duration`` seconds, deterministic for ``seed_seq``."""
+# how many road users a scene of each traffic class has, relative to the normal city
+TRAFFIC = {"quiet": 0.3, "normal": 1.0, "dense": 2.5}
+ROADS = ("city", "open-road")
+# an open road has few people walking beside it, whatever its traffic
+OPEN_ROAD_PEDESTRIANS = 0.15
+
+
+@dataclass(frozen=True)
+class SceneKind:
+    """What kind of scene to build: its traffic (a TRAFFIC key) and its roads (city: the road
+    grid with blocks; open-road: one road through countryside). The default is the city the
+    generator always built, draw for draw."""
+    traffic: str = "normal"
+    roads: str = "city"
+
+    def __post_init__(self):
+        if self.traffic not in TRAFFIC:
+            raise ValueError(f"traffic {self.traffic!r}: expected one of {', '.join(TRAFFIC)}")
+        if self.roads not in ROADS:
+            raise ValueError(f"roads {self.roads!r}: expected one of {', '.join(ROADS)}")
+
+    @property
+    def name(self) -> str:
+        return f"{self.roads}-{self.traffic}"
+
+    @property
+    def description(self) -> str:
+        """A few words for the scene table ("city" for the default kind)."""
+        words = ["open road" if self.roads == "open-road" else "city"]
+        return ", ".join(words + ([f"{self.traffic} traffic"] if self.traffic != "normal" else []))
+
+
+# the held-out worlds of each scene class (docs/results/query_budget.md): class name ->
+# (seed, kind) for ``odg synth --seed SEED --traffic T --roads R``; no training set uses these
+# seeds, and test/data/test_synth_classes.py pins what they hold
+HELD_OUT = {"city-quiet": (9101, SceneKind("quiet")),
+            "city-normal": (9102, SceneKind("normal")),
+            "city-dense": (9103, SceneKind("dense")),
+            "open-road": (9104, SceneKind("normal", "open-road"))}
+
+
+def build_world(seed_seq: np.random.SeedSequence, name: str, duration: float,
+                kind: SceneKind = SceneKind()) -> World:
+    """Generate one scene of ``duration`` seconds and ``kind``, deterministic for
+    ``seed_seq``."""
     rng = np.random.default_rng(seed_seq)
     # the ego's motion first: it decides how big the city must be
     ego_speed, travel = ego_speed_profile(rng, duration)
-    layout, turn, turn_at = plan_roads(rng, travel)
+    open_road = kind.roads == "open-road"
+    layout, turn, turn_at = (plan_open_road if open_road else plan_roads)(rng, travel)
     ego_path = ego_route(rng, layout, turn, turn_at, travel)
     near = NearRoute(ego_path)
     ground = GroundMap(layout.x0 - BORDER, layout.y0 - BORDER, layout.x1 + BORDER, layout.y1 + BORDER, res=0.1)
-    fill_blocks(layout, ground, rng, near)
+    (fill_countryside if open_road else fill_blocks)(layout, ground, rng, near)
     pave_roads(layout, ground, rng, near)
     place_street_furniture(layout, rng, near)
     place_construction_zones(layout, rng, travel, near)
     span = duration + 1.0
-    place_traffic(layout, rng, span, near)
-    place_pedestrians(layout, rng, span, duration, near)
+    density = TRAFFIC[kind.traffic]
+    place_traffic(layout, rng, span, near, density)
+    place_pedestrians(layout, rng, span, duration, near,
+                      density * (OPEN_ROAD_PEDESTRIANS if open_road else 1.0))
     things = resolve_collisions(layout, ego_path, ego_speed, duration)
     return _assemble(rng, name, duration, layout, ground, things, Movers([ego_path], [ego_speed], [0.0]))
 

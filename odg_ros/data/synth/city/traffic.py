@@ -86,21 +86,22 @@ def _loose_cones(layout: Layout, rng, near):
 
 # -- moving and parked vehicles -----------------------------------------------------------------
 
-def place_traffic(layout: Layout, rng, span, near):
+def place_traffic(layout: Layout, rng, span, near, density: float = 1.0):
     """Vehicles and cyclists moving in every lane for ``span`` seconds, and parked cars along
-    the parking lanes, where they can be seen from the route (``near``, see ego.NearRoute)."""
+    the parking lanes, where they can be seen from the route (``near``, see ego.NearRoute).
+    ``density`` scales how many (scene.TRAFFIC; 1 draws exactly the normal city's)."""
     group_ids = itertools.count(1)   # a tractor and its trailer share one
     for road in layout.roads:
         for direction in (-1, 1):
             for lane in range(road.lanes):
                 u = road.lo + rng.uniform(0, 20)
                 while u < road.hi:
-                    u += rng.uniform(12, 50)
+                    u += rng.uniform(12, 50) / density
                     xy = (u, road.c) if road.axis == 0 else (road.c, u)
                     if not near(*xy, dist=120.0):
                         continue
                     u += _add_vehicle(layout, rng, road, direction, lane, u, span, group_ids)
-            _parked_cars(layout, rng, road, direction, near)
+            _parked_cars(layout, rng, road, direction, near, density)
 
 
 def _add_vehicle(layout: Layout, rng, road: Road, direction, lane, start_u, span, group_ids):
@@ -157,8 +158,9 @@ def _vehicle_shapes(rng, kind):
     return [(shapes.bicycle(rng), 0.0)]
 
 
-def _parked_cars(layout: Layout, rng, road: Road, direction, near):
-    """Cars (and a few trucks) along the parking lane on the side of ``direction``, if any."""
+def _parked_cars(layout: Layout, rng, road: Road, direction, near, density: float):
+    """Cars (and a few trucks) along the parking lane on the side of ``direction``, if any:
+    35 % of the places free at density 1, fewer above, more below."""
     s = side(road.axis, direction)
     pw = road.park[(s + 1) // 2]
     if pw <= 0:
@@ -168,7 +170,7 @@ def _parked_cars(layout: Layout, rng, road: Road, direction, near):
     while u < road.hi:
         u += rng.uniform(5.6, 7.0)
         xy = (u, lat) if road.axis == 0 else (lat, u)
-        if not near(*xy, dist=110.0) or rng.random() < 0.35:
+        if not near(*xy, dist=110.0) or rng.random() < 1.0 - min(1.0, 0.65 * density):
             continue
         shape = shapes.car(rng) if rng.random() < 0.93 else shapes.truck(rng)
         if shape.category == "vehicle.truck":
