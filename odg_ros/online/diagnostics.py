@@ -74,6 +74,8 @@ class PipelineStats:
         self._ages: deque[float] = deque(maxlen=window)           # s, node clock
         self._latencies: deque[float] = deque(maxlen=window)      # s, steady
         self._stage_times: dict[str, deque[float]] = {s: deque(maxlen=window) for s in STAGES}
+        self._refined: deque[float] = deque(maxlen=window)       # query budget: share refined
+        self._last_budget: str | None = None
         self.rate_window_s = float(rate_window_s)
         self.stale_after_s = float(stale_after_s)
         self.outputs = 0
@@ -85,9 +87,11 @@ class PipelineStats:
         self._window_base: dict[str, int] = {}
 
     def record_output(self, image_stamp: float, now: float, timings: dict[str, float],
-                      received: float | None = None) -> None:
-        """One published result: its image stamp and the node clock ``now`` (seconds), and
-        the steady time its set's last image was received (None: unknown)."""
+                      received: float | None = None, query_budget: str | None = None,
+                      refined_fraction: float | None = None) -> None:
+        """One published result: its image stamp and the node clock ``now`` (seconds), the
+        steady time its set's last image was received (None: unknown), and the query budget
+        it ran with the share of the queries refined (None: not reported)."""
         published = self._clock()
         with self._lock:
             self.outputs += 1
@@ -98,6 +102,10 @@ class PipelineStats:
             for stage, seconds in timings.items():
                 if stage in self._stage_times:
                     self._stage_times[stage].append(seconds)
+            if query_budget is not None:
+                self._last_budget = query_budget
+            if refined_fraction is not None:
+                self._refined.append(float(refined_fraction))
 
     def rate_hz(self) -> float:
         with self._lock:
@@ -111,8 +119,9 @@ class PipelineStats:
 
     def snapshot(self) -> dict:
         """{'outputs', 'rate_hz', 'receipt_to_publish_ms' (steady) and 'stamp_age_ms' (node
-        clock): {'p50','p95'}, 'stage_ms': {stage: mean}, 'seconds_since_output'} (None
-        where nothing was measured yet)."""
+        clock): {'p50','p95'}, 'stage_ms': {stage: mean}, 'seconds_since_output',
+        'query_budget' (the last output's), 'refined_fraction' (mean)} (None where nothing
+        was measured yet)."""
         def percentiles(values):
             ms = np.asarray(values, dtype=np.float64) * 1e3
             return {q: float(np.percentile(ms, n)) if ms.size else None
@@ -129,6 +138,8 @@ class PipelineStats:
                              for s, v in self._stage_times.items()},
                 "seconds_since_output": (now - self._output_times[-1]
                                          if self._output_times else None),
+                "query_budget": self._last_budget,
+                "refined_fraction": float(np.mean(self._refined)) if self._refined else None,
             }
 
     def status(self, counters: dict[str, int]) -> dict:
@@ -219,6 +230,10 @@ class PipelineStats:
             for q in ("p50", "p95"):
                 values.append((f"{name}_{q}_ms ({clock})", fmt(snap[f"{name}_ms"][q])))
         values += [(f"stage_{s}_ms", fmt(v)) for s, v in snap["stage_ms"].items()]
+        values += [("query_budget (last output)", snap["query_budget"] or "n/a"),
+                   ("queries_refined_percent (mean)",
+                    fmt(None if snap["refined_fraction"] is None
+                        else 100 * snap["refined_fraction"]))]
         for topic, (count, age) in inputs.items():
             values += [(f"{topic}: received", str(count)),
                        (f"{topic}: seconds since last", fmt(age))]

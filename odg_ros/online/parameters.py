@@ -26,7 +26,7 @@ _ELEMENTS = {"string_array": (str,), "int_array": (int,), "float_array": (int, f
 GROUPS = {"inputs": "inputs", "sync": "synchronisation and history", "model": "model",
           "outputs": "outputs"}
 _KEYS = {"type", "default", "description", "group", "enum", "minimum", "maximum",
-         "exclusive_minimum"}
+         "exclusive_minimum", "or_fraction"}
 
 
 @dataclass(frozen=True)
@@ -40,9 +40,13 @@ class Parameter:
     minimum: float | None = None
     maximum: float | None = None
     exclusive_minimum: float | None = None
+    # a string parameter that also takes a number 0 < x <= 1 (query_budget: auto | full | 0.6)
+    or_fraction: bool = False
 
     def constraint(self) -> str:
         """The allowed values in a few words ('' when any value of the type is allowed)."""
+        if self.enum and self.or_fraction:
+            return "one of: " + ", ".join(map(str, self.enum)) + " or a fraction 0 < f <= 1"
         if self.enum:
             return "one of: " + ", ".join(map(str, self.enum))
         if self.minimum is not None and self.maximum is not None:
@@ -57,6 +61,8 @@ class Parameter:
 
     def check(self, value) -> str | None:
         """Why ``value`` is not allowed, or None."""
+        if self.or_fraction and value not in (self.enum or ()):
+            return self._check_fraction(value)
         expected = TYPES[self.type]
         if expected is float and isinstance(value, int) and not isinstance(value, bool):
             value = float(value)
@@ -73,6 +79,15 @@ class Parameter:
                   (self.exclusive_minimum is not None and value <= self.exclusive_minimum)
         too_high = self.maximum is not None and value > self.maximum
         if too_low or too_high:
+            return f"{self.name}={value!r}: expected {self.constraint()}"
+        return None
+
+    def _check_fraction(self, value) -> str | None:
+        try:
+            fraction = float(value) if not isinstance(value, bool) else math.nan
+        except (TypeError, ValueError):
+            fraction = math.nan
+        if not 0.0 < fraction <= 1.0:          # NaN too
             return f"{self.name}={value!r}: expected {self.constraint()}"
         return None
 
@@ -97,7 +112,8 @@ def load_schema(path: str | Path | None = None) -> dict[str, Parameter]:
                               description=" ".join(str(entry["description"]).split()),
                               group=entry["group"], enum=enum, minimum=entry.get("minimum"),
                               maximum=entry.get("maximum"),
-                              exclusive_minimum=entry.get("exclusive_minimum"))
+                              exclusive_minimum=entry.get("exclusive_minimum"),
+                              or_fraction=bool(entry.get("or_fraction", False)))
         problem = parameter.check(parameter.default)
         if problem:
             raise ValueError(f"{path}: the default breaks the parameter's own rule: {problem}")

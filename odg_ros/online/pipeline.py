@@ -79,7 +79,8 @@ class OnlineResult:
     reference camera's image; grid/confidence uint8 [X, Y, Z]; boxes: list of dicts;
     timings: seconds per stage; num_frames: frames the decoder used; observed: bool
     [X, Y, Z], the voxels a camera sees (None with the visibility off); received: steady
-    time (time.monotonic) its set became complete."""
+    time (time.monotonic) its set became complete; query_budget, refined_fraction: the
+    query budget the step ran and the share of the queries it refined (Prediction)."""
 
     stamp: float
     header: Any
@@ -90,6 +91,8 @@ class OnlineResult:
     num_frames: int
     observed: np.ndarray | None = None
     received: float | None = None
+    query_budget: str = "full"
+    refined_fraction: float = 1.0
 
 
 ExtrinsicsLookup = Callable[[str, str, float], np.ndarray]   # (camera, frame_id, stamp) -> 4x4
@@ -218,7 +221,9 @@ class OnlinePipeline:
                             grid=prediction.grid, confidence=prediction.confidence,
                             boxes=prediction.boxes, timings=timings,
                             num_frames=prediction.num_frames, observed=prediction.observed,
-                            received=camera_set.completed_at)
+                            received=camera_set.completed_at,
+                            query_budget=prediction.query_budget,
+                            refined_fraction=prediction.refined_fraction)
 
     # ---------------------------------------------------------------- decoding ahead
     def start_decoding(self, on_bad_input: Callable[[BadInput], None],

@@ -149,13 +149,14 @@ class OdgNode(Node):
         for name, parameter in schema.items():
             # read_only: every parameter is read once at start-up; a later change is refused
             # instead of being silently ignored.
-            # a float parameter also takes an integer (slop: 1 in a YAML file); the schema
-            # check below converts it
+            # a float parameter also takes an integer (slop: 1 in a YAML file), a fraction one
+            # a number (query_budget: 0.6); the schema check below converts and checks it
             descriptor = ParameterDescriptor(description=parameter.description,
                                              type=_PARAMETER_TYPES[parameter.type],
                                              additional_constraints=parameter.constraint(),
                                              read_only=True,
-                                             dynamic_typing=parameter.type == "float")
+                                             dynamic_typing=parameter.type == "float"
+                                             or parameter.or_fraction)
             self.declare_parameter(name, parameter.default, descriptor)
         values = node_parameters.validate(
             {name: self.get_parameter(name).value for name in schema}, schema)
@@ -299,7 +300,9 @@ class OdgNode(Node):
         timings = dict(result.timings)
         timings["publish"] = time.perf_counter() - start
         now = self.now_seconds()
-        self.stats.record_output(result.stamp, now, timings, received=result.received)
+        self.stats.record_output(result.stamp, now, timings, received=result.received,
+                                 query_budget=result.query_budget,
+                                 refined_fraction=result.refined_fraction)
         # processing: the set complete -> published (steady); latency: now - its image stamp
         # (the node's clock)
         processing = time.monotonic() - result.received if result.received is not None \
@@ -360,7 +363,8 @@ def load_predictor(p: dict, logger) -> OnlinePredictor:
                                 min_interval=float(p["history_interval"]),
                                 precision=p["precision"], compile=p["compile"],
                                 compiled_step=p["compiled_step"].strip() or None,
-                                visibility=bool(p["visibility"]))
+                                visibility=bool(p["visibility"]),
+                                query_budget=p["query_budget"])
     logger.info(f"online step: {predictor.mode} mode, start-up (compile, capture) "
                 f"{predictor.startup_seconds:.1f} s")
     return predictor

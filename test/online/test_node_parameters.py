@@ -45,6 +45,11 @@ def test_schema_enums_match_the_code():
     ("camera_names", ["CAM_FRONT", 3], "list of strings"),
     ("warn_throttle", "abc", "expected float"),
     ("no_such_parameter", 1, "unknown parameter 'no_such_parameter'"),
+    ("query_budget", "half", "query_budget='half': expected one of: full, auto or a fraction"),
+    ("query_budget", 0.0, "query_budget=0.0: expected"),
+    ("query_budget", "1.5", "query_budget='1.5': expected"),
+    ("query_budget", math.nan, "query_budget=nan: expected"),
+    ("query_budget", True, "query_budget=True: expected"),
 ])
 def test_bad_values_are_named(name, value, expected):
     with pytest.raises(ValueError, match=None) as info:
@@ -58,6 +63,12 @@ def test_every_problem_in_one_message_and_integers_become_floats():
     assert "slop" in str(info.value) and "precision" in str(info.value)
     values = parameters.validate({"slop": 1})
     assert values["slop"] == 1.0 and isinstance(values["slop"], float)
+
+
+def test_query_budget_takes_a_mode_or_a_fraction():
+    """As a params file or -p gives it: a word, a number, or a number written as text."""
+    for value in ("full", "auto", 0.6, "0.35", 1, 1.0):
+        assert parameters.validate({"query_budget": value})["query_budget"] == value
 
 
 def test_a_malformed_schema_entry_is_refused(tmp_path):

@@ -1,7 +1,8 @@
 """What a ROS user meets when configuring odg_node: a parameter the node does not know
 (params file, -p), a misspelt boolean, a params file that is missing or no ROS params file:
 one FATAL line naming it (and the closest known name) and exit code 1; with
-unknown_parameters: warn, a warning and the node runs."""
+unknown_parameters: warn, a warning and the node runs. A query budget the checkpoint cannot
+run is one FATAL line too."""
 from __future__ import annotations
 
 import signal
@@ -46,6 +47,20 @@ def test_a_misspelt_boolean_stops_the_node(rclpy_module):
     line = one_fatal_line(run_node("--ros-args", "-p", "visibility:=flase", "-p",
                                    "device:=cpu"))
     assert "visibility" in line and "expecting type 'BOOL'" in line
+
+
+def test_a_query_budget_is_checked_before_the_model_runs(rclpy_module):
+    """A word the schema does not know, and a fraction (a ROS double) that the shipped
+    checkpoint, without trained budget heads, cannot run: one FATAL line each (the latter
+    after the checkpoint's "loaded" line)."""
+    line = one_fatal_line(run_node("--ros-args", "-p", "query_budget:=half", "-p",
+                                   "device:=cpu"))
+    assert "query_budget='half': expected one of: full, auto or a fraction 0 < f <= 1" in line
+    result = run_node("--ros-args", "-p", "query_budget:=0.6", "-p", "device:=cpu")
+    lines = (result.stdout + result.stderr).strip().splitlines()
+    assert result.returncode == 1 and "loaded" in lines[0] and len(lines) == 2, lines
+    assert "[FATAL]" in lines[1] and "query_budget 0.6: this checkpoint's keep-score and " \
+        "skip heads are not trained; use query_budget full" in lines[1]
 
 
 @pytest.mark.parametrize("content, expected", [
