@@ -1,4 +1,5 @@
-"""``odg eval --checkpoint CKPT --data INFOS [--save-pred DIR] [--miou-convention C] [--json]``.
+"""``odg eval --checkpoint CKPT --data INFOS [--save-pred DIR] [--miou-convention C]
+[--query-budget full|auto|FRACTION] [--json]``.
 
 The grid is padded as OPUS pads it at test time (``network/padding.py``) unless
 ``--set occupancy_padding=false``."""
@@ -10,6 +11,7 @@ from ..metrics.detection import format_detection
 from ..metrics.score import format_table
 from ..network.checkpoint import load_model
 from ..network.precision import resolve_device
+from ..online.predictor import resolve_budget
 from ..train.evaluate import evaluate
 from .common import (config_overrides, device, existing_dir, existing_file, infos_file,
                      positive_int)
@@ -32,6 +34,11 @@ def add_arguments(parser):
                         help="the first N samples only (default: all)")
     parser.add_argument("--no-rayiou", action="store_true", help="skip RayIoU (faster)")
     add_miou_convention(parser)
+    parser.add_argument("--query-budget", default="full", metavar="full|auto|FRACTION",
+                        help="the queries the later decoder layers refine, as the node's "
+                             "query_budget parameter: full (default), auto (chosen per "
+                             "keyframe from the one before) or a fraction in (0, 1]; the "
+                             "result then says the mean share of the queries refined")
     parser.add_argument("--json", action="store_true", help="print JSON only")
     parser.add_argument("--set", action="append", metavar="KEY=VALUE",
                         help="config override at inference, e.g. motion_compensation=false "
@@ -42,9 +49,12 @@ def add_arguments(parser):
 def run(args) -> int:
     device = resolve_device(args.device)
     model, cfg = load_model(args.checkpoint, device=device, **config_overrides(args.set))
+    budgets, policy = resolve_budget(args.query_budget, model, cfg)
+    budget = policy if policy is not None else budgets[0]
     result = evaluate(model, cfg, args.data, occ_root=args.occ_root, save_pred=args.save_pred,
                       device=device, rayiou=not args.no_rayiou, limit=args.limit,
-                      progress=not args.json, miou_convention=args.miou_convention)
+                      progress=not args.json, miou_convention=args.miou_convention,
+                      budget=budget)
     if args.json:
         print(json.dumps(result, indent=2))
     else:
@@ -53,4 +63,9 @@ def run(args) -> int:
         print(f"mIoU over the dynamic classes: {result['mIoU_dynamic']}")
         if "boxes" in result:
             print(format_detection(result["boxes"]))
+        if "query_budget" in result:
+            use = result["query_budget"]
+            print(f"query budget {use['mode']}: on average "
+                  f"{100 * use['mean_refined_fraction']:.1f} % of the queries refined "
+                  f"(keyframes per budget: {use['keyframes_per_budget']})")
     return 0

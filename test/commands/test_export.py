@@ -148,6 +148,27 @@ def test_eval_overrides_reach_the_model(tiny_split, capsys, tmp_path):
     assert json.loads(capsys.readouterr().out)["samples"] == 3
 
 
+def test_eval_reports_the_mean_query_budget(tiny_split, capsys, tmp_path):
+    """--query-budget: the result says how many queries were refined; a checkpoint whose
+    budget heads are untrained is one error line."""
+    from odg_ros.network.budget import budget_of
+    data, checkpoint = tiny_split
+    args = ["eval", "--data", str(data), "--no-rayiou", "--json"]
+    assert main(args + ["--checkpoint", str(checkpoint), "--query-budget", "auto"]) == 2
+    assert "heads are not trained; use query_budget full" in capsys.readouterr().err
+    model, cfg = load_model(checkpoint)
+    model.decoder.budget_heads.set_trained(True)
+    trained = tmp_path / "heads.pt"
+    save_checkpoint(trained, model)
+    assert main(args + ["--checkpoint", str(trained), "--query-budget", "0.5"]) == 0
+    use = json.loads(capsys.readouterr().out)["query_budget"]
+    half = budget_of(cfg, 0.5)
+    assert use == {"mode": half.name, "keyframes_per_budget": {half.name: 3},
+                   "mean_refined_fraction": round(half.refined_fraction(cfg), 4)}
+    assert main(args[:-1] + ["--checkpoint", str(trained), "--query-budget", "auto"]) == 0
+    assert "query budget auto: on average" in capsys.readouterr().out
+
+
 def test_single_query_set_has_no_box_score(tmp_path):
     """One query set (dual_queries false, its config still holding num_dynamic) has no box
     head: eval reports no box mAP (not 0) and calibration picks no box threshold."""
