@@ -41,6 +41,8 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from ..network.budget import needed_queries
+from ..network.postprocess import box_list
 from .step import DecoderHooks, TimedOnlineStep, StageTimer, peak_memory_mb, summarise
 from ..train.evaluate import add_box_sample, dynamic_class_miou
 
@@ -63,7 +65,9 @@ class SweepConfig:
     compiled with mode "reduce-overhead", which replays the decoder's kernels as CUDA graphs
     (CUDA only: one launch instead of thousands of small ones); model: another
     checkpoint path or preset name (a preset: random weights, timing only) instead of the
-    sweep's own model."""
+    sweep's own model; budget: the node's query_budget, "auto" or a fraction as text
+    ("0.6"; network/budget.py: the learned keep-score chooses the refined queries; needs a
+    checkpoint with trained budget heads), None: every query refined."""
 
     name: str
     frames: int | None = None
@@ -76,6 +80,7 @@ class SweepConfig:
     compile: bool = False
     cuda_graphs: bool = False
     model: str | None = None
+    budget: str | None = None
 
     @property
     def compiled(self) -> bool:
@@ -250,6 +255,10 @@ class ConfigRun:
                        for name in SUBSETS}
         self.box_scores = {name: DetectionScore() for name in SUBSETS} \
             if self.cfg.dynamic_queries else None
+        self.budgets = self.policy = None
+        if config.budget is not None:
+            from ..online.predictor import resolve_budget
+            self.budgets, self.policy = resolve_budget(config.budget, self.model, self.cfg)
         self.timer, self.per_sample, self.error = StageTimer(self.device), [], None
         self.history = self.sample_timer = self.output = self.grid = None
 
@@ -259,6 +268,8 @@ class ConfigRun:
         self.batch = batch
         self.history = [self.step.features(images[:, t]) for t in range(1, images.shape[1])]
         self.sample_timer = StageTimer(self.device)
+        if self.budgets is not None:     # auto: chosen from the sample before (the policy's)
+            self.step.budget = self.policy.budget if self.policy else self.budgets[0]
 
     def run_step(self, timer: StageTimer | None = None) -> None:
         b = self.batch
@@ -278,10 +289,18 @@ class ConfigRun:
             self.timer.times.setdefault(name, []).extend(values)
         medians = self.sample_timer.medians()
         last = self.output.last
+        budget = self.step.budget
+        refined = 1.0 if budget is None else budget.refined_fraction(self.cfg)
+        if self.policy is not None:
+            self.policy.update(*needed_queries(self.output.keep_scores, self.output.num_dynamic,
+                                               self.model.decoder.budget_heads.threshold
+                                               )[0].tolist(),
+                               len(box_list(self.output, self.cfg)[0]))
         self.per_sample.append({"index": index, "token": self.batch["token"][0],
                                 "total_ms": round(medians["total"], 3),
                                 "decoder_ms": round(medians["decoder"], 3),
                                 "queries_last_layer": int(last.means.shape[1]),
+                                "refined_fraction": round(refined, 4),
                                 "gaussians_last_layer": int(last.means.shape[1]
                                                             * last.means.shape[2])})
         if self.box_scores is not None:
@@ -413,6 +432,8 @@ def subset_result(score, box_score, per_sample, members) -> dict:
         out["decoder_ms"] = round(float(np.median([r["decoder_ms"] for r in rows])), 3)
         out["queries_last_layer"] = round(float(np.mean([r["queries_last_layer"]
                                                           for r in rows])), 1)
+        out["refined_fraction"] = round(float(np.mean([r.get("refined_fraction", 1.0)
+                                                        for r in rows])), 4)
     if score.miou.samples:
         res = score.result()
         out.update({k: res.get(k) for k in ("mIoU", "RayIoU", "IoU_geometry")})
@@ -624,7 +645,7 @@ def write_sweep(report: dict, out: Path, device) -> list[str]:
 def format_sweep_table(report: dict) -> str:
     lines = [f"{'config':<16} {'FPS':>6} {'total':>8} {'backbone':>8} {'decoder':>8} "
              f"{'post':>6} {'mem MB':>7} {'mIoU':>6} {'RayIoU':>6} {'mIoU_dyn':>8} {'box mAP':>7} "
-             f"{'quiet ms':>8} {'busy ms':>8} {'Q last':>6}"]
+             f"{'quiet ms':>8} {'busy ms':>8} {'Q last':>6} {'refined':>7}"]
     cell = lambda v, f="{:.2f}": "-" if v is None else f.format(v)  # noqa: E731
     for r in report["configs"]:
         name = r["config"]["name"]
@@ -640,7 +661,8 @@ def format_sweep_table(report: dict) -> str:
             f"{cell(s.get('mIoU_dynamic')):>8} {cell(s.get('box_mAP')):>7} "
             f"{cell(r['quiet'].get('latency_ms'), '{:.1f}'):>8} "
             f"{cell(r['busy'].get('latency_ms'), '{:.1f}'):>8} "
-            f"{cell(s.get('queries_last_layer'), '{:.0f}'):>6}")
+            f"{cell(s.get('queries_last_layer'), '{:.0f}'):>6} "
+            f"{cell(s.get('refined_fraction'), '{:.0%}'):>7}")
     for metric, names in report["pareto"].items():
         lines.append(f"Pareto front (FPS, {metric}): {', '.join(names)}")
     for row in report["adaptive"]:

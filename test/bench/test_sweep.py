@@ -315,3 +315,33 @@ def test_a_failing_configuration_is_reported_not_fatal(tiny_split):
     with pytest.raises(RuntimeError, match="every sweep configuration failed"):
         run_sweep(data, checkpoint, configs=[SweepConfig("too-long", frames=9)], limit=1,
                   repeats=1, warmup=0, isolate=False, progress=False)
+
+
+def test_query_budget_rows_say_how_many_queries_they_refined(tiny_split, tmp_path):
+    """A budget row scores the budget's step exactly as ``evaluate`` at that budget does and
+    reports the share of the queries it refined; a checkpoint without trained budget heads
+    makes its budget rows fail, the rest of the sweep goes on."""
+    from odg_ros.network.budget import budget_of
+    from odg_ros.network.checkpoint import save_checkpoint
+    data, untrained = tiny_split
+    model, cfg = load_model(untrained)
+    model.decoder.budget_heads.set_trained(True)
+    checkpoint = tmp_path / "heads.pt"
+    save_checkpoint(checkpoint, model)
+    configs = [SweepConfig("full", frames=3), SweepConfig("half", frames=3, budget="0.5"),
+               SweepConfig("auto", frames=3, budget="auto")]
+    report = run_sweep(data, checkpoint, configs=configs, limit=3, repeats=1, warmup=0,
+                       isolate=False, progress=False)
+    rows = {r["config"]["name"]: r for r in report["configs"]}
+    half = budget_of(cfg, 0.5)
+    assert rows["full"]["scores"]["refined_fraction"] == 1.0
+    assert rows["half"]["scores"]["refined_fraction"] == pytest.approx(
+        half.refined_fraction(cfg), abs=1e-4)
+    assert 0 < rows["auto"]["scores"]["refined_fraction"] <= 1.0
+    expected = evaluate(model, cfg, str(data), limit=3, frames=3, progress=False, budget=half)
+    for key in ("mIoU", "RayIoU", "IoU_geometry"):
+        assert rows["half"]["scores"][key] == expected[key], key
+    report = run_sweep(data, untrained, configs=configs[:2], limit=1, repeats=1, warmup=0,
+                       isolate=False, progress=False)
+    assert "error" not in report["configs"][0]
+    assert "heads are not trained" in report["configs"][1]["error"]
