@@ -70,36 +70,43 @@ def collect(model, dataset, indices, cache_dir, progress: bool = True,
     model.eval()
     cache_dir = Path(cache_dir)
     cache_dir.mkdir(parents=True, exist_ok=True)
-    capture = DecoderCapture(model.decoder)
     files = []
-    try:
-        for index in tqdm(indices, desc=desc, disable=not progress):
-            path = cache_dir / f"{desc}-{index:05d}.pt"
-            files.append(path)
-            if path.is_file():
-                continue
+    for index in tqdm(indices, desc=desc, disable=not progress):
+        path = cache_dir / f"{desc}-{index:05d}.pt"
+        files.append(path)
+        if not path.is_file():
             batch = to_device(collate([dataset[index]]), "cpu")
-            output = model(batch["images"], batch["ego2img"], batch["ego_warp"],
-                           batch["time_delta"])
-            _, _, _, levels, geometry = capture.inputs[:5]
-            query, means, logits, boxes, box_logits = capture.after
-            point, box = best_logits(logits, box_logits, model.num_dynamic)
-            last = output.last
-            record = {
-                "levels": [_half(level) for level in levels],
-                "geometry": {k: v for k, v in geometry.items()},
-                "query": query[0], "means": means[0],
-                "boxes": None if boxes is None else boxes[0],
-                "point_logit": point[0], "box_logit": box[0],
-                "teacher": {"means": _half(last.means[0]), "logits": _half(last.logits[0]),
-                            "boxes": None if last.boxes is None else last.boxes[0],
-                            "box_logits": None if last.box_logits is None
-                            else last.box_logits[0]},
-                "semantics": batch["occ_semantics"][0], "mask": batch["occ_mask_camera"][0]}
-            torch.save(record, path)
+            inputs = (batch["images"], batch["ego2img"], batch["ego_warp"], batch["time_delta"])
+            torch.save(keyframe_record(model, inputs, batch["occ_semantics"][0],
+                                       batch["occ_mask_camera"][0]), path)
+    return files
+
+
+@torch.no_grad()
+def keyframe_record(model, inputs, semantics, mask) -> dict:
+    """One keyframe (``inputs``: the model's positional inputs, batch of one; its ground
+    truth ``semantics`` and camera ``mask`` [X, Y, Z]) -> what the later stages need: the
+    decoder's inputs, every query's state after AFTER_LAYER, the last layer's output (the
+    teacher) and the ground truth."""
+    capture = DecoderCapture(model.decoder)
+    try:
+        output = model(*inputs)
     finally:
         capture.remove()
-    return files
+    _, _, _, levels, geometry = capture.inputs[:5]
+    query, means, logits, boxes, box_logits = capture.after
+    point, box = best_logits(logits, box_logits, model.num_dynamic)
+    last = output.last
+    return {"levels": [_half(level) for level in levels],
+            "geometry": {k: v for k, v in geometry.items()},
+            "query": query[0], "means": means[0],
+            "boxes": None if boxes is None else boxes[0],
+            "point_logit": point[0], "box_logit": box[0],
+            "teacher": {"means": _half(last.means[0]), "logits": _half(last.logits[0]),
+                        "boxes": None if last.boxes is None else last.boxes[0],
+                        "box_logits": None if last.box_logits is None
+                        else last.box_logits[0]},
+            "semantics": semantics, "mask": mask}
 
 
 def load_keyframe(path) -> dict:
