@@ -72,6 +72,21 @@ def test_auto_steps_down_on_calm_scenes_and_back_up_when_needed():
     assert result.history_reset == "time_backwards" and result.query_budget == names[0]
 
 
+def test_a_busy_scene_keeps_the_full_budget():
+    """Objects published keep the dynamic queries refined, whatever the keep-scores say: with
+    every box above its threshold (a scene full of objects) auto never steps down, where the
+    same steps without objects step down the ladder."""
+    cfg = tiny_config(score_threshold=0.0, box_score_threshold=0.0)
+    torch.manual_seed(0)
+    model = ODG(cfg).eval()
+    model.decoder.budget_heads.set_trained(True, 1e9)    # the keep-scores need nothing
+    predictor = OnlinePredictor(model, cfg, "cpu", max_gap=1.0, query_budget="auto")
+    steps = [predictor.step(*s) for s in make_sets(cfg, 7)]
+    assert all(len(step.boxes) == cfg.num_dynamic for step in steps)
+    assert {step.query_budget for step in steps} == {budget_ladder(cfg)[0].name}
+    assert {step.refined_fraction for step in steps} == {1.0}
+
+
 def test_a_budget_step_reads_nothing_back():
     model, cfg = budget_model()
     predictor = OnlinePredictor(model, cfg, "cpu", max_gap=1.0, query_budget="auto")
