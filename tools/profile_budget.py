@@ -1,5 +1,6 @@
 """Where the online step's time goes, per stage and per decoder layer part, at each query
-budget of the ladder (network/budget.py), and what a smaller budget saves: milliseconds
+budget of the ladder (network/budget.py) and of fixed smaller query sets (every layer on fewer
+queries), and what a smaller budget saves: milliseconds
 (medians, the budgets taking turns step by step in one process, so a busy machine slows them
 alike), ATen ops and FLOPs per part of the decoder.
 
@@ -25,6 +26,7 @@ from torch.utils.flop_counter import flop_registry, shape_wrapper
 from tqdm import tqdm
 
 from odg_ros.bench.step import LAYER_PARTS, DecoderHooks, StageTimer, layer_table
+from odg_ros.bench.sweep import query_budget
 from odg_ros.rig import online_inputs
 from odg_ros.config import load_preset
 from odg_ros.network import ODG
@@ -41,6 +43,7 @@ PART_FILES = {"das_attention.py": "attention", "sampling.py": "sampling",
               "budget.py": "budget", "decoder.py": "other", "queries.py": "other",
               "grid_range.py": "other", "odg.py": "other", "feature_ring.py": "other"}
 PART_NAMES = {"points": "heads", "boxes": "heads", "box_position": "position"}
+FIXED_SETS = (0.6, 0.35)           # fractions of the queries of the fixed smaller sets timed
 
 
 def grid_sample_flops(input_shape, grid_shape, *args, out_shape=None, **kwargs) -> int:
@@ -120,6 +123,9 @@ def profile_preset(cfg, model, iters: int, warmup: int, progress: bool = True) -
     for _ in range(cfg.num_frames):
         ring.push(current)
     timers = {b.name: StageTimer("cpu") for b in budgets}
+    # the alternative a budget must beat: a model with fewer queries in every layer
+    fixed = {f"q{round(100 * f)}": query_budget(model, cfg, f)[0] for f in FIXED_SETS}
+    timers.update({name: StageTimer("cpu") for name in fixed})
     backbone = []
 
     @torch.no_grad()
@@ -143,6 +149,10 @@ def profile_preset(cfg, model, iters: int, warmup: int, progress: bool = True) -
             timer = timers[budget.name] if i >= warmup else StageTimer("cpu")
             with DecoderHooks(model, timer):
                 step(budget, timer)
+        for name, smaller in fixed.items():
+            timer = timers[name] if i >= warmup else StageTimer("cpu")
+            with torch.no_grad(), timer.stage("decoder"):
+                smaller.decode_ring(ring, ego2img, ego_warp, time_delta)
     rows = []
     full = None
     for budget in budgets:
@@ -161,10 +171,14 @@ def profile_preset(cfg, model, iters: int, warmup: int, progress: bool = True) -
         row["decoder_vs_full"] = round(row["decoder_ms"] / full["decoder_ms"], 3)
         row["gflops_vs_full"] = round(flops["total"] / full["gflops"]["total"], 3)
         rows.append(row)
+    fixed_rows = [{"fixed_set": name, "decoder_ms": round(timers[name].medians()["decoder"], 2)}
+                  for name in fixed]
+    for row in fixed_rows:
+        row["decoder_vs_full"] = round(row["decoder_ms"] / full["decoder_ms"], 3)
     return {"preset": cfg.name, "queries": cfg.num_queries, "frames": cfg.num_frames,
             "input": [cfg.num_cams, 3, *cfg.image_size], "threads": torch.get_num_threads(),
             "iters": iters, "backbone_ms": round(statistics.median(backbone), 2),
-            "budgets": rows}
+            "budgets": rows, "fixed_sets": fixed_rows}
 
 
 def budget_parts(medians: dict[str, float]) -> dict:
@@ -211,7 +225,8 @@ def summary(result: dict) -> dict:
                                "layers_ms": [round(r["total"], 1)
                                              for r in row["decoder_layers_ms"]],
                                "budget_ms": row["budget_ms"]}
-    return {"preset": result["preset"], "backbone_ms": result["backbone_ms"], "budgets": rows}
+    return {"preset": result["preset"], "backbone_ms": result["backbone_ms"], "budgets": rows,
+            "fixed_sets": {r["fixed_set"]: r["decoder_vs_full"] for r in result["fixed_sets"]}}
 
 
 if __name__ == "__main__":
