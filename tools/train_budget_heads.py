@@ -65,7 +65,8 @@ def main(argv=None) -> int:
         True, float(heads.squashed(torch.tensor(args.need_gain))))
     report = {"source": args.checkpoint, "data": args.data, "keyframes": len(files),
               "need_gain": args.need_gain, "skip_epochs": args.skip_epochs,
-              "skip_lr": args.skip_lr, "keep_epochs": args.keep_epochs, "skip_layer_loss": skip, "keep_score_loss": keep,
+              "skip_lr": args.skip_lr, "keep_epochs": args.keep_epochs,
+              "skip_layer_loss": skip, "keep_score_loss": keep,
               "class_weights": [round(w, 3) for w in weights.tolist()]}
     save_checkpoint(args.out, model, extra={"budget_heads": report,
                                             **({"export": payload["export"]}

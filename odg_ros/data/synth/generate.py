@@ -288,7 +288,8 @@ class _SceneWriter:
                                "last_annotation_token": recs[-1]["token"]})
         T.add("scene", {"token": self.scene_token, "log_token": self.log_token, "nbr_samples": len(self.samples),
                         "first_sample_token": self.samples[0]["token"], "last_sample_token": self.samples[-1]["token"],
-                        "name": self.name, "description": f"synthetic {self.kind.description}, seed {self.seed}"})
+                        "name": self.name,
+                        "description": f"synthetic {self.kind.description}, seed {self.seed}"})
 
 
 def generate(out: str, scenes: int = 8, seconds: float = 6.0, seed: int = 0, image_hw=DEFAULT_IMAGE_HW,
