@@ -47,10 +47,8 @@ def plot(classes: dict, profile: dict, out: str) -> None:
         for line, metric in enumerate(("mIoU", "RayIoU")):
             ax = axes[line][column]
             for label, (style, prefix) in MARKERS.items():
-                names = sorted((n for n in rows if n.startswith(prefix) and n in cost),
-                               key=lambda n: cost[n])
-                if prefix in ("keep-", "q"):
-                    names = ["full"] + names if prefix == "keep-" else names
+                names = [n for n in rows if n.startswith(prefix) and n in cost]
+                names = sorted(names + ["full"] * (prefix == "keep-"), key=lambda n: cost[n])
                 ax.plot([cost[n] for n in names], [rows[n][metric] for n in names], style,
                         label=label)
             ax.plot([auto_cost(profile, rows["auto"]["refined_fraction"])],
