@@ -28,7 +28,9 @@ from testing.render import random_scene
 # over 3 seeds: bf16 means 0.011 m, logits 0.074, scales 0.0062 m, rotations 0.024,
 # opacities 0.0037, boxes 0.0046, box logits 0.027; fp16 means 0.0008 m, logits 0.0052,
 # scales 0.0009 m, rotations 0.0007, opacities 0.0003, boxes 0.0005, box logits 0.0043.
-# Tolerances: about 4x those maxima.
+# Tolerances: about 4x those maxima. (Of 50 draws of the model's weights, one gave fp16 errors
+# about 6x the others from the third layer on, means 0.005 m: these bounds fit the typical
+# draw, not every one.)
 TOLERANCE = {
     torch.bfloat16: {"means": 0.05, "logits": 0.3, "scales": 0.025, "rotations": 0.1,
                      "opacities": 0.015, "boxes": 0.02, "box_logits": 0.1},
@@ -43,9 +45,12 @@ def model_and_inputs():
     torch.manual_seed(0)
     cfg = tiny_config(image_size=(32, 88))
     model = ODG(cfg).eval()
-    with torch.no_grad():        # the box residual starts at zero: give it something to round
+    # The box residual starts at zero: give it something to round, from a generator of its
+    # own so that the draw does not move when the model gains a module.
+    box_weights = torch.Generator().manual_seed(0)
+    with torch.no_grad():
         for layer in model.decoder.layers:
-            torch.nn.init.normal_(layer.boxes.reg[-1].weight, std=0.05)
+            torch.nn.init.normal_(layer.boxes.reg[-1].weight, std=0.05, generator=box_weights)
     frames = cfg.num_frames
     g = torch.Generator().manual_seed(0)
     H, W = cfg.image_size
