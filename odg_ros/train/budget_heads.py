@@ -169,6 +169,14 @@ def distillation_loss(output, teacher: dict, queries: torch.Tensor | None = None
     return loss
 
 
+def _train_step(optimizer, schedule, loss: torch.Tensor) -> float:
+    """One optimiser and schedule step on ``loss`` -> its value."""
+    optimizer.zero_grad()
+    loss.backward()
+    optimizer.step()
+    schedule.step()
+    return float(loss.detach())
+
 def fit_skip_layer(model, files: list[Path], epochs: int = 20, lr: float = 1e-3,
                    seed: int = 0, progress: bool = True, log=None) -> list[float]:
     """Distil the last layer's output into the skip layer over the cached keyframes (one
@@ -186,11 +194,7 @@ def fit_skip_layer(model, files: list[Path], epochs: int = 20, lr: float = 1e-3,
         for i in tqdm(order, desc=f"skip layer {epoch + 1}/{epochs}", disable=not progress):
             record = load_keyframe(files[i])
             loss = distillation_loss(skip_layer_output(model, record), record["teacher"])
-            optimizer.zero_grad()
-            loss.backward()
-            optimizer.step()
-            schedule.step()
-            total.append(float(loss.detach()))
+            total.append(_train_step(optimizer, schedule, loss))
         losses.append(float(np.mean(total)))
         if log is not None:
             log(f"skip layer epoch {epoch + 1}/{epochs}: loss {losses[-1]:.4f}")
@@ -290,11 +294,7 @@ def fit_keep_scores(model, states: list[QueryState], gains: list[torch.Tensor],
             inputs = torch.stack([states[i].inputs for i in group])
             target = squashed(torch.stack([gains[i] for i in group]))
             loss = F.mse_loss(heads.scores_of(query, inputs, D), target)
-            optimizer.zero_grad()
-            loss.backward()
-            optimizer.step()
-            schedule.step()
-            total.append(float(loss.detach()))
+            total.append(_train_step(optimizer, schedule, loss))
         losses.append(float(np.mean(total)))
         if log is not None:
             log(f"keep-scores epoch {epoch + 1}/{epochs}: loss {losses[-1]:.4f}")
