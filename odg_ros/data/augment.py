@@ -52,6 +52,10 @@ def augment_batch(batch: dict, pc_range, generator: torch.Generator | None = Non
     B = batch["images"].shape[0]
     samples = [dict((k, v[b]) for k, v in batch.items()
                     if torch.is_tensor(v) or isinstance(v, list)) for b in range(B)]
+    if flip_probability > 0:
+        # made whether or not a sample flips, so that the first step makes them, whatever
+        # it draws, and no later step waits for their upload
+        flip_constants(batch["images"].shape[-1], batch["images"].device)
     for sample in samples:
         if float(torch.rand((), generator=generator)) < flip_probability:
             flip_sample(sample, pc_range)
@@ -84,6 +88,12 @@ def image_flip(width: float, device, dtype=torch.float32) -> torch.Tensor:
                             (0.0, 0.0, 1.0, 0.0), (0.0, 0.0, 0.0, 1.0)), device, dtype)
 
 
+def flip_constants(width: float, device):
+    """(mirror in y, image flip, camera-frame flip) of images ``width`` pixels wide."""
+    return (mirror_y(device), image_flip(width, device),
+            device_constant(_diagonal(-1.0, 1.0, 1.0, 1.0), device))
+
+
 def _diagonal(*values: float) -> tuple:
     return tuple(tuple(v if i == j else 0.0 for j in range(len(values)))
                  for i, v in enumerate(values))
@@ -95,9 +105,7 @@ def flip_sample(sample: dict, pc_range) -> None:
         raise ValueError(f"flip needs a grid symmetric in y, pc_range is {tuple(pc_range)}")
     images = sample["images"]
     device, W = images.device, images.shape[-1]
-    Fy = mirror_y(device)
-    Fimg = image_flip(W, device)
-    Fcam = device_constant(_diagonal(-1.0, 1.0, 1.0, 1.0), device)
+    Fy, Fimg, Fcam = flip_constants(W, device)
     sample["images"] = images.flip(-1)
     sample["ego2img"] = Fimg @ sample["ego2img"].float() @ Fy
     sample["ego_warp"] = Fy @ sample["ego_warp"].float() @ Fy
