@@ -41,8 +41,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from ..network.budget import needed_queries
-from ..network.postprocess import box_list
+from ..network.budget import output_needs
 from .step import DecoderHooks, TimedOnlineStep, StageTimer, peak_memory_mb, summarise
 from ..train.evaluate import add_box_sample, dynamic_class_miou
 
@@ -292,10 +291,7 @@ class ConfigRun:
         budget = self.step.budget
         refined = 1.0 if budget is None else budget.refined_fraction(self.cfg)
         if self.policy is not None:
-            self.policy.update(*needed_queries(self.output.keep_scores, self.output.num_dynamic,
-                                               self.model.decoder.budget_heads.threshold
-                                               )[0].tolist(),
-                               len(box_list(self.output, self.cfg)[0]))
+            self.policy.update(*output_needs(self.output, self.model, self.cfg))
         self.per_sample.append({"index": index, "token": self.batch["token"][0],
                                 "total_ms": round(medians["total"], 3),
                                 "decoder_ms": round(medians["decoder"], 3),

@@ -23,6 +23,8 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
+from .postprocess import box_list
+
 # the budget ladder of ``query_budget: auto``: (static, dynamic) fractions of the queries,
 # largest first
 LADDER = ((1.0, 1.0), (0.6, 0.5), (0.35, 0.25))
@@ -198,3 +200,11 @@ def needed_queries(scores: torch.Tensor, num_dynamic: int, threshold: float) -> 
     need = (scores > threshold).sum(dim=1)
     dynamic = (scores[:, :num_dynamic] > threshold).sum(dim=1)
     return torch.stack([need - dynamic, dynamic], dim=1)
+
+
+def output_needs(output, model, cfg) -> tuple[int, int, int]:
+    """What a budgeted output asks of the next step (``BudgetPolicy.update``'s arguments):
+    the static and dynamic queries its keep-scores call needed and the objects it has."""
+    static, dynamic = needed_queries(output.keep_scores, output.num_dynamic,
+                                     model.decoder.budget_heads.threshold)[0].tolist()
+    return static, dynamic, len(box_list(output, cfg)[0])

@@ -15,7 +15,7 @@ from ..geometry import inside_bev_range
 from ..metrics.detection import DetectionScore
 from ..metrics.rayiou import LidarOrigins
 from ..metrics.score import OccScore
-from ..network.budget import QueryBudget, needed_queries
+from ..network.budget import QueryBudget, output_needs
 from ..network.padding import pad_occupancy
 from ..network.postprocess import box_list, occupancy_grid
 
@@ -101,10 +101,7 @@ class BudgetUse:
         self.used.append(budget.name)
         self.refined.append(budget.refined_fraction(cfg))
         if self.policy is not None:
-            needed = needed_queries(output.keep_scores, output.num_dynamic,
-                                    model.decoder.budget_heads.threshold)[0].tolist()
-            objects = len(box_list(output, cfg)[0])
-            self.policy.update(needed[0], needed[1], objects)
+            self.policy.update(*output_needs(output, model, cfg))
 
     def result(self) -> dict:
         counts = {name: self.used.count(name) for name in dict.fromkeys(self.used)}
