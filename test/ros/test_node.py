@@ -642,7 +642,9 @@ def test_unknown_space_timing_and_inputs(ros_context, rclpy_module, checkpoint, 
     assert int(counters["/test/odom: received"]) >= 10
     # the inputs stop: within no_output_timeout the diagnostics say so
     assert h.spin_until(lambda: "no input for" in message(h), 10, child, log), message(h)
-    assert float(latest_status(h)[0]["/test/odom: seconds since last"]) > 1.0
+    # counted on (rounded to 0.1 s): more than the timeout once the next report comes
+    assert h.spin_until(lambda: float(latest_status(h)[0]["/test/odom: seconds since last"])
+                        > 1.0, 10, child, log), latest_status(h)[0]
 
 
 def test_no_output_names_the_topics_that_never_sent(ros_context, rclpy_module, checkpoint,
