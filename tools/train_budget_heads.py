@@ -33,9 +33,10 @@ def arguments(argv):
     parser.add_argument("--skip-epochs", type=int, default=20)
     parser.add_argument("--skip-lr", type=float, default=1e-3)
     parser.add_argument("--keep-epochs", type=int, default=40)
-    parser.add_argument("--need-gain", type=float, default=1.0,
-                        help="a query whose refinement gains more than this many class-weighted "
-                             "voxels counts as needed by query_budget auto")
+    parser.add_argument("--need-change", type=float, default=heads.NEED_CHANGE,
+                        help="a query whose refinement is predicted to change its part of the "
+                             "grid by more than this (train/budget_heads.refinement_change) "
+                             "counts as needed by query_budget auto")
     return parser.parse_args(argv)
 
 
@@ -57,17 +58,14 @@ def main(argv=None) -> int:
         log(f"model pass over {len(indices)} keyframes of {infos}: {time.time() - start:.0f} s")
     heads.init_skip_layer(model)
     skip = heads.fit_skip_layer(model, files, epochs=args.skip_epochs, lr=args.skip_lr, log=log)
-    weights = heads.class_weights(files, cfg.num_classes)
-    gains, states = heads.refinement_gain(model, files, weights)
-    torch.save({"gains": gains, "weights": weights}, args.out + ".gains")
-    keep = heads.fit_keep_scores(model, states, gains, epochs=args.keep_epochs, log=log)
+    changes, states = heads.refinement_change(model, files)
+    keep = heads.fit_keep_scores(model, states, changes, epochs=args.keep_epochs, log=log)
     model.decoder.budget_heads.set_trained(
-        True, float(heads.squashed(torch.tensor(args.need_gain))))
+        True, float(heads.squashed(torch.tensor(args.need_change))))
     report = {"source": args.checkpoint, "data": args.data, "keyframes": len(files),
-              "need_gain": args.need_gain, "skip_epochs": args.skip_epochs,
+              "need_change": args.need_change, "skip_epochs": args.skip_epochs,
               "skip_lr": args.skip_lr, "keep_epochs": args.keep_epochs,
-              "skip_layer_loss": skip, "keep_score_loss": keep,
-              "class_weights": [round(w, 3) for w in weights.tolist()]}
+              "skip_layer_loss": skip, "keep_score_loss": keep}
     save_checkpoint(args.out, model, extra={"budget_heads": report,
                                             **({"export": payload["export"]}
                                                if "export" in payload else {})},

@@ -81,9 +81,10 @@ KEEP_INPUTS = 9          # keep_inputs' per-query values besides the feature
 
 
 class KeepScore(nn.Module):
-    """How much the later layers improve a query's output (trained to regress that gain in
-    class-weighted grid voxels, ``train/budget_heads.py``), from its feature after
-    AFTER_LAYER and ``keep_inputs``. One head per query set."""
+    """How much the later layers change a query's part of the grid (trained to regress that
+    change, each voxel weighted by what it is worth to the keyframe's mIoU,
+    ``train/budget_heads.refinement_change``), from its feature after AFTER_LAYER and
+    ``keep_inputs``. One head per query set."""
 
     def __init__(self, embed_dims: int, hidden: int = 256):
         super().__init__()
@@ -195,7 +196,7 @@ def scatter_queries(full: torch.Tensor, index: torch.Tensor, part: torch.Tensor)
 
 @torch.no_grad()
 def needed_queries(scores: torch.Tensor, num_dynamic: int, threshold: float) -> torch.Tensor:
-    """Queries whose keep-score says refining them gains more than ``threshold`` voxels:
+    """Queries whose keep-score says refining them changes the grid by more than ``threshold``:
     [B, 2] (static, dynamic) counts, computed on the device and read back with the outputs."""
     need = (scores > threshold).sum(dim=1)
     dynamic = (scores[:, :num_dynamic] > threshold).sum(dim=1)

@@ -3,17 +3,23 @@
 1. ``collect``: the model at full budget over a split; per keyframe, the decoder's inputs
    (sampling layout of the frames' features, geometry), every query's state after
    AFTER_LAYER (feature, means, boxes, best point / box logits), the last layer's points,
-   logits and boxes (the teacher) and the occupancy ground truth, one file per keyframe
-   (the features are most of it: ~25 MB a keyframe for odg_cpu, in float16).
+   logits and boxes (the teacher) and the camera mask, one file per keyframe (the
+   features are most of it: ~25 MB a keyframe for odg_cpu, in float16).
 2. ``fit_skip_layer``: the skip layer learns the last layer's output of every query from
    its state after AFTER_LAYER (distillation, point by point and box by box; it starts as
    layer AFTER_LAYER + 1 with the last layer's point and box heads).
-3. ``refinement_gain``: per query, what the later layers add over the skip layer's output,
-   in class-weighted grid voxels (correct voxels gained, wrong ones avoided, in the camera
-   mask; each class weighted by the inverse of its frequency, as mIoU weighs classes alike).
-4. ``fit_keep_scores``: the keep-score heads regress that gain, so that a budget refines
-   the queries that gain most.
+3. ``refinement_change``: per query, how much the later layers change its part of the grid
+   against the skip layer's output: the (voxel, class) pairs one output has and the other
+   not, in the camera mask, each weighted by what a voxel of its class is worth to this
+   keyframe's mIoU (the inverse of the class's voxels in the full output's grid). No ground
+   truth: the model's own full output is the reference, so the heads can learn on any drive.
+4. ``fit_keep_scores``: the keep-score heads regress that change, so that a budget refines
+   the queries whose output the later layers change most.
 Everything after ``collect`` runs on the cached keyframes.
+
+A ground-truth gain (correct voxels won by refining) ranks worse than this change: it is
+noisy per query, and with weights fixed per class over a training set it spends a budget on
+classes that fill an open road's view (terrain) and loses the small ones (docs/query_budget.md).
 """
 from __future__ import annotations
 
@@ -27,8 +33,16 @@ import torch.nn.functional as F
 from tqdm import tqdm
 
 from ..network.budget import AFTER_LAYER, best_logits, keep_inputs
+from ..network.postprocess import voxelise
 
-MAX_CLASS_WEIGHT = 50.0          # a class 50x rarer than the most common still counts 50x
+# keyframe_class_weights: a voxel is worth SCALE / (its class's voxels + FLOOR), so that a
+# class of a few voxels does not outweigh every other one
+CLASS_WEIGHT_SCALE = 1000.0
+CLASS_WEIGHT_FLOOR = 100.0
+# a query whose refinement is predicted to change the grid by more than this counts as
+# needed by ``query_budget: auto`` (chosen on held-out scenes of each class,
+# docs/results/query_budget.md)
+NEED_CHANGE = 24.0
 
 
 @dataclass
@@ -77,17 +91,16 @@ def collect(model, dataset, indices, cache_dir, progress: bool = True,
         if not path.is_file():
             batch = to_device(collate([dataset[index]]), "cpu")
             inputs = (batch["images"], batch["ego2img"], batch["ego_warp"], batch["time_delta"])
-            torch.save(keyframe_record(model, inputs, batch["occ_semantics"][0],
-                                       batch["occ_mask_camera"][0]), path)
+            torch.save(keyframe_record(model, inputs, batch["occ_mask_camera"][0]), path)
     return files
 
 
 @torch.no_grad()
-def keyframe_record(model, inputs, semantics, mask) -> dict:
-    """One keyframe (``inputs``: the model's positional inputs, batch of one; its ground
-    truth ``semantics`` and camera ``mask`` [X, Y, Z]) -> what the later stages need: the
-    decoder's inputs, every query's state after AFTER_LAYER, the last layer's output (the
-    teacher) and the ground truth."""
+def keyframe_record(model, inputs, mask) -> dict:
+    """One keyframe (``inputs``: the model's positional inputs, batch of one; its camera
+    ``mask`` [X, Y, Z]) -> what the later stages need: the decoder's inputs, every query's
+    state after AFTER_LAYER, the last layer's output (the teacher; its means in float32, as
+    voxel boundaries need them) and the mask."""
     capture = DecoderCapture(model.decoder)
     try:
         output = model(*inputs)
@@ -102,11 +115,11 @@ def keyframe_record(model, inputs, semantics, mask) -> dict:
             "query": query[0], "means": means[0],
             "boxes": None if boxes is None else boxes[0],
             "point_logit": point[0], "box_logit": box[0],
-            "teacher": {"means": _half(last.means[0]), "logits": _half(last.logits[0]),
+            "teacher": {"means": last.means[0], "logits": _half(last.logits[0]),
                         "boxes": None if last.boxes is None else last.boxes[0],
                         "box_logits": None if last.box_logits is None
                         else last.box_logits[0]},
-            "semantics": semantics, "mask": mask}
+            "mask": mask}
 
 
 def load_keyframe(path) -> dict:
@@ -202,25 +215,11 @@ def fit_skip_layer(model, files: list[Path], epochs: int = 20, lr: float = 1e-3,
     return losses
 
 
-def class_weights(files: list[Path], num_classes: int) -> torch.Tensor:
-    """[C] per-voxel weight of each class: the inverse of its voxels in the camera mask,
-    relative to the most common class, at most MAX_CLASS_WEIGHT; mean 1 over classes."""
-    counts = torch.zeros(num_classes, dtype=torch.float64)
-    for path in files:
-        record = torch.load(path, weights_only=False)
-        labels = record["semantics"][record["mask"].bool()].long()
-        counts += torch.bincount(labels[labels < num_classes], minlength=num_classes).double()
-    counts = counts.clamp(min=counts.max() / MAX_CLASS_WEIGHT)
-    weights = counts.max() / counts
-    return (weights / weights.mean()).float()
-
-
-def voxel_value(means, logits, semantics, mask, weights, cfg) -> torch.Tensor:
-    """What each query's points are worth to the grid: [Q] the sum over the distinct
-    (voxel, class) pairs it predicts inside the camera mask (points as the grid keeps them:
-    score > threshold, within max_distance_to_centroid, inside the grid) of +w_c where the
-    ground truth is c, and -w_c (a false positive) - w_g (a missed class g, if occupied)
-    where it is not."""
+def grid_pairs(means, logits, mask, cfg) -> torch.Tensor:
+    """The distinct (query, voxel, class) triples a layer output [Q, K, 3] / [Q, K, C] puts
+    into the grid (points as ``postprocess.voxelise`` keeps them: score > threshold, within
+    max_distance_to_centroid, inside the grid), inside ``mask`` [X, Y, Z]: one int64 code
+    ((query * cells + voxel) * C + class) each."""
     means, scores = means.float(), logits.float().sigmoid()
     Q, K, C = scores.shape
     X, Y, Z = cfg.grid_shape
@@ -236,44 +235,63 @@ def voxel_value(means, logits, semantics, mask, weights, cfg) -> torch.Tensor:
     voxel = (index[0] * Y + index[1]) * Z + index[2]
     keep &= mask.bool().reshape(-1)[voxel]
     query = torch.arange(Q).unsqueeze(1).expand(Q, K)
-    pairs = torch.unique((query[keep] * (X * Y * Z) + voxel[keep]) * C + label[keep])
-    label, voxel, query = pairs % C, (pairs // C) % (X * Y * Z), pairs // (C * X * Y * Z)
-    truth = semantics.reshape(-1)[voxel].long()
-    occupied = truth < C
-    missed = torch.where(occupied, weights[truth.clamp(max=C - 1)], torch.zeros(()))
-    value = torch.where(truth == label, weights[label], -weights[label] - missed)
-    return torch.zeros(Q).index_add_(0, query, value)
+    return torch.unique((query[keep] * (X * Y * Z) + voxel[keep]) * C + label[keep])
+
+
+def keyframe_class_weights(means, logits, mask, cfg) -> torch.Tensor:
+    """[C] what one voxel of each class is worth to this keyframe's mIoU, from the full
+    output (no ground truth): ``CLASS_WEIGHT_SCALE / (voxels of the class in its grid inside
+    ``mask`` + CLASS_WEIGHT_FLOOR)``. A voxel of a class with few voxels moves that class's
+    IoU much, one of a class that fills the view (terrain on an open road) hardly at all."""
+    labels, _ = voxelise(means[None].float(), logits[None].float(), cfg, cfg.num_classes)
+    labels = labels[0][mask.bool().reshape(-1)].long()
+    counts = torch.bincount(labels, minlength=cfg.num_classes + 1)[:cfg.num_classes]
+    return CLASS_WEIGHT_SCALE / (counts.float() + CLASS_WEIGHT_FLOOR)
+
+
+def output_change(full, skipped, mask, weights, cfg) -> torch.Tensor:
+    """[Q] per query: the class-weighted (voxel, class) pairs that one of two outputs of the
+    same queries puts into the grid and the other does not (``full``, ``skipped``: (means
+    [Q, K, 3], logits [Q, K, C]) each; ``weights`` [C])."""
+    C = full[1].shape[-1]
+    cells = math.prod(cfg.grid_shape)
+    codes, counts = torch.unique(torch.cat([grid_pairs(*full, mask, cfg),
+                                            grid_pairs(*skipped, mask, cfg)]),
+                                 return_counts=True)
+    differ = codes[counts == 1]
+    label, query = differ % C, differ // (C * cells)
+    return torch.zeros(len(full[0])).index_add_(0, query, weights[label])
 
 
 @torch.no_grad()
-def refinement_gain(model, files: list[Path], weights, progress: bool = True):
-    """Per keyframe: ([Q] voxel_value of the last layer's points minus the skip layer's,
-    its QueryState)."""
+def refinement_change(model, files: list[Path], progress: bool = True):
+    """Per keyframe: ([Q] how much the later layers change each query's part of the grid
+    against the skip layer (``output_change`` weighted by ``keyframe_class_weights``: no
+    ground truth), its QueryState)."""
     cfg = model.cfg
-    gains, states = [], []
-    for path in tqdm(files, desc="gains", disable=not progress):
+    changes, states = [], []
+    for path in tqdm(files, desc="changes", disable=not progress):
         record = load_keyframe(path)
         means, logits, _, _ = skip_layer_output(model, record)
-        teacher = record["teacher"]
-        full = voxel_value(teacher["means"], teacher["logits"], record["semantics"],
-                           record["mask"], weights, cfg)
-        skip = voxel_value(means, logits, record["semantics"], record["mask"], weights, cfg)
-        gains.append(full - skip)
+        teacher = (record["teacher"]["means"].float(), record["teacher"]["logits"].float())
+        weights = keyframe_class_weights(*teacher, record["mask"], cfg)
+        changes.append(output_change(teacher, (means, logits), record["mask"], weights, cfg))
         inputs = keep_inputs(record["means"][None], record["point_logit"][None],
                              record["box_logit"][None], cfg.pc_range)[0]
         states.append(QueryState(record["query"], inputs))
-    return gains, states
+    return changes, states
 
 
-def squashed(gain: torch.Tensor) -> torch.Tensor:
-    """The regression target: sign(g) log(1 + |g|), so a few huge gains do not dominate."""
-    return gain.sign() * gain.abs().log1p()
+def squashed(change: torch.Tensor) -> torch.Tensor:
+    """The regression target: log(1 + c), so a few huge changes do not dominate."""
+    return change.sign() * change.abs().log1p()
 
 
-def fit_keep_scores(model, states: list[QueryState], gains: list[torch.Tensor],
+def fit_keep_scores(model, states: list[QueryState], changes: list[torch.Tensor],
                     epochs: int = 40, lr: float = 2e-3, keyframes_per_step: int = 8,
                     seed: int = 0, progress: bool = True, log=None) -> list[float]:
-    """The static and dynamic keep-score heads regress the squashed gain of their queries."""
+    """The static and dynamic keep-score heads regress the squashed change of their
+    queries (``refinement_change``)."""
     heads = model.decoder.budget_heads
     D = model.num_dynamic
     modules = [heads.static_score] + ([heads.dynamic_score] if D else [])
@@ -292,7 +310,7 @@ def fit_keep_scores(model, states: list[QueryState], gains: list[torch.Tensor],
             group = order[start:start + keyframes_per_step]
             query = torch.stack([states[i].query for i in group])
             inputs = torch.stack([states[i].inputs for i in group])
-            target = squashed(torch.stack([gains[i] for i in group]))
+            target = squashed(torch.stack([changes[i] for i in group]))
             loss = F.mse_loss(heads.scores_of(query, inputs, D), target)
             total.append(_train_step(optimizer, schedule, loss))
         losses.append(float(np.mean(total)))
