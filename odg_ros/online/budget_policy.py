@@ -5,7 +5,9 @@ keep-scores call worth refining (``network.budget.needed_queries``) and how many
 publishes. The next step runs the smallest budget of the ladder that covers these needs with
 a margin. More is granted at once; less only after ``patience`` frames in a row that could
 have done with less, one rung at a time, so the budget does not flap between two rungs. A
-history reset (a new scene) starts again at the full budget.
+history reset (a new scene) starts again at the full budget, and the first needs after it
+set the rung directly: the first frame has seen the whole scene, and a drive should not
+spend its first seconds at the full budget waiting out the patience.
 """
 from __future__ import annotations
 
@@ -26,6 +28,7 @@ class BudgetPolicy:
     margin: float = MARGIN
     level: int = 0
     calm: int = 0
+    fresh: bool = True        # no needs seen since the reset
 
     def __post_init__(self):
         if not self.ladder:
@@ -40,7 +43,7 @@ class BudgetPolicy:
         return self.ladder[self.level]
 
     def reset(self) -> None:
-        self.level, self.calm = 0, 0
+        self.level, self.calm, self.fresh = 0, 0, True
 
     def covering_level(self, static: int, dynamic: int) -> int:
         """The smallest rung that keeps MARGIN x the needed static and dynamic queries."""
@@ -54,7 +57,9 @@ class BudgetPolicy:
     def update(self, needed_static: int, needed_dynamic: int, objects: int) -> QueryBudget:
         """Frame t's needs (keep-score counts, published objects) -> frame t+1's budget."""
         wanted = self.covering_level(needed_static, max(needed_dynamic, objects))
-        if wanted < self.level:                     # more needed: at once
+        if self.fresh:                              # the first frame of a scene: trusted
+            self.level, self.calm, self.fresh = wanted, 0, False
+        elif wanted < self.level:                     # more needed: at once
             self.level, self.calm = wanted, 0
         elif wanted > self.level:                   # less would do: after `patience` frames
             self.calm += 1

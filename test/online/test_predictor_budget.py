@@ -55,21 +55,25 @@ def test_a_fixed_budget_step_equals_the_budget_decoder_over_the_ring():
 
 
 def test_auto_steps_down_on_calm_scenes_and_back_up_when_needed():
-    """Needs forced through the keep-score threshold: none needed -> one rung down after
-    every three calm steps; all needed -> the full budget at once; a reset -> full."""
-    model, cfg = budget_model(need_threshold=1e9)
-    ladder = budget_ladder(cfg)
+    """Needs forced through the keep-score threshold: a busy first frame keeps the full
+    budget; then none needed -> one rung down after every three calm steps; all needed ->
+    the full budget at once; a reset -> full, and the new drive's first needs at once."""
+    model, cfg = budget_model(need_threshold=-1e9)  # the first frame: every query needed
+    heads = model.decoder.budget_heads
+    names = [b.name for b in budget_ladder(cfg)]
     predictor = OnlinePredictor(model, cfg, "cpu", max_gap=1.0, query_budget="auto")
-    sets = make_sets(cfg, 9)
-    used = [predictor.step(*s).query_budget for s in sets[:7]]
-    names = [b.name for b in ladder]
-    assert used == [names[0]] * 3 + [names[1]] * 3 + [names[2]]
-    model.decoder.budget_heads.threshold = -1e9     # every query needed from now on
-    used = [predictor.step(*s).query_budget for s in sets[7:]]
+    sets = make_sets(cfg, 10)
+    used = [predictor.step(*sets[0]).query_budget]
+    heads.threshold = 1e9                           # then none
+    used += [predictor.step(*s).query_budget for s in sets[1:8]]
+    assert used == [names[0]] * 4 + [names[1]] * 3 + [names[2]]
+    heads.threshold = -1e9                          # every query needed from now on
+    used = [predictor.step(*s).query_budget for s in sets[8:]]
     assert used == [names[2], names[0]]
-    model.decoder.budget_heads.threshold = 1e9
+    heads.threshold = 1e9
     result = predictor.step(*sets[0])               # back in time: a new drive
     assert result.history_reset == "time_backwards" and result.query_budget == names[0]
+    assert predictor.step(*sets[1]).query_budget == names[2]
 
 
 def test_a_busy_scene_keeps_the_full_budget():
@@ -117,6 +121,7 @@ def test_auto_compiles_one_graph_per_budget_and_equals_eager():
     assert len(graphs) == len(budget_ladder(cfg))
     eager = OnlinePredictor(model, cfg, "cpu", max_gap=1.0, query_budget="auto")
     predictor.policy.patience = eager.policy.patience = 1
+    predictor.policy.fresh = eager.policy.fresh = False    # rung by rung, not straight down
     used = []
     for s in make_sets(cfg, 4):
         a, b = predictor.step(*s), eager.step(*s)
