@@ -6,8 +6,8 @@ publishes. The next step runs the smallest budget of the ladder that covers thes
 a margin. More is granted at once; less only after ``patience`` frames in a row that could
 have done with less, one rung at a time, so the budget does not flap between two rungs. A
 history reset (a new scene) starts again at the full budget, and the first needs after it
-set the rung directly: the first frame has seen the whole scene, and a drive should not
-spend its first seconds at the full budget waiting out the patience.
+set the rung directly: they describe the scene as well as any later frame's, and a drive
+should not spend its first seconds at the full budget waiting out the patience.
 """
 from __future__ import annotations
 
@@ -59,7 +59,7 @@ class BudgetPolicy:
         wanted = self.covering_level(needed_static, max(needed_dynamic, objects))
         if self.fresh:                              # the first frame of a scene: trusted
             self.level, self.calm, self.fresh = wanted, 0, False
-        elif wanted < self.level:                     # more needed: at once
+        elif wanted < self.level:                   # more needed: at once
             self.level, self.calm = wanted, 0
         elif wanted > self.level:                   # less would do: after `patience` frames
             self.calm += 1
