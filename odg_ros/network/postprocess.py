@@ -32,13 +32,13 @@ def occupancy_grid(output: ODGOutput, cfg: ModelConfig, free_label: int | None =
     return labels.view(B, *cfg.grid_shape), confidence.view(B, *cfg.grid_shape)
 
 
-def voxelise(means: torch.Tensor, logits: torch.Tensor, cfg: ModelConfig, free_label: int):
-    """means [B, Q, K, 3], logits [B, Q, K, C] -> labels, confidence uint8 [B, X*Y*Z]."""
-    means, scores = means.float(), logits.float().sigmoid()
-    B, Q, K, C = scores.shape
+def point_voxels(means: torch.Tensor, scores: torch.Tensor, cfg: ModelConfig):
+    """means [..., K, 3], scores [..., K, C] (sigmoid) -> which points the grid keeps (score
+    above the threshold, within max_distance_to_centroid of their query's centroid, finite,
+    inside the grid) [..., K] and each point's flat voxel index [..., K] (X*Y*Z, the dummy
+    voxel, where not kept)."""
     X, Y, Z = cfg.grid_shape
-    cells = X * Y * Z                                  # index ``cells``: the dummy voxel
-    centroid = means.mean(dim=2, keepdim=True)
+    centroid = means.mean(dim=-2, keepdim=True)
     keep = (scores.max(dim=-1).values > cfg.score_threshold) & (
         (means - centroid).norm(dim=-1) <= cfg.max_distance_to_centroid)
     keep &= torch.isfinite(means).all(-1)
@@ -49,7 +49,17 @@ def voxelise(means: torch.Tensor, logits: torch.Tensor, cfg: ModelConfig, free_l
         keep &= (i >= 0) & (i < size)
         index.append(torch.where(keep, i, torch.zeros_like(i)).long())
     flat = torch.where(keep, (index[0] * Y + index[1]) * Z + index[2],
-                       torch.full_like(index[0], cells)).view(B, Q * K)
+                       torch.full_like(index[0], X * Y * Z))
+    return keep, flat
+
+
+def voxelise(means: torch.Tensor, logits: torch.Tensor, cfg: ModelConfig, free_label: int):
+    """means [B, Q, K, 3], logits [B, Q, K, C] -> labels, confidence uint8 [B, X*Y*Z]."""
+    means, scores = means.float(), logits.float().sigmoid()
+    B, Q, K, C = scores.shape
+    cells = math.prod(cfg.grid_shape)                  # index ``cells``: the dummy voxel
+    keep, flat = point_voxels(means, scores, cfg)
+    flat = flat.view(B, Q * K)
     scores = torch.where(keep.unsqueeze(-1), scores, torch.zeros_like(scores)).view(B, Q * K, C)
     # a stable sort keeps each voxel's points in query order: the same summation order as
     # adding them up point by point

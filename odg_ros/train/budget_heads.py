@@ -33,7 +33,7 @@ import torch.nn.functional as F
 from tqdm import tqdm
 
 from ..network.budget import AFTER_LAYER, best_logits, keep_inputs
-from ..network.postprocess import voxelise
+from ..network.postprocess import point_voxels, voxelise
 
 # keyframe_class_weights: a voxel is worth SCALE / (its class's voxels + FLOOR), so that a
 # class of a few voxels does not outweigh every other one
@@ -217,25 +217,15 @@ def fit_skip_layer(model, files: list[Path], epochs: int = 20, lr: float = 1e-3,
 
 def grid_pairs(means, logits, mask, cfg) -> torch.Tensor:
     """The distinct (query, voxel, class) triples a layer output [Q, K, 3] / [Q, K, C] puts
-    into the grid (points as ``postprocess.voxelise`` keeps them: score > threshold, within
-    max_distance_to_centroid, inside the grid), inside ``mask`` [X, Y, Z]: one int64 code
-    ((query * cells + voxel) * C + class) each."""
+    into the grid (the points ``postprocess.point_voxels`` keeps), inside ``mask`` [X, Y, Z]:
+    one int64 code ((query * cells + voxel) * C + class) each."""
     means, scores = means.float(), logits.float().sigmoid()
     Q, K, C = scores.shape
-    X, Y, Z = cfg.grid_shape
-    best, label = scores.max(dim=-1)
-    keep = (best > cfg.score_threshold) & torch.isfinite(means).all(-1)
-    keep &= (means - means.mean(dim=1, keepdim=True)).norm(dim=-1) <= \
-        cfg.max_distance_to_centroid
-    index = []
-    for axis, size in enumerate((X, Y, Z)):
-        i = torch.floor((means[..., axis] - cfg.pc_range[axis]) / cfg.voxel_size)
-        keep &= (i >= 0) & (i < size)
-        index.append(i.clamp(0, size - 1).long())
-    voxel = (index[0] * Y + index[1]) * Z + index[2]
-    keep &= mask.bool().reshape(-1)[voxel]
+    keep, voxel = point_voxels(means, scores, cfg)
+    keep &= mask.bool().reshape(-1)[torch.where(keep, voxel, torch.zeros_like(voxel))]
+    label = scores.argmax(dim=-1)
     query = torch.arange(Q).unsqueeze(1).expand(Q, K)
-    return torch.unique((query[keep] * (X * Y * Z) + voxel[keep]) * C + label[keep])
+    return torch.unique((query[keep] * mask.numel() + voxel[keep]) * C + label[keep])
 
 
 def keyframe_class_weights(means, logits, mask, cfg) -> torch.Tensor:
@@ -283,8 +273,9 @@ def refinement_change(model, files: list[Path], progress: bool = True):
 
 
 def squashed(change: torch.Tensor) -> torch.Tensor:
-    """The regression target: log(1 + c), so a few huge changes do not dominate."""
-    return change.sign() * change.abs().log1p()
+    """The regression target: log(1 + c) of a change c >= 0, so a few huge changes do not
+    dominate."""
+    return change.log1p()
 
 
 def fit_keep_scores(model, states: list[QueryState], changes: list[torch.Tensor],
