@@ -34,6 +34,7 @@ from odg_ros.network.decoder import PruneRule
 from odg_ros.network.postprocess import box_list
 from odg_ros.online.budget_policy import BudgetPolicy
 from odg_ros.bench.sweep import query_budget as smaller_query_set
+from odg_ros.train import budget_heads as heads
 from odg_ros.train.evaluate import predicted_grid
 
 
@@ -55,9 +56,10 @@ class Config:
     """One way to decode: a model, how it picks its budget per keyframe."""
 
     def __init__(self, name, model, cfg, budget=None, policy=None, prune=None, scores=None,
-                 queries=None):
+                 queries=None, oracle=None):
         self.name, self.model, self.cfg = name, model, cfg
         self.budget, self.policy, self.prune, self.scores = budget, policy, prune, scores
+        self.oracle = oracle                          # oracle_scores' kind
         self.queries = queries or cfg.num_queries     # the full model's, for the fractions
         self.refined, self.milliseconds = [], []
 
@@ -65,17 +67,20 @@ class Config:
         if self.policy is not None and new_scene:
             self.policy.reset()
         budget = self.policy.budget if self.policy is not None else self.budget
-        heads = self.model.decoder.budget_heads
-        original = heads.scores_of
-        if self.scores is not None:
-            heads.scores_of = self.scores
+        budget_heads = self.model.decoder.budget_heads
+        original = budget_heads.scores_of
+        if self.oracle is not None:
+            known = oracle_scores(self.model, feats, batch, self.oracle)
+            budget_heads.scores_of = lambda query, inputs, num_dynamic: known
+        elif self.scores is not None:
+            budget_heads.scores_of = self.scores
         try:
             start = time.perf_counter()
             output = self.model.decode(feats, batch["ego2img"], batch["ego_warp"],
                                        batch["time_delta"], budget=budget, prune=self.prune)
             self.milliseconds.append((time.perf_counter() - start) * 1e3)
         finally:
-            heads.scores_of = original
+            budget_heads.scores_of = original
         cfg = self.cfg
         if budget is not None:
             refined = min(budget.static, cfg.static_queries) + min(budget.dynamic,
@@ -84,9 +89,39 @@ class Config:
             refined = output.last.means.shape[1]
         self.refined.append(refined / self.queries)
         if self.policy is not None:
-            need = needed_queries(output.keep_scores, output.num_dynamic, heads.threshold)[0]
+            need = needed_queries(output.keep_scores, output.num_dynamic,
+                                  budget_heads.threshold)[0]
             self.policy.update(int(need[0]), int(need[1]), len(box_list(output, cfg)[0]))
         return output
+
+
+@torch.no_grad()
+def oracle_scores(model, feats, batch, kind: str) -> torch.Tensor:
+    """[1, Q] a perfect ranking of this keyframe's queries (one keyframe, ``Config.decode``'s
+    arguments): the full-budget pass and the skip layer over every query, then per query
+    "change": the keep-scores' target (``budget_heads.output_change``, no labels), what
+    ideal keep-scores would give; "truth": the correct voxels refining wins
+    (``budget_heads.ground_truth_gain``), the best any ranking after layer 2 could know."""
+    if kind not in ("change", "truth"):
+        raise ValueError(f"oracle {kind!r}: expected 'change' or 'truth'")
+    decoder, cfg = model.decoder, model.cfg
+    capture = heads.DecoderCapture(decoder)
+    try:
+        output = model.decode(feats, batch["ego2img"], batch["ego_warp"], batch["time_delta"])
+    finally:
+        capture.remove()
+    levels, geometry = capture.inputs[3], capture.inputs[4]
+    query, means, _, boxes, _ = capture.after
+    everyone = torch.arange(query.shape[1]).unsqueeze(0)
+    skipped = decoder.skip_output(query, means, boxes, everyone, model.num_dynamic, geometry,
+                                  levels)
+    full = (output.last.means[0].float(), output.last.logits[0].float())
+    skip = (skipped.means[0].float(), skipped.logits[0].float())
+    mask = batch["occ_mask_camera"][0]
+    if kind == "change":
+        weights = heads.keyframe_class_weights(*full, mask, cfg)
+        return heads.output_change(full, skip, mask, weights, cfg)[None]
+    return heads.ground_truth_gain(full, skip, batch["occ_semantics"][0], mask, cfg)[None]
 
 
 def random_scores(seed: int):
@@ -109,6 +144,11 @@ def configurations(model, cfg, include) -> list[Config]:
     for budget in ladder[1:]:
         configs.append(Config(f"keep-{budget.name}", model, cfg, budget=budget))
     configs.append(Config("auto", model, cfg, policy=BudgetPolicy(ladder)))
+    if "oracles" in include:
+        for budget in ladder[1:]:
+            for kind in ("change", "truth"):
+                configs.append(Config(f"oracle-{kind}-{budget.name}", model, cfg,
+                                      budget=budget, oracle=kind))
     if "baselines" in include:
         for budget in ladder[1:]:
             configs.append(Config(f"random-{budget.name}", model, cfg, budget=budget,
@@ -165,6 +205,9 @@ def main(argv=None) -> int:
     parser.add_argument("--limit", type=int, default=None)
     parser.add_argument("--baselines", action="store_true",
                         help="also random / best-point-score rankings, PruneRule, smaller sets")
+    parser.add_argument("--oracles", action="store_true",
+                        help="also the budgets ranked by a perfect keep-score (its target on "
+                             "the keyframe) and by the ground-truth gain: bounds")
     parser.add_argument("--out", required=True)
     args = parser.parse_args(argv)
     model, cfg = load_model(args.checkpoint)
@@ -175,7 +218,9 @@ def main(argv=None) -> int:
             classes[name] = load_infos_file(path)
         else:
             classes.update(scene_classes(item))
-    configs = configurations(model, cfg, {"baselines"} if args.baselines else set())
+    include = {name for name, wanted in (("baselines", args.baselines),
+                                         ("oracles", args.oracles)) if wanted}
+    configs = configurations(model, cfg, include)
     results = {"checkpoint": args.checkpoint, "threads": torch.get_num_threads(),
                "classes": {}}
     for name, infos in classes.items():

@@ -253,6 +253,25 @@ def output_change(full, skipped, mask, weights, cfg) -> torch.Tensor:
     return torch.zeros(len(full[0])).index_add_(0, query, weights[label])
 
 
+def ground_truth_gain(full, skipped, semantics, mask, cfg) -> torch.Tensor:
+    """[Q] per query: the correct (voxel, class) pairs it puts into the grid in ``full`` less
+    those in ``skipped`` (outputs as in ``output_change``), each weighted by
+    CLASS_WEIGHT_SCALE / (voxels of its class in ``semantics`` [X, Y, Z] inside ``mask`` +
+    CLASS_WEIGHT_FLOOR). Not a training target (noisy per query, see the module's text): the
+    ranking an oracle that knows the ground truth would choose, a bound for the keep-scores."""
+    C, cells = full[1].shape[-1], mask.numel()
+    labels = semantics.reshape(-1).long()
+    counts = torch.bincount(labels[mask.bool().reshape(-1)], minlength=C + 1)[:C]
+    weights = CLASS_WEIGHT_SCALE / (counts.float() + CLASS_WEIGHT_FLOOR)
+    gain = torch.zeros(len(full[0]))
+    for sign, output in ((1.0, full), (-1.0, skipped)):
+        codes = grid_pairs(*output, mask, cfg)
+        label, voxel, query = codes % C, (codes // C) % cells, codes // (C * cells)
+        right = labels[voxel] == label
+        gain.index_add_(0, query[right], sign * weights[label[right]])
+    return gain
+
+
 @torch.no_grad()
 def refinement_change(model, files: list[Path], progress: bool = True):
     """Per keyframe: ([Q] how much the later layers change each query's part of the grid

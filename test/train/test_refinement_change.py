@@ -84,3 +84,29 @@ def test_a_voxel_of_a_rare_class_is_worth_more_than_one_of_a_common_class():
     assert weights[0] == pytest.approx(scale / (300 + floor))
     assert weights[1] == pytest.approx(scale / (1 + floor))
     assert weights[2] == pytest.approx(scale / floor)
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_ground_truth_gain_counts_the_correct_pairs_won_against_a_reference(seed):
+    generator = torch.Generator().manual_seed(seed)
+    full, skipped = random_output(generator), random_output(generator)
+    mask = torch.rand(CFG.grid_shape, generator=generator) > 0.2
+    # ground truth: random, with half of each output's pairs made correct (the skipped
+    # output's last, so that both outputs win and lose some)
+    semantics = torch.randint(0, CFG.num_classes + 1, CFG.grid_shape, generator=generator)
+    flat = semantics.view(-1)
+    for output in (full, skipped):
+        for q, pairs in reference_pairs(*output, mask).items():
+            for voxel, label in sorted(pairs)[q % 2::2]:
+                flat[voxel] = label
+    got = heads.ground_truth_gain(full, skipped, semantics, mask, CFG)
+    counts = np.bincount(semantics[mask].numpy(), minlength=CFG.num_classes + 1)
+    weight = [heads.CLASS_WEIGHT_SCALE / (counts[c] + heads.CLASS_WEIGHT_FLOOR)
+              for c in range(CFG.num_classes)]
+
+    def correct(pairs, q):
+        return sum(weight[c] for v, c in pairs.get(q, set()) if int(flat[v]) == c)
+    a, b = reference_pairs(*full, mask), reference_pairs(*skipped, mask)
+    expected = [correct(a, q) - correct(b, q) for q in range(len(full[0]))]
+    assert got.tolist() == pytest.approx(expected, rel=1e-6, abs=1e-6)
+    assert any(e > 0 for e in expected) and any(e < 0 for e in expected)
