@@ -15,6 +15,10 @@
    truth: the model's own full output is the reference, so the heads can learn on any drive.
 4. ``fit_keep_scores``: the keep-score heads regress that change, so that a budget refines
    the queries whose output the later layers change most.
+5. ``calibrate_skip_layer``: the skip layer's class logits are lowered by the offset under
+   which the budgets' grids agree best with the full model's (voxels and rays, no ground
+   truth). Distilled without image sampling, the skip layer is surer than the last layer
+   where it should not be: its extra points are floaters that cut rays short (RayIoU).
 Everything after ``collect`` runs on the cached keyframes.
 
 A ground-truth gain (correct voxels won by refining) ranks worse than this change: it is
@@ -23,6 +27,7 @@ classes that fill an open road's view (terrain) and loses the small ones (docs/q
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -32,7 +37,11 @@ import torch
 import torch.nn.functional as F
 from tqdm import tqdm
 
-from ..network.budget import AFTER_LAYER, best_logits, keep_inputs
+from ..metrics.rayiou import RayIoU
+from ..network.budget import (AFTER_LAYER, QueryBudget, best_logits, gather_queries,
+                              keep_inputs, ranked_queries)
+from ..network.decoder import merged_layer
+from ..network.outputs import LayerOutput
 from ..network.postprocess import point_voxels, voxelise
 
 # keyframe_class_weights: a voxel is worth SCALE / (its class's voxels + FLOOR), so that a
@@ -43,6 +52,10 @@ CLASS_WEIGHT_FLOOR = 100.0
 # needed by ``query_budget: auto`` (chosen on held-out scenes of each class,
 # docs/results/query_budget.md)
 NEED_CHANGE = 24.0
+# calibrate_skip_layer: the offsets tried, and where its rays start (a roof LiDAR's height
+# over the ego origin: the full grid's first hits are the reference, not a sensor's)
+SKIP_OFFSETS = tuple(0.25 * i for i in range(13))
+RAY_ORIGIN = (0.0, 0.0, 1.8)
 
 
 @dataclass
@@ -329,3 +342,89 @@ def fit_keep_scores(model, states: list[QueryState], changes: list[torch.Tensor]
     for m in modules:
         m.eval().requires_grad_(False)
     return losses
+
+
+@torch.no_grad()
+def budget_last_layer(model, record: dict, budget: QueryBudget, offset: float = 0.0):
+    """The last layer's output (means [Q, K, 3], logits [Q, K, C]) of a cached keyframe under
+    ``budget``, as the decoder's budget path gives it, with the skip layer's logits lowered
+    by ``offset`` (a dict ``offset -> output`` where ``offset`` is a sequence: the later
+    layers run once)."""
+    decoder, cfg, D = model.decoder, model.cfg, model.num_dynamic
+    query, means = record["query"][None], record["means"][None]
+    boxes = None if record["boxes"] is None else record["boxes"][None]
+    inputs = keep_inputs(means, record["point_logit"][None], record["box_logit"][None],
+                         cfg.pc_range)
+    kept, skipped = ranked_queries(decoder.budget_heads.scores_of(query, inputs, D), D, budget)
+    kept_dynamic = min(budget.dynamic, D)
+    skip = decoder.skip_output(query, means, boxes, skipped, D - kept_dynamic,
+                               record["geometry"], record["levels"])
+    query, means = gather_queries(query, kept), gather_queries(means, kept)
+    boxes = None if boxes is None else gather_queries(boxes, kept[:, :kept_dynamic])
+    for layer in decoder.layers[AFTER_LAYER:]:
+        query, means, logits, boxes, box_logits = layer(
+            query, means, boxes, kept_dynamic, record["geometry"], record["levels"],
+            velocity_warp=cfg.motion_compensation, ego_warp=cfg.ego_compensation)
+    refined = LayerOutput(means, logits, None, None, None, boxes, box_logits, None,
+                          kept_dynamic)
+    offsets = [offset] if isinstance(offset, (int, float)) else list(offset)
+    outputs = {}
+    for value in offsets:
+        merged = merged_layer(refined, kept,
+                              dataclasses.replace(skip, logits=skip.logits - value), D)
+        outputs[value] = (merged.means[0], merged.logits[0])
+    return outputs[offset] if isinstance(offset, (int, float)) else outputs
+
+
+def grid_agreement(cfg) -> tuple:
+    """Two GT-free agreements of grids with the full model's, streamed: (add(grid, full,
+    mask), result() -> mean of the per-class voxel IoU inside the mask and the RayIoU of
+    rays cast from RAY_ORIGIN, both in %)."""
+    C = cfg.num_classes
+    counts = np.zeros((C, 3))
+    rays = RayIoU(C)
+
+    def add(grid, full, mask):
+        flat_mask = mask.bool().reshape(-1)
+        a, b = full.reshape(-1)[flat_mask].long(), grid.reshape(-1)[flat_mask].long()
+        for c in range(C):
+            ca, cb = a == c, b == c
+            counts[c] += [int((ca & cb).sum()), int((ca & ~cb).sum()), int((~ca & cb).sum())]
+        rays.add(grid.view(cfg.grid_shape).numpy(), full.view(cfg.grid_shape).numpy(),
+                 np.array([RAY_ORIGIN]))
+
+    def result():
+        tp, fn, fp = counts.T
+        present = tp + fn > 0
+        voxels = float(np.mean(tp[present] / (tp + fn + fp)[present])) if present.any() else 0.0
+        return 100 * voxels, 100 * float(rays.result()["RayIoU"])
+    return add, result
+
+
+@torch.no_grad()
+def calibrate_skip_layer(model, files: list[Path], budgets: list[QueryBudget],
+                         offsets=SKIP_OFFSETS, progress: bool = True, log=None) -> dict:
+    """Lower the skip layer's class logits by the offset (of ``offsets``) whose grids under
+    ``budgets`` agree best with the full model's over the cached keyframes (sum of the two
+    ``grid_agreement`` values, over the budgets) -> {offset: agreement} and the choice."""
+    cfg = model.cfg
+    meters = {value: [grid_agreement(cfg) for _ in budgets] for value in offsets}
+    for path in tqdm(files, desc="skip offset", disable=not progress):
+        record = load_keyframe(path)
+        teacher = record["teacher"]
+        full, _ = voxelise(teacher["means"][None].float(), teacher["logits"][None].float(),
+                           cfg, cfg.num_classes)
+        for index, budget in enumerate(budgets):
+            outputs = budget_last_layer(model, record, budget, offsets)
+            for value, (means, logits) in outputs.items():
+                grid, _ = voxelise(means[None].float(), logits[None].float(), cfg,
+                                   cfg.num_classes)
+                meters[value][index][0](grid[0], full[0], record["mask"])
+    agreement = {value: sum(sum(meter[1]()) for meter in per_budget)
+                 for value, per_budget in meters.items()}
+    best = max(offsets, key=lambda value: (agreement[value], -value))
+    model.decoder.budget_heads.skip_layer.points.cls[-1].bias.sub_(best)
+    if log is not None:
+        log("skip layer offset " + ", ".join(f"{v:g}: {a:.2f}" for v, a in agreement.items())
+            + f" -> {best:g}")
+    return {"agreement": agreement, "offset": best}

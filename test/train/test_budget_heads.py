@@ -65,3 +65,34 @@ def test_a_learned_ranking_keeps_what_a_reversed_one_loses(tmp_path):
     random = agreement(model, cfg, budget, TEST_SEEDS,
                        scores=lambda s: torch.rand(s.shape, generator=generator))
     assert learned > reversed_ + 0.03 and learned > random + 0.01
+
+
+def test_calibration_lowers_an_overconfident_skip_layer(tmp_path):
+    """A skip layer made surer than the last layer (every skipped point passes the score
+    threshold: floaters) gets the offset that takes it back; agreement with the full grid
+    rises with it."""
+    from odg_ros.network import ODG
+    model, cfg = tiny_model()
+    with torch.no_grad():
+        scores = model(*model_inputs(cfg, seed=0)).last.logits.sigmoid().amax(-1)
+    # an untrained model's scores are all alike: a threshold at their median keeps half
+    cfg = tiny_config(image_size=(32, 88), num_frames=2, score_threshold=float(scores.median()))
+    torch.manual_seed(0)
+    model = ODG(cfg).eval()
+    files = []
+    for seed in range(3):
+        inputs = model_inputs(cfg, seed=seed)
+        files.append(tmp_path / f"{seed}.pt")
+        mask = torch.ones(cfg.grid_shape, dtype=torch.bool)
+        torch.save(heads.keyframe_record(model, inputs, mask), files[-1])
+    heads.init_skip_layer(model)
+    heads.fit_skip_layer(model, files, epochs=3, progress=False)
+    bias = model.decoder.budget_heads.skip_layer.points.cls[-1].bias
+    bias.add_(6.0)
+    before = bias.clone()
+    result = heads.calibrate_skip_layer(model, files, [budget_of(cfg, 0.35)],
+                                        offsets=(0.0, 2.0, 4.0, 6.0, 8.0), progress=False)
+    agreement = result["agreement"]
+    assert result["offset"] >= 4.0
+    assert agreement[result["offset"]] > agreement[0.0] + 1.0
+    assert torch.equal(bias, before - result["offset"])
