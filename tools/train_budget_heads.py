@@ -1,5 +1,6 @@
-"""Train the query-budget heads (keep-scores and skip layer) of a trained checkpoint, every
-other weight frozen (odg_ros/train/budget_heads.py), and write the checkpoint with them.
+"""Train the query-budget heads (skip layer, keep-scores, then the skip layer's calibrated
+logit offset) of a trained checkpoint, every other weight frozen
+(odg_ros/train/budget_heads.py), and write the checkpoint with them.
 
     OMP_NUM_THREADS=1 python -m tools.train_budget_heads --checkpoint model/odg_cpu.pt \
         --data data/synth24/infos_train.pkl --cache runs/budget/cache --out runs/budget/odg_cpu.pt
