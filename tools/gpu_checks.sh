@@ -19,7 +19,7 @@
 #   5. node_l          ~6-8 min
 #   6. tests,train     ~4 min (the AOTInductor test compiles C++); ~3 min
 #   7. node            odg demo (~2 min) and the node's overhead (~1 min)
-#   8. bench,sweep     64 s, 7 min;  9. presets  4 min
+#   8. bench,sweep     64 s, 7 min;  9. presets  ~7 min (two more ODG-L compiles: estimate)
 #
 # PART ("all" runs every one in this order):
 #   first    the first call on a machine (above): node_first.json, train_odg_t_b{1,4}.csv,
@@ -47,7 +47,8 @@
 #            the node's own overhead per set (python -m tools.measure_node_overhead)
 #   bench    one online step of ODG-T and ODG-L at paper resolution, eager, per stage
 #   sweep    speed against error of the shipped checkpoint (odg bench --sweep)
-#   presets  the same for ODG-T and ODG-L at paper resolution (random weights: timing only)
+#   presets  the same for ODG-T and ODG-L at paper resolution (random weights: timing only),
+#            ODG-L with CUDA graphs also at query budgets 0.6 and 0.35
 # Every part makes what it needs (the one-scene world, random ResNet-50 weights for the
 # frozen presets) unless an earlier part on the machine did. Results: JSON, CSV, logs and
 # PNGs in OUT (default out/gpu), and the whole output in OUT/gpu_checks.log;

@@ -66,7 +66,8 @@ class SweepConfig:
     checkpoint path or preset name (a preset: random weights, timing only) instead of the
     sweep's own model; budget: the node's query_budget, "auto" or a fraction as text
     ("0.6"; network/budget.py: the learned keep-score chooses the refined queries; needs a
-    checkpoint with trained budget heads), None: every query refined."""
+    checkpoint with trained budget heads, except random weights, which time it only), None:
+    every query refined."""
 
     name: str
     frames: int | None = None
@@ -257,6 +258,8 @@ class ConfigRun:
         self.budgets = self.policy = None
         if config.budget is not None:
             from ..online.predictor import resolve_budget
+            if self.random_weights:         # timing only: any ranking costs a budget alike
+                self.model.decoder.budget_heads.set_trained(True)
             self.budgets, self.policy = resolve_budget(config.budget, self.model, self.cfg)
         self.timer, self.per_sample, self.error = StageTimer(self.device), [], None
         self.history = self.sample_timer = self.output = self.grid = None

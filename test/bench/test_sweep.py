@@ -259,6 +259,26 @@ def test_another_model_in_the_sweep_is_flagged_and_kept_off_the_pareto_front(tin
     assert report["pareto"]["mIoU"] == ["mine"]
 
 
+def test_random_weights_time_a_query_budget(tiny_split, tmp_path):
+    """A preset's random weights have no trained budget heads; timing a budget needs none
+    (the GPU timing of ODG-L's budgets), a checkpoint's untrained heads still stop it (the
+    test above)."""
+    from odg_ros.network.budget import budget_of
+    data, checkpoint = tiny_split
+    preset = tmp_path / "other.yaml"
+    other = tiny_cfg().replace(name="other", num_static=20)
+    preset.write_text(json.dumps({k: list(v) if isinstance(v, tuple) else v
+                                  for k, v in other.to_dict().items()}))
+    report = run_sweep(data, checkpoint, configs=[
+        SweepConfig("other-b0.35", frames=1, model=str(preset), budget="0.35")],
+        limit=1, repeats=1, warmup=0, isolate=False, progress=False)
+    row = report["configs"][0]
+    assert "error" not in row and row["random_weights"] is True
+    expected = budget_of(other, 0.35).refined_fraction(other)
+    assert expected < 0.5
+    assert row["scores"]["refined_fraction"] == pytest.approx(expected, abs=1e-4)
+
+
 class GraphReplayStandIn(torch.nn.Module):
     """What a decoder compiled into CUDA graphs looks like to its caller, on a CPU: each call
     copies its outputs into static buffers of one pool shared by every compiled module, so
@@ -345,3 +365,4 @@ def test_query_budget_rows_say_how_many_queries_they_refined(tiny_split, tmp_pat
                        isolate=False, progress=False)
     assert "error" not in report["configs"][0]
     assert "heads are not trained" in report["configs"][1]["error"]
+
