@@ -59,18 +59,19 @@ class Config:
                  queries=None, oracle=None):
         self.name, self.model, self.cfg = name, model, cfg
         self.budget, self.policy, self.prune, self.scores = budget, policy, prune, scores
-        self.oracle = oracle                          # oracle_scores' kind
+        self.oracle = oracle                          # a key of oracle_scores
         self.queries = queries or cfg.num_queries     # the full model's, for the fractions
         self.refined, self.milliseconds = [], []
 
-    def decode(self, feats, batch, new_scene: bool):
+    def decode(self, feats, batch, new_scene: bool, oracles: dict | None = None):
+        """``oracles``: this keyframe's ``oracle_scores`` (needed by an oracle config)."""
         if self.policy is not None and new_scene:
             self.policy.reset()
         budget = self.policy.budget if self.policy is not None else self.budget
         budget_heads = self.model.decoder.budget_heads
         original = budget_heads.scores_of
         if self.oracle is not None:
-            known = oracle_scores(self.model, feats, batch, self.oracle)
+            known = oracles[self.oracle]
             budget_heads.scores_of = lambda query, inputs, num_dynamic: known
         elif self.scores is not None:
             budget_heads.scores_of = self.scores
@@ -96,14 +97,12 @@ class Config:
 
 
 @torch.no_grad()
-def oracle_scores(model, feats, batch, kind: str) -> torch.Tensor:
-    """[1, Q] a perfect ranking of this keyframe's queries (one keyframe, ``Config.decode``'s
-    arguments): the full-budget pass and the skip layer over every query, then per query
-    "change": the keep-scores' target (``budget_heads.output_change``, no labels), what
-    ideal keep-scores would give; "truth": the correct voxels refining wins
+def oracle_scores(model, feats, batch) -> dict[str, torch.Tensor]:
+    """Perfect rankings of this keyframe's queries (one keyframe, ``Config.decode``'s
+    arguments), from one full-budget pass and the skip layer over every query: per query
+    "change" [1, Q]: the keep-scores' target (``budget_heads.output_change``, no labels),
+    what ideal keep-scores would give; "truth" [1, Q]: the correct voxels refining wins
     (``budget_heads.ground_truth_gain``), the best any ranking after layer 2 could know."""
-    if kind not in ("change", "truth"):
-        raise ValueError(f"oracle {kind!r}: expected 'change' or 'truth'")
     decoder, cfg = model.decoder, model.cfg
     capture = heads.DecoderCapture(decoder)
     try:
@@ -118,10 +117,10 @@ def oracle_scores(model, feats, batch, kind: str) -> torch.Tensor:
     full = (output.last.means[0].float(), output.last.logits[0].float())
     skip = (skipped.means[0].float(), skipped.logits[0].float())
     mask = batch["occ_mask_camera"][0]
-    if kind == "change":
-        weights = heads.keyframe_class_weights(*full, mask, cfg)
-        return heads.output_change(full, skip, mask, weights, cfg)[None]
-    return heads.ground_truth_gain(full, skip, batch["occ_semantics"][0], mask, cfg)[None]
+    weights = heads.keyframe_class_weights(*full, mask, cfg)
+    return {"change": heads.output_change(full, skip, mask, weights, cfg)[None],
+            "truth": heads.ground_truth_gain(full, skip, batch["occ_semantics"][0], mask,
+                                             cfg)[None]}
 
 
 def random_scores(seed: int):
@@ -181,8 +180,11 @@ def evaluate_class(name, infos, model, cfg, configs, limit=None) -> dict:
         B, T = images.shape[:2]
         feats = model.extract_features(images.flatten(0, 1))
         frames = [[f.unflatten(0, (B, T))[:, t] for f in feats] for t in range(T)]
+        # one full pass for every oracle configuration of this keyframe
+        oracles = oracle_scores(model, frames, batch) if any(c.oracle for c in configs) \
+            else None
         for c in configs:
-            output = c.decode(frames, batch, scene != previous)
+            output = c.decode(frames, batch, scene != previous, oracles)
             if not batch["has_occ"][0]:
                 continue
             scores[c.name].add(predicted_grid(output, c.cfg), batch["occ_semantics"][0].numpy(),

@@ -345,11 +345,10 @@ def fit_keep_scores(model, states: list[QueryState], changes: list[torch.Tensor]
 
 
 @torch.no_grad()
-def budget_last_layer(model, record: dict, budget: QueryBudget, offset: float = 0.0):
-    """The last layer's output (means [Q, K, 3], logits [Q, K, C]) of a cached keyframe under
-    ``budget``, as the decoder's budget path gives it, with the skip layer's logits lowered
-    by ``offset`` (a dict ``offset -> output`` where ``offset`` is a sequence: the later
-    layers run once)."""
+def budget_last_layers(model, record: dict, budget: QueryBudget, offsets) -> dict:
+    """The last layer's output of a cached keyframe under ``budget``, as the decoder's budget
+    path gives it, once per skip-layer logit offset (the later layers run once) -> {offset:
+    (means [Q, K, 3], logits [Q, K, C])}."""
     decoder, cfg, D = model.decoder, model.cfg, model.num_dynamic
     query, means = record["query"][None], record["means"][None]
     boxes = None if record["boxes"] is None else record["boxes"][None]
@@ -367,38 +366,41 @@ def budget_last_layer(model, record: dict, budget: QueryBudget, offset: float = 
             velocity_warp=cfg.motion_compensation, ego_warp=cfg.ego_compensation)
     refined = LayerOutput(means, logits, None, None, None, boxes, box_logits, None,
                           kept_dynamic)
-    offsets = [offset] if isinstance(offset, (int, float)) else list(offset)
     outputs = {}
-    for value in offsets:
+    for offset in offsets:
         merged = merged_layer(refined, kept,
-                              dataclasses.replace(skip, logits=skip.logits - value), D)
-        outputs[value] = (merged.means[0], merged.logits[0])
-    return outputs[offset] if isinstance(offset, (int, float)) else outputs
+                              dataclasses.replace(skip, logits=skip.logits - offset), D)
+        outputs[offset] = (merged.means[0], merged.logits[0])
+    return outputs
 
 
-def grid_agreement(cfg) -> tuple:
-    """Two GT-free agreements of grids with the full model's, streamed: (add(grid, full,
-    mask), result() -> mean of the per-class voxel IoU inside the mask and the RayIoU of
-    rays cast from RAY_ORIGIN, both in %)."""
-    C = cfg.num_classes
-    counts = np.zeros((C, 3))
-    rays = RayIoU(C)
+class GridAgreement:
+    """How well grids agree with the full model's, streamed over keyframes, no ground truth:
+    the mean per-class voxel IoU inside the camera mask and the RayIoU of rays cast from
+    RAY_ORIGIN (``result``: both in %)."""
 
-    def add(grid, full, mask):
-        flat_mask = mask.bool().reshape(-1)
-        a, b = full.reshape(-1)[flat_mask].long(), grid.reshape(-1)[flat_mask].long()
-        for c in range(C):
+    def __init__(self, cfg):
+        self.cfg = cfg
+        self.counts = np.zeros((cfg.num_classes, 3))       # per class: both, full only, grid only
+        self.rays = RayIoU(cfg.num_classes)
+
+    def add(self, grid, full, mask) -> None:
+        """grid, full: flat labels [X*Y*Z]; mask [X, Y, Z]."""
+        inside = mask.bool().reshape(-1)
+        a, b = full.reshape(-1)[inside].long(), grid.reshape(-1)[inside].long()
+        for c in range(self.cfg.num_classes):
             ca, cb = a == c, b == c
-            counts[c] += [int((ca & cb).sum()), int((ca & ~cb).sum()), int((~ca & cb).sum())]
-        rays.add(grid.view(cfg.grid_shape).numpy(), full.view(cfg.grid_shape).numpy(),
-                 np.array([RAY_ORIGIN]))
+            self.counts[c] += [int((ca & cb).sum()), int((ca & ~cb).sum()),
+                               int((~ca & cb).sum())]
+        shape = self.cfg.grid_shape
+        self.rays.add(grid.view(shape).numpy(), full.view(shape).numpy(), np.array([RAY_ORIGIN]))
 
-    def result():
-        tp, fn, fp = counts.T
-        present = tp + fn > 0
-        voxels = float(np.mean(tp[present] / (tp + fn + fp)[present])) if present.any() else 0.0
-        return 100 * voxels, 100 * float(rays.result()["RayIoU"])
-    return add, result
+    def result(self) -> tuple[float, float]:
+        both, full_only, grid_only = self.counts.T
+        present = both + full_only > 0
+        voxels = float(np.mean(both[present] / (both + full_only + grid_only)[present])) \
+            if present.any() else 0.0
+        return 100 * voxels, 100 * float(self.rays.result()["RayIoU"])
 
 
 @torch.no_grad()
@@ -406,21 +408,21 @@ def calibrate_skip_layer(model, files: list[Path], budgets: list[QueryBudget],
                          offsets=SKIP_OFFSETS, progress: bool = True, log=None) -> dict:
     """Lower the skip layer's class logits by the offset (of ``offsets``) whose grids under
     ``budgets`` agree best with the full model's over the cached keyframes (sum of the two
-    ``grid_agreement`` values, over the budgets) -> {offset: agreement} and the choice."""
+    ``GridAgreement`` values, over the budgets) -> {offset: agreement} and the choice."""
     cfg = model.cfg
-    meters = {value: [grid_agreement(cfg) for _ in budgets] for value in offsets}
+    meters = {value: [GridAgreement(cfg) for _ in budgets] for value in offsets}
     for path in tqdm(files, desc="skip offset", disable=not progress):
         record = load_keyframe(path)
         teacher = record["teacher"]
         full, _ = voxelise(teacher["means"][None].float(), teacher["logits"][None].float(),
                            cfg, cfg.num_classes)
         for index, budget in enumerate(budgets):
-            outputs = budget_last_layer(model, record, budget, offsets)
+            outputs = budget_last_layers(model, record, budget, offsets)
             for value, (means, logits) in outputs.items():
                 grid, _ = voxelise(means[None].float(), logits[None].float(), cfg,
                                    cfg.num_classes)
-                meters[value][index][0](grid[0], full[0], record["mask"])
-    agreement = {value: sum(sum(meter[1]()) for meter in per_budget)
+                meters[value][index].add(grid[0], full[0], record["mask"])
+    agreement = {value: sum(sum(meter.result()) for meter in per_budget)
                  for value, per_budget in meters.items()}
     best = max(offsets, key=lambda value: (agreement[value], -value))
     model.decoder.budget_heads.skip_layer.points.cls[-1].bias.sub_(best)

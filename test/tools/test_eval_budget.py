@@ -40,7 +40,7 @@ def keyframe(model, cfg, seed):
 def test_a_perfect_keep_score_is_the_target_the_keep_scores_learn(model_and_cfg):
     model, cfg = model_and_cfg
     frames, batch, inputs = keyframe(model, cfg, seed=3)
-    got = oracle_scores(model, frames, batch, "change")[0]
+    got = oracle_scores(model, frames, batch)["change"][0]
     record = heads.keyframe_record(model, inputs, batch["occ_mask_camera"][0])
     skipped = heads.skip_layer_output(model, record)[:2]
     teacher = (record["teacher"]["means"], record["teacher"]["logits"].float())
@@ -57,7 +57,8 @@ def test_an_oracle_budget_refines_the_queries_its_oracle_ranks_first(model_and_c
     frames, batch, _ = keyframe(model, cfg, seed=4)
     budget = budget_of(cfg, 0.35)
     # ground truth = the full model's grid: refining wins exactly what the skip layer loses
-    truth = oracle_scores(model, frames, batch, "truth")[0]
+    oracles = oracle_scores(model, frames, batch)
+    truth = oracles["truth"][0]
     assert float(truth.clamp(min=0).sum()) > 0 and float(truth.clamp(max=0).sum()) == 0
     config = Config("oracle", model, cfg, budget=budget, oracle="truth")
     seen = []
@@ -69,9 +70,7 @@ def test_an_oracle_budget_refines_the_queries_its_oracle_ranks_first(model_and_c
     decoder_module.ranked_queries = spy
     try:
         with torch.no_grad():
-            config.decode(frames, batch, new_scene=True)
+            config.decode(frames, batch, new_scene=True, oracles=oracles)
     finally:
         decoder_module.ranked_queries = ranked
     assert len(seen) == 1 and torch.equal(seen[0][0], truth)
-    with pytest.raises(ValueError, match="oracle 'labels'"):
-        oracle_scores(model, frames, batch, "labels")
