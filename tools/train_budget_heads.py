@@ -19,6 +19,7 @@ from pathlib import Path
 
 import torch
 
+from odg_ros.commands.common import positive_int
 from odg_ros.data.dataset import OccDataset
 from odg_ros.network.budget import budget_ladder
 from odg_ros.network.checkpoint import load_model, read_checkpoint, save_checkpoint
@@ -35,7 +36,7 @@ def arguments(argv):
     parser.add_argument("--skip-epochs", type=int, default=20)
     parser.add_argument("--skip-lr", type=float, default=1e-3)
     parser.add_argument("--keep-epochs", type=int, default=40)
-    parser.add_argument("--calibration-keyframes", type=int, default=96,
+    parser.add_argument("--calibration-keyframes", type=positive_int, default=96,
                         help="cached keyframes (evenly spaced) the skip layer's logit offset "
                              "is chosen on")
     parser.add_argument("--need-change", type=float, default=heads.NEED_CHANGE,
@@ -65,7 +66,7 @@ def main(argv=None) -> int:
     skip = heads.fit_skip_layer(model, files, epochs=args.skip_epochs, lr=args.skip_lr, log=log)
     changes, states = heads.refinement_change(model, files)
     keep = heads.fit_keep_scores(model, states, changes, epochs=args.keep_epochs, log=log)
-    step = max(1, len(files) // max(1, args.calibration_keyframes))
+    step = max(1, len(files) // args.calibration_keyframes)
     calibration = heads.calibrate_skip_layer(model, files[::step], budget_ladder(cfg)[1:],
                                              log=log)
     model.decoder.budget_heads.set_trained(
