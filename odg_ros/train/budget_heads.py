@@ -37,6 +37,7 @@ import torch
 import torch.nn.functional as F
 from tqdm import tqdm
 
+from ..metrics.miou import MIoU
 from ..metrics.rayiou import RayIoU
 from ..network.budget import (AFTER_LAYER, QueryBudget, best_logits, gather_queries,
                               keep_inputs, ranked_queries)
@@ -376,31 +377,22 @@ def budget_last_layers(model, record: dict, budget: QueryBudget, offsets) -> dic
 
 class GridAgreement:
     """How well grids agree with the full model's, streamed over keyframes, no ground truth:
-    the mean per-class voxel IoU inside the camera mask and the RayIoU of rays cast from
-    RAY_ORIGIN (``result``: both in %)."""
+    the mIoU inside the camera mask and the RayIoU of rays cast from RAY_ORIGIN, with the
+    full grid as the reference (``result``: both in %, 0 where nothing is occupied)."""
 
     def __init__(self, cfg):
-        self.cfg = cfg
-        self.counts = np.zeros((cfg.num_classes, 3))       # per class: both, full only, grid only
-        self.rays = RayIoU(cfg.num_classes)
+        self.shape = cfg.grid_shape
+        self.voxels, self.rays = MIoU(cfg.num_classes), RayIoU(cfg.num_classes)
 
     def add(self, grid, full, mask) -> None:
         """grid, full: flat labels [X*Y*Z]; mask [X, Y, Z]."""
-        inside = mask.bool().reshape(-1)
-        a, b = full.reshape(-1)[inside].long(), grid.reshape(-1)[inside].long()
-        for c in range(self.cfg.num_classes):
-            ca, cb = a == c, b == c
-            self.counts[c] += [int((ca & cb).sum()), int((ca & ~cb).sum()),
-                               int((~ca & cb).sum())]
-        shape = self.cfg.grid_shape
-        self.rays.add(grid.view(shape).numpy(), full.view(shape).numpy(), np.array([RAY_ORIGIN]))
+        grid, full = grid.view(self.shape).numpy(), full.view(self.shape).numpy()
+        self.voxels.add(grid, full, mask.bool().numpy())
+        self.rays.add(grid, full, np.array([RAY_ORIGIN]))
 
     def result(self) -> tuple[float, float]:
-        both, full_only, grid_only = self.counts.T
-        present = both + full_only > 0
-        voxels = float(np.mean(both[present] / (both + full_only + grid_only)[present])) \
-            if present.any() else 0.0
-        return 100 * voxels, 100 * float(self.rays.result()["RayIoU"])
+        return tuple(100 * float(np.nan_to_num(value)) for value in
+                     (self.voxels.miou(), self.rays.result()["RayIoU"]))
 
 
 @torch.no_grad()
