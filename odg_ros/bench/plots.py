@@ -49,8 +49,7 @@ def _plot_speed_against(ax, metric: str, report: dict, ok: list[dict], colours: 
             continue
         name = r["config"]["name"]
         on_front = name in front
-        marker = "*" if r["config"]["prune"] is not None else "o"
-        label = name + (" (Pareto front)" if on_front else "")
+        marker, label = "o", name + (" (Pareto front)" if on_front else "")
         if r.get("random_weights") and not meta["random_weights"]:
             marker, label = "x", label + " (random weights)"
         ax.scatter(r["fps"], value, s=110 if on_front else 55, zorder=3, marker=marker,
@@ -68,8 +67,7 @@ def _plot_speed_against(ax, metric: str, report: dict, ok: list[dict], colours: 
     ax.set_xlabel("FPS (online step: backbone + decoder + post-processing)")
     ax.set_ylabel(f"{metric} (%)")
     ax.grid(alpha=0.3)
-    ax.set_title(f"FPS vs {metric} ({meta['samples']} samples; * = adaptive pruning)",
-                 fontsize=9)
+    ax.set_title(f"FPS vs {metric} ({meta['samples']} samples)", fontsize=9)
 
 
 def _plot_latency_split(ax, ok: list[dict]) -> None:

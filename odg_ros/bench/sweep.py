@@ -1,12 +1,12 @@
 """``odg bench --sweep``: speed against error, in one run, on one device.
 
-For each configuration (history length, adaptive pruning threshold, query budget, precision,
-sampling path) the online step of the node runs over ``limit`` samples spread evenly over a
-split: the older frames' features are computed first (the node has them cached), then the
-step -- backbone on the newest set, decoder over the cached history, grid + boxes -- is timed
-``repeats`` times per sample after ``warmup`` steps, and its grid is scored (mIoU with the
-camera mask, RayIoU, mIoU over the moving classes) and its boxes (mAP, ``metrics.detection``).
-The configurations take turns step by step in one process (a random order each round), so a
+For each configuration (history length, query budget, precision, sampling path) the online
+step of the node runs over ``limit`` samples spread evenly over a split: the older frames'
+features are computed first (the node has them cached), then the step -- backbone on the
+newest set, decoder over the cached history, grid + boxes -- is timed ``repeats`` times per
+sample after ``warmup`` steps, and its grid is scored (mIoU with the camera mask, RayIoU,
+mIoU over the moving classes) and its boxes (mAP, ``metrics.detection``). The
+configurations take turns step by step in one process (a random order each round), so a
 shared machine that gets busier during the sweep slows all of them alike. Reported per
 configuration: median latency per stage, per decoder layer and per part of a layer, FPS, peak
 memory, the scores, and the same on the quietest and the busiest quarter of the samples
@@ -19,9 +19,9 @@ first sample, its history, warm-up + 1 step) and reports its peak resident set s
 ``torch.cuda.max_memory_allocated`` on CUDA.
 
 Configurations derived from one checkpoint need no retraining: the history length is an
-input, pruning is an inference rule, and a query budget keeps an evenly spaced subset of the
-learned queries (their decoder weights are shared). Writes ``<out>/bench_<device>.json`` and
-``.png`` (FPS against mIoU and RayIoU with the Pareto front, and the latency breakdown).
+input, and a query budget keeps an evenly spaced subset of the learned queries (their
+decoder weights are shared). Writes ``<out>/bench_<device>.json`` and ``.png`` (FPS
+against mIoU and RayIoU with the Pareto front, and the latency breakdown).
 """
 from __future__ import annotations
 
@@ -45,20 +45,14 @@ from ..network.budget import output_needs
 from .step import DecoderHooks, TimedOnlineStep, StageTimer, peak_memory_mb, summarise
 from ..train.evaluate import add_box_sample, dynamic_class_miou
 
-# Pruning thresholds relative to the checkpoint's own occupancy score threshold: at 1.0 a
-# static query is dropped when none of its points would reach the grid at that layer (a
-# dynamic query: when its box score is as low); 0.5 is cautious (queries that may still
-# rise stay), 1.5 aggressive.
-PRUNE_FACTORS = (0.5, 1.0, 1.5)
 SUBSETS = ("all", "quiet", "busy")
 
 
 @dataclass(frozen=True)
 class SweepConfig:
     """One point of the sweep. frames: history length k incl. the current set (None: the
-    model's); prune: ``PruneRule`` threshold after layer ``prune_after`` (None: full model);
-    queries: fraction of the learned queries kept; precision: fp32 | bf16 | fp16 (autocast);
-    ring: cached history in a ``FeatureRing`` (else re-laid out every step);
+    model's); queries: fraction of the learned queries kept; precision: fp32 | bf16 | fp16
+    (autocast); ring: cached history in a ``FeatureRing`` (else re-laid out every step);
     fast_sampling: camera-rows sampling (else the plain 3-D path); compile: torch.compile
     the decoder (per-layer timing is then off: hooks would break the graph); cuda_graphs:
     compiled with mode "reduce-overhead", which replays the decoder's kernels as CUDA graphs
@@ -71,8 +65,6 @@ class SweepConfig:
 
     name: str
     frames: int | None = None
-    prune: float | None = None
-    prune_after: int = 2
     queries: float = 1.0
     precision: str = "fp32"
     ring: bool = True
@@ -93,17 +85,13 @@ class SweepConfig:
             raise ValueError(f"{self.name}: frames must be >= 1")
 
 
-def default_configs(num_frames: int, device: str = "cpu",
-                    score_threshold: float = 0.5) -> list[SweepConfig]:
-    """History 1, 2, .., k; pruning at PRUNE_FACTORS x score_threshold; query budgets 1/2
-    and 1/4 (the tiny variants); bf16 autocast; the plain path; on CUDA also fp16,
-    torch.compile and CUDA graphs."""
+def default_configs(num_frames: int, device: str = "cpu") -> list[SweepConfig]:
+    """History 1, 2, .., k; query budgets 1/2 and 1/4 (the tiny variants); bf16 autocast;
+    the plain path; on CUDA also fp16, torch.compile and CUDA graphs."""
     k = num_frames
     histories = sorted({h for h in (1, 2, 4, 8) if h < k})
     configs = [SweepConfig(f"full-h{k}", frames=k)]
     configs += [SweepConfig(f"full-h{h}", frames=h) for h in histories]
-    thresholds = [round(f * score_threshold, 3) for f in PRUNE_FACTORS]
-    configs += [SweepConfig(f"prune{t:g}-h{k}", frames=k, prune=t) for t in thresholds]
     configs += [SweepConfig(f"q50-h{k}", frames=k, queries=0.5),
                 SweepConfig(f"q25-h{k}", frames=k, queries=0.25),
                 SweepConfig(f"bf16-h{k}", frames=k, precision="bf16"),
@@ -119,11 +107,11 @@ def default_configs(num_frames: int, device: str = "cpu",
     return configs
 
 
-def select_configs(spec: str | None, num_frames: int, device: str = "cpu",
-                   score_threshold: float = 0.5) -> list[SweepConfig]:
+def select_configs(spec: str | None, num_frames: int,
+                   device: str = "cpu") -> list[SweepConfig]:
     """None: the defaults; a ``.json`` path: a list of SweepConfig fields; else
     comma-separated names of default configurations."""
-    defaults = default_configs(num_frames, device, score_threshold)
+    defaults = default_configs(num_frames, device)
     if spec is None:
         return defaults
     if spec.endswith(".json"):
@@ -240,7 +228,6 @@ class ConfigRun:
     def __init__(self, config: SweepConfig, job: dict):
         from ..metrics.detection import DetectionScore
         from ..metrics.score import OccScore
-        from ..network.decoder import PruneRule
 
         self.config, self.device = config, job["device"]
         self.model, self.cfg = prepare_model(job["checkpoint"], job["preset"], self.device,
@@ -248,9 +235,8 @@ class ConfigRun:
         self.frames = config.frames or self.cfg.num_frames
         self.random_weights = (config.model is None and job["checkpoint"] is None) or (
             config.model is not None and not is_checkpoint(config.model))
-        prune = PruneRule(config.prune, config.prune_after) if config.prune is not None else None
         self.step = TimedOnlineStep(self.model, self.cfg, self.device, ring=config.ring,
-                               prune=prune, precision=config.precision)
+                                    precision=config.precision)
         self.scores = {name: OccScore(job["dataset"], rayiou=job.get("rayiou", True))
                        for name in SUBSETS}
         self.box_scores = {name: DetectionScore() for name in SUBSETS} \
@@ -483,40 +469,6 @@ def pareto_report(results: list[dict]) -> dict:
         for metric in ("mIoU", "RayIoU")}
 
 
-def adaptive_tradeoff(results: list[dict]) -> list[dict]:
-    """Each pruned configuration against the full one with the same other settings: ms saved,
-    mIoU / RayIoU points lost, and points lost per ms saved, on all / quiet / busy samples."""
-    rows = []
-    ok = [r for r in results if "error" not in r]
-    for r in ok:
-        c = r["config"]
-        if c["prune"] is None:
-            continue
-        full = next((f for f in ok if f["config"]["prune"] is None and
-                     all(f["config"][k] == c[k] for k in c if k not in ("name", "prune",
-                                                                       "prune_after"))), None)
-        if full is None:
-            continue
-        row = {"config": c["name"], "full": full["config"]["name"], "threshold": c["prune"]}
-        for subset in SUBSETS:
-            key = "scores" if subset == "all" else subset
-            a, b = full.get(key, {}), r.get(key, {})
-            if "latency_ms" not in a or "latency_ms" not in b:
-                continue
-            saved = a["latency_ms"] - b["latency_ms"]
-            entry = {"ms_saved": round(saved, 2),
-                     "decoder_ms_saved": round(a["decoder_ms"] - b["decoder_ms"], 2),
-                     "queries_last_layer": b.get("queries_last_layer")}
-            for metric in ("mIoU", "RayIoU"):
-                if a.get(metric) is not None and b.get(metric) is not None:
-                    lost = a[metric] - b[metric]
-                    entry[f"{metric}_lost"] = round(lost, 3)
-                    entry[f"{metric}_lost_per_ms"] = round(lost / saved, 5) if saved > 0 else None
-            row[subset] = entry
-        rows.append(row)
-    return rows
-
-
 def git_commit() -> str:
     root = Path(__file__).resolve().parent.parent
     try:
@@ -562,7 +514,7 @@ def run_sweep(data, checkpoint=None, preset: str = "odg_cpu", device: str = "cpu
         from ..config import ModelConfig
         payload = torch.load(checkpoint, map_location="cpu", weights_only=False)
         cfg = ModelConfig(**payload["config"])
-    configs = configs or default_configs(cfg.num_frames, device, cfg.score_threshold)
+    configs = configs or default_configs(cfg.num_frames, device)
     isolate = True if isolate is None else isolate
     infos = load_infos_file(data)
     if not infos["infos"]:
@@ -598,8 +550,7 @@ def run_sweep(data, checkpoint=None, preset: str = "odg_cpu", device: str = "cpu
     if not ok:
         raise RuntimeError("every sweep configuration failed: "
                            + "; ".join(r["error"] for r in results))
-    report = {"meta": meta, "configs": results, "pareto": pareto_report(results),
-              "adaptive": adaptive_tradeoff(results)}
+    report = {"meta": meta, "configs": results, "pareto": pareto_report(results)}
     if out is not None:
         report["files"] = write_sweep(report, Path(out), device)
     return report
@@ -664,13 +615,4 @@ def format_sweep_table(report: dict) -> str:
             f"{cell(s.get('refined_fraction'), '{:.0%}'):>7}")
     for metric, names in report["pareto"].items():
         lines.append(f"Pareto front (FPS, {metric}): {', '.join(names)}")
-    for row in report["adaptive"]:
-        parts = []
-        for subset in SUBSETS:
-            e = row.get(subset)
-            if e:
-                parts.append(f"{subset}: {e['ms_saved']:+.1f} ms, mIoU "
-                             f"{-e.get('mIoU_lost', float('nan')):+.2f}, "
-                             f"{e.get('mIoU_lost_per_ms')} mIoU lost/ms")
-        lines.append(f"{row['config']} vs {row['full']}: " + "; ".join(parts))
     return "\n".join(lines)

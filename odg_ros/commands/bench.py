@@ -209,7 +209,7 @@ def run_sweep_command(args) -> int:
     else:
         from ..network.checkpoint import load_model
         _, cfg = load_model(args.checkpoint)
-    configs = select_configs(args.configs, cfg.num_frames, args.device, cfg.score_threshold)
+    configs = select_configs(args.configs, cfg.num_frames, args.device)
     if args.list_configs:
         for c in configs:
             print(c)

@@ -1,10 +1,8 @@
-"""``odg bench --sweep`` (odg_ros/bench/sweep.py): the Pareto front and the adaptive trade-off on
-hand-made numbers, query budgets, the never-empty pruning rule, and a whole sweep of a tiny
-random-weights checkpoint on a tiny hand-made world (JSON keys, PNG, scores equal to
-``evaluate``)."""
+"""``odg bench --sweep`` (odg_ros/bench/sweep.py): the Pareto front on hand-made numbers,
+query budgets, and a whole sweep of a tiny random-weights checkpoint on a tiny hand-made
+world (JSON keys, PNG, scores equal to ``evaluate``)."""
 import dataclasses
 import json
-import math
 
 import numpy as np
 import pytest
@@ -13,12 +11,11 @@ import torch
 from odg_ros.bench.step import LAYER_PARTS, bench_online_step
 from odg_ros.network import ODG
 from odg_ros.network.checkpoint import load_model
-from odg_ros.network.decoder import PruneRule
 from odg_ros.data.batch import collate, to_device
 from odg_ros.data.dataset import OccDataset
-from odg_ros.bench.sweep import (ConfigRun, SweepConfig, adaptive_tradeoff, pareto_front,
-                           prepare_model, query_budget, quiet_and_busy, run_sweep,
-                           select_configs, spread_indices)
+from odg_ros.bench.sweep import (ConfigRun, SweepConfig, pareto_front, prepare_model,
+                                 query_budget, quiet_and_busy, run_sweep, select_configs,
+                                 spread_indices)
 from odg_ros.train.evaluate import evaluate
 
 from testing.helpers import tiny_config, write_tiny_checkpoint, write_tiny_split
@@ -66,51 +63,18 @@ def test_quiet_and_busy_quarters():
     assert quiet_and_busy([]) == ([], [])
 
 
-def result(name, total, miou, prune=None, quiet=(0, 0), busy=(0, 0), frames=4):
-    config = {"name": name, "frames": frames, "prune": prune, "prune_after": 2,
-              "queries": 1.0, "precision": "fp32", "ring": True, "fast_sampling": True,
-              "compile": False}
-    return {"config": config, "fps": 1000 / total,
-            "scores": {"latency_ms": total, "decoder_ms": total / 2, "mIoU": miou,
-                       "RayIoU": miou / 2},
-            "quiet": {"latency_ms": quiet[0], "decoder_ms": 0, "mIoU": quiet[1], "RayIoU": None},
-            "busy": {"latency_ms": busy[0], "decoder_ms": 0, "mIoU": busy[1], "RayIoU": None}}
-
-
-def test_adaptive_tradeoff_is_points_lost_per_millisecond_saved():
-    rows = adaptive_tradeoff([
-        result("full", 100.0, 30.0, quiet=(90.0, 20.0), busy=(110.0, 40.0)),
-        result("p0.1", 80.0, 29.0, prune=0.1, quiet=(50.0, 20.0), busy=(105.0, 38.0)),
-        result("p0.2-h2", 60.0, 25.0, prune=0.2, frames=2),     # no full model at 2 frames
-        result("slower", 120.0, 30.0, prune=0.01),
-        {"config": {"name": "broken"}, "error": "RuntimeError: x"}])
-    assert [r["config"] for r in rows] == ["p0.1", "slower"]
-    p = rows[0]
-    assert p["full"] == "full" and p["threshold"] == 0.1
-    assert p["all"]["ms_saved"] == 20.0 and p["all"]["mIoU_lost"] == 1.0
-    assert p["all"]["decoder_ms_saved"] == 10.0
-    assert math.isclose(p["all"]["mIoU_lost_per_ms"], 0.05)
-    assert math.isclose(p["all"]["RayIoU_lost_per_ms"], 0.025)
-    assert p["quiet"]["ms_saved"] == 40.0 and p["quiet"]["mIoU_lost_per_ms"] == 0.0
-    assert p["busy"]["ms_saved"] == 5.0 and math.isclose(p["busy"]["mIoU_lost_per_ms"], 0.4)
-    assert "RayIoU_lost" not in p["quiet"]                  # None scores are not compared
-    assert rows[1]["all"]["ms_saved"] == -20.0 and rows[1]["all"]["mIoU_lost_per_ms"] is None
-
-
 def test_select_configs_by_name_and_from_json(tmp_path):
     defaults = select_configs(None, 4)
     names = [c.name for c in defaults]
     assert names[:3] == ["full-h4", "full-h1", "full-h2"]
-    assert {"prune0.25-h4", "prune0.5-h4", "prune0.75-h4", "q50-h4", "q25-h4", "bf16-h4",
-            "plain-h4"} <= set(names)               # pruning relative to the threshold 0.5
-    assert "prune0.15-h4" in [c.name for c in select_configs(None, 4, score_threshold=0.3)]
+    assert {"q50-h4", "q25-h4", "bf16-h4", "plain-h4"} <= set(names)
     assert not any("fp16" in n or "compile" in n for n in names)   # CUDA only
     assert [c.name for c in select_configs("q25-h4,full-h1", 4)] == ["q25-h4", "full-h1"]
     with pytest.raises(ValueError, match="unknown configurations"):
         select_configs("full-h9", 4)
     path = tmp_path / "c.json"
-    path.write_text(json.dumps([{"name": "mine", "frames": 2, "prune": 0.3}]))
-    assert select_configs(str(path), 4) == [SweepConfig("mine", frames=2, prune=0.3)]
+    path.write_text(json.dumps([{"name": "mine", "frames": 2, "budget": "0.5"}]))
+    assert select_configs(str(path), 4) == [SweepConfig("mine", frames=2, budget="0.5")]
     path.write_text(json.dumps([{"name": "bad", "speed": 3}]))
     with pytest.raises(ValueError, match="unknown keys"):
         select_configs(str(path), 4)
@@ -150,19 +114,6 @@ def test_query_budget_keeps_evenly_spaced_learned_queries():
     assert (tiny_c.num_dynamic, tiny_c.num_static) == (1, 1)
 
 
-def test_pruning_above_every_score_keeps_the_best_query_and_runs():
-    cfg = tiny_cfg()
-    model = ODG(cfg).eval()
-    rule = PruneRule(threshold=1.1, after_layer=2)           # no score can pass
-    images = torch.randn(1, 3, 6, 3, *cfg.image_size)
-    from odg_ros.rig import ring_ego2img
-    e2i = ring_ego2img(cfg.image_size, 3, 6)
-    warp, dt = torch.eye(4).repeat(1, 3, 1, 1), torch.tensor([[0.0, 0.5, 1.0]])
-    with torch.no_grad():
-        out = model(images, e2i, warp, dt, prune=rule)
-    assert out.last.means.shape[1] == 1 and torch.isfinite(out.last.means).all()
-
-
 def test_bench_online_step_reports_layers_parts_and_memory():
     cfg = tiny_cfg()
     r = bench_online_step(cfg, iters=2, warmup=1, progress=False)
@@ -187,19 +138,18 @@ def tiny_split(tmp_path_factory):
 
 def test_sweep_writes_json_and_png_with_every_measure(tiny_split, tmp_path):
     data, checkpoint = tiny_split
-    configs = [SweepConfig("full-h3", frames=3), SweepConfig("prune-h3", frames=3, prune=0.5),
-               SweepConfig("q50-h2", frames=2, queries=0.5)]
+    configs = [SweepConfig("full-h3", frames=3), SweepConfig("q50-h2", frames=2, queries=0.5)]
     report = run_sweep(data, checkpoint, configs=configs, limit=2, repeats=1, warmup=0,
                        isolate=False, out=tmp_path, progress=False)
     saved = json.loads((tmp_path / "bench_cpu.json").read_text())
     png = tmp_path / "bench_cpu.png"
     assert png.stat().st_size > 10_000 and png.read_bytes()[:4] == b"\x89PNG"
-    assert set(saved) == {"meta", "configs", "pareto", "adaptive"}
+    assert set(saved) == {"meta", "configs", "pareto"}
     meta = saved["meta"]
     assert meta["random_weights"] is False and meta["checkpoint"] == str(checkpoint)
     assert meta["samples"] == 2 and meta["commit"] and meta["date"]
     assert len(meta["scene_load"]) == 2 and meta["quiet_samples"] and meta["busy_samples"]
-    assert [c["config"]["name"] for c in saved["configs"]] == ["full-h3", "prune-h3", "q50-h2"]
+    assert [c["config"]["name"] for c in saved["configs"]] == ["full-h3", "q50-h2"]
     for c in saved["configs"]:
         assert "error" not in c, c.get("traceback")
         assert set(c["latency_ms"]) >= {"backbone", "decoder", "postprocess", "total"}
@@ -208,10 +158,10 @@ def test_sweep_writes_json_and_png_with_every_measure(tiny_split, tmp_path):
             assert key in c["scores"]
         assert c["quiet"]["samples"] == 1 and c["busy"]["samples"] == 1
         assert len(c["per_sample"]) == 2
-    full, pruned, budget = saved["configs"]
+    full, budget = saved["configs"]
     assert full["frames"] == 3 and budget["frames"] == 2 and budget["queries"] == 13
-    assert pruned["scores"]["queries_last_layer"] < full["scores"]["queries_last_layer"] == 26
-    assert saved["adaptive"][0]["config"] == "prune-h3" and "all" in saved["adaptive"][0]
+    assert budget["scores"]["queries_last_layer"] == 13
+    assert full["scores"]["queries_last_layer"] == 26
     assert set(saved["pareto"]) == {"mIoU", "RayIoU"} and saved["pareto"]["mIoU"]
     assert report["files"] == [str(tmp_path / "bench_cpu.json"), str(png)]
 
