@@ -83,8 +83,8 @@ class DecoderHooks:
     forward hooks into a ``StageTimer``; ``with DecoderHooks(model, timer):`` installs them.
     Under a query budget also the skip layer (``skip_layer``, ``skip_layer.attention`` ..)
     and the keep-scores (``keep_static``, ``keep_dynamic``; network/budget.py).
-    The decoder time outside the layers (history layout without a ring, queries, pruning,
-    Phi MLPs) is the decoder stage minus the layers (``decoder_outside_layers``)."""
+    The decoder time outside the layers (history layout without a ring, queries, Phi MLPs)
+    is the decoder stage minus the layers (``decoder_outside_layers``)."""
 
     def __init__(self, model: ODG, timer: StageTimer):
         self.model, self.timer, self.handles = model, timer, []
@@ -150,11 +150,10 @@ class TimedOnlineStep:
     ``budget`` set on it (network/budget.py; None: every query).
     """
 
-    def __init__(self, model: ODG, cfg: ModelConfig, device, ring: bool = True, prune=None,
+    def __init__(self, model: ODG, cfg: ModelConfig, device, ring: bool = True,
                  precision: str = "fp32"):
         self.model, self.cfg, self.device = model, cfg, torch.device(device)
         self.ring = FeatureRing(cfg.num_frames, cfg.num_groups) if ring else None
-        self.prune = prune
         self.precision = precision
         self.history: list[list[torch.Tensor]] = []
         self.budget = None
@@ -185,11 +184,10 @@ class TimedOnlineStep:
             with timer.stage("decoder"):
                 if self.ring is not None:
                     output = self.model.decode_ring(self.ring, ego2img, ego_warp, time_delta,
-                                                    prune=self.prune, budget=self.budget)
+                                                    budget=self.budget)
                 else:
                     output = self.model.decode([current] + self.history, ego2img, ego_warp,
-                                               time_delta, prune=self.prune,
-                                               budget=self.budget)
+                                               time_delta, budget=self.budget)
             with timer.stage("postprocess"):
                 grid, _ = occupancy_grid(output, self.cfg)
                 boxes = box_list(output, self.cfg)
@@ -210,7 +208,7 @@ def summarise(timer: StageTimer, num_layers: int) -> dict:
 @torch.no_grad()
 def bench_online_step(cfg: ModelConfig, device="cpu", frames: int | None = None, iters: int = 5,
                       warmup: int = 1, progress: bool = True, model: ODG | None = None,
-                      ring: bool = True, prune=None, precision: str = "fp32",
+                      ring: bool = True, precision: str = "fp32",
                       layers: bool = True) -> dict:
     """Random inputs at the preset's resolution; random weights unless ``model`` is given."""
     frames = frames or cfg.num_frames
@@ -218,7 +216,7 @@ def bench_online_step(cfg: ModelConfig, device="cpu", frames: int | None = None,
         raise ValueError(f"--frames must be in 1..{cfg.num_frames} for {cfg.name}")
     model = (model or ODG(cfg)).to(device).eval()
     images, ego2img, ego_warp, time_delta = online_inputs(cfg, frames, device)
-    step = TimedOnlineStep(model, cfg, device, ring=ring, prune=prune, precision=precision)
+    step = TimedOnlineStep(model, cfg, device, ring=ring, precision=precision)
     cached = step.features(images)  # stands in for the k-1 cached history frames
     cuda = torch.device(device).type == "cuda"
     timer = StageTimer(device)

@@ -1,7 +1,7 @@
 """``odg bench``: latency of the online step, the fast paths, and the speed-vs-error sweep.
 
     odg bench --preset NAME [--device cpu|cuda] [--frames K] [--iters N] [--json]
-              [--checkpoint CKPT] [--precision fp32|bf16|fp16] [--prune T] [--no-ring]
+              [--checkpoint CKPT] [--precision fp32|bf16|fp16] [--no-ring]
     odg bench --compile eager,compiled[,graphs] --preset NAME [--precision fp32,bf16]
               [--data INFOS] [--compiled-step FILE.pt2]
                                                 the node's step in each execution mode
@@ -42,10 +42,6 @@ def add_arguments(parser):
                         help=f"one of {', '.join(PRECISIONS)} (fp16 only on CUDA); with "
                              "--compile a comma-separated list, each against the first "
                              "(the node's step stores bf16 / fp16 weights, the others autocast)")
-    parser.add_argument("--prune", type=float, default=None, metavar="T",
-                        help="adaptive inference: PruneRule threshold (default: no pruning)")
-    parser.add_argument("--prune-after", type=nonnegative_int, default=2,
-                        help="first layer pruned after")
     parser.add_argument("--no-ring", action="store_true",
                         help="re-lay out the cached history every step (no FeatureRing)")
     parser.add_argument("--compile", default=None, metavar="MODES",
@@ -120,12 +116,10 @@ def run(args) -> int:
                   f"  {diff['means']:9.2e} {diff['logits']:9.2e}")
         return 0
     from ..network.checkpoint import load_model
-    from ..network.decoder import PruneRule
     model, cfg = load_model(args.checkpoint, preset=args.preset, device=args.device)
-    prune = PruneRule(args.prune, args.prune_after) if args.prune is not None else None
     result = bench_online_step(cfg, args.device, args.frames, args.iters, args.warmup,
                                progress=not args.json, model=model, ring=not args.no_ring,
-                               prune=prune, precision=args.precisions[0])
+                               precision=args.precisions[0])
     result["weights"] = args.checkpoint or "random"
     slow = slow_precision_warning(args.precisions[0], args.device)
     if slow:
@@ -153,7 +147,7 @@ def run(args) -> int:
             print(f"    layer {r['layer']:<15}" + " ".join(
                 f"{r['parts'].get(p, 0.0):9.2f}" for p in parts)
                 + f" {r['other']:7.2f} {r['total']:7.2f}")
-        print(f"    outside the layers (history layout without a ring, pruning, Phi MLPs): "
+        print(f"    outside the layers (history layout without a ring, Phi MLPs): "
               f"{lat['decoder_outside_layers']:.2f}")
     return 0
 
