@@ -1,8 +1,7 @@
 """Accuracy of query budgets per scene class: the full model, each fixed budget of the ladder,
 ``query_budget: auto``, the same budgets with a broken (random) or a hand-made (best point
-score) ranking, the threshold PruneRule, and models with a fixed smaller query set, all on the
-same keyframes (the backbone runs once per keyframe; every configuration decodes its
-features).
+score) ranking, and models with a fixed smaller query set, all on the same keyframes (the
+backbone runs once per keyframe; every configuration decodes its features).
 
     OMP_NUM_THREADS=1 python -m tools.eval_budget --checkpoint runs/budget/odg_cpu.pt \
         --data quiet=data/quiet/infos_val.pkl dense=data/dense/infos_val.pkl --out eval.json
@@ -30,7 +29,6 @@ from odg_ros.metrics.rayiou import LidarOrigins
 from odg_ros.metrics.score import OccScore
 from odg_ros.network.budget import budget_ladder, needed_queries
 from odg_ros.network.checkpoint import load_model
-from odg_ros.network.decoder import PruneRule
 from odg_ros.network.postprocess import box_list
 from odg_ros.online.budget_policy import BudgetPolicy
 from odg_ros.bench.sweep import query_budget as smaller_query_set
@@ -55,10 +53,10 @@ def scene_classes(infos_path) -> dict[str, dict]:
 class Config:
     """One way to decode: a model, how it picks its budget per keyframe."""
 
-    def __init__(self, name, model, cfg, budget=None, policy=None, prune=None, scores=None,
+    def __init__(self, name, model, cfg, budget=None, policy=None, scores=None,
                  queries=None, oracle=None):
         self.name, self.model, self.cfg = name, model, cfg
-        self.budget, self.policy, self.prune, self.scores = budget, policy, prune, scores
+        self.budget, self.policy, self.scores = budget, policy, scores
         self.oracle = oracle                          # a key of oracle_scores
         self.queries = queries or cfg.num_queries     # the full model's, for the fractions
         self.refined, self.milliseconds = [], []
@@ -78,7 +76,7 @@ class Config:
         try:
             start = time.perf_counter()
             output = self.model.decode(feats, batch["ego2img"], batch["ego_warp"],
-                                       batch["time_delta"], budget=budget, prune=self.prune)
+                                       batch["time_delta"], budget=budget)
             self.milliseconds.append((time.perf_counter() - start) * 1e3)
         finally:
             budget_heads.scores_of = original
@@ -133,7 +131,7 @@ def random_scores(seed: int):
 
 def point_score(query, inputs, num_dynamic):
     """The hand-made ranking: a dynamic query's best box logit, a static one's best point
-    logit (the threshold PruneRule's score; keep_inputs' first two values)."""
+    logit (keep_inputs' first two values)."""
     return torch.cat([inputs[:, :num_dynamic, 1], inputs[:, num_dynamic:, 0]], dim=1)
 
 
@@ -154,9 +152,6 @@ def configurations(model, cfg, include) -> list[Config]:
                                   scores=random_scores(0)))
             configs.append(Config(f"pointscore-{budget.name}", model, cfg, budget=budget,
                                   scores=point_score))
-        for threshold in (0.15, 0.3):
-            configs.append(Config(f"prune{threshold}", model, cfg,
-                                  prune=PruneRule(threshold, after_layer=2)))
         for fraction in (0.6, 0.35):
             smaller, small_cfg = smaller_query_set(model, cfg, fraction)
             configs.append(Config(f"q{round(fraction * 100)}", smaller, small_cfg,
@@ -206,7 +201,7 @@ def main(argv=None) -> int:
     parser.add_argument("--data", nargs="+", required=True)
     parser.add_argument("--limit", type=int, default=None)
     parser.add_argument("--baselines", action="store_true",
-                        help="also random / best-point-score rankings, PruneRule, smaller sets")
+                        help="also random / best-point-score rankings, smaller sets")
     parser.add_argument("--oracles", action="store_true",
                         help="also the budgets ranked by a perfect keep-score (its target on "
                              "the keyframe) and by the ground-truth gain: bounds")
