@@ -137,14 +137,13 @@ class Decoder(nn.Module):
         self.budget_heads = BudgetHeads(cfg.embed_dims, skip_layer).requires_grad_(False)
 
     def forward(self, query, means, boxes, mlvl_feats, geometry,
-                gaussian_attributes: bool = True, prune: "PruneRule | None" = None,
-                budget: QueryBudget | None = None):
+                gaussian_attributes: bool = True, budget: QueryBudget | None = None):
         """gaussian_attributes: run Phi_s/r/sigma (rendering supervision needs them, the grid
-        does not). prune: adaptive inference, see ``PruneRule``. budget: the queries the
-        layers after ``budget.AFTER_LAYER`` refine (budget.py; None: all, no keep-scores).
+        does not). budget: the queries the layers after ``budget.AFTER_LAYER`` refine
+        (budget.py; None: all, no keep-scores).
         -> (layer outputs, keep-scores [B, Q] of the budget's layer or None)."""
         if budget is not None:
-            self._check_budget(budget, gaussian_attributes, prune)
+            self._check_budget(budget, gaussian_attributes)
         outputs = []
         num_dynamic = self.num_dynamic
         query_index = keep_scores = skipped = None
@@ -176,19 +175,11 @@ class Decoder(nn.Module):
                     num_dynamic = kept_dynamic
                     if boxes is not None:
                         boxes = gather_queries(boxes, query_index[:, :num_dynamic])
-            if prune is not None and index + 1 >= prune.after_layer and \
-                    index + 1 < len(self.layers):
-                keep = prune.keep(logits, box_logits, num_dynamic)
-                query, means = query[:, keep], means[:, keep]
-                kept_dynamic = keep[keep < num_dynamic]
-                boxes = boxes[:, kept_dynamic] if boxes is not None else None
-                num_dynamic = len(kept_dynamic)
-                query_index = keep if query_index is None else query_index[keep]
         if skipped is not None:
             outputs[-1] = merged_layer(outputs[-1], query_index, skipped, self.num_dynamic)
         return outputs, keep_scores
 
-    def _check_budget(self, budget: QueryBudget, gaussian_attributes: bool, prune) -> None:
+    def _check_budget(self, budget: QueryBudget, gaussian_attributes: bool) -> None:
         if len(self.layers) <= AFTER_LAYER:
             raise ValueError(f"a query budget needs more than {AFTER_LAYER} decoder layers; "
                              f"the decoder has {len(self.layers)}")
@@ -197,9 +188,8 @@ class Decoder(nn.Module):
         if not full and not heads.is_trained:
             raise ValueError("this model's keep-score and skip heads are not trained: it runs "
                              "the full query budget only")
-        if not full and (gaussian_attributes or prune is not None):
-            raise ValueError("a query budget is for inference: no Gaussian attributes, no "
-                             "PruneRule")
+        if not full and gaussian_attributes:
+            raise ValueError("a query budget is for inference: no Gaussian attributes")
 
     def skip_output(self, query, means, boxes, skipped, skipped_dynamic: int, geometry,
                     mlvl_feats) -> LayerOutput:
@@ -233,27 +223,3 @@ def merged_layer(refined: LayerOutput, kept: torch.Tensor, skipped: LayerOutput,
                              for a, b in ((refined.boxes, skipped.boxes),
                                           (refined.box_logits, skipped.box_logits)))
     return LayerOutput(means, logits, None, None, None, boxes, box_logits, None, num_dynamic)
-
-
-class PruneRule:
-    """Adaptive inference: after layer ``after_layer``, drop the static queries whose best
-    point score is below ``threshold`` (empty space) and the dynamic queries whose box score
-    is below it (no object; their points go with them, which costs grid accuracy where they
-    also covered surfaces), so the later, denser layers only refine what the scene has.
-    A query is kept if any sample of the batch needs it (tensors stay dense); the best query
-    is always kept, so an empty scene never leaves the later layers with no query."""
-
-    def __init__(self, threshold: float = 0.05, after_layer: int = 2):
-        self.threshold = threshold
-        self.after_layer = after_layer
-
-    @torch.no_grad()
-    def keep(self, logits, box_logits, num_dynamic) -> torch.Tensor:
-        """logits [B, Q, K, C], box_logits [B, D, C_box] | None -> kept query indices [Q']."""
-        score = logits.float().amax(dim=(2, 3)).sigmoid()                  # [B, Q]
-        if box_logits is not None and num_dynamic:
-            box_score = box_logits.float().amax(dim=-1).sigmoid()          # [B, D]
-            score = torch.cat([box_score, score[:, num_dynamic:]], dim=1)
-        keep = score > self.threshold
-        keep[:, score.amax(dim=0).argmax()] = True
-        return keep.any(dim=0).nonzero().squeeze(1)

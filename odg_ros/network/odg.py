@@ -48,13 +48,11 @@ class ODG(nn.Module):
 
     def decode(self, frame_feats: list[list[torch.Tensor]], ego2img: torch.Tensor,
                ego_warp: torch.Tensor, time_delta: torch.Tensor,
-               gaussian_attributes: bool | None = None, prune=None,
-               budget=None) -> ODGOutput:
+               gaussian_attributes: bool | None = None, budget=None) -> ODGOutput:
         """frame_feats: T frames (0 = current, then older) of L levels [B, N, C, H_l, W_l];
         ego2img [B, T, N, 4, 4]; ego_warp [B, T, 4, 4]; time_delta [B, T].
         gaussian_attributes: run Phi_s/r/sigma (default: while training; the grid does not
-        need them). prune: a ``decoder.PruneRule`` for adaptive inference (None: full model).
-        budget: a ``budget.QueryBudget`` (None: every query, no keep-scores).
+        need them). budget: a ``budget.QueryBudget`` (None: every query, no keep-scores).
 
         With fewer frames than ``cfg.num_frames`` (a history still filling up) the oldest
         frame is repeated, as the dataset does at the start of a scene.
@@ -73,7 +71,7 @@ class ODG(nn.Module):
                     for level in range(L)]
             return self._decode_stored(mlvl, ego2img, ego_warp, time_delta,
                                        self._frame_index(list(range(T)), ego2img.device),
-                                       gaussian_attributes, prune, budget)
+                                       gaussian_attributes, budget)
         if missing:
             frame_feats = list(frame_feats) + [frame_feats[-1]] * missing
             ego2img = torch.cat([ego2img, ego2img[:, -1:].expand(-1, missing, -1, -1, -1)], 1)
@@ -91,11 +89,11 @@ class ODG(nn.Module):
             stacked = torch.stack(per_frame)                            # [T, B, G, c, N, h, w]
             mlvl.append(stacked.reshape(-1, *stacked.shape[3:]))
         return self._decode_stored(mlvl, ego2img, ego_warp, time_delta, None,
-                                   gaussian_attributes, prune, budget)
+                                   gaussian_attributes, budget)
 
     def decode_ring(self, ring: FeatureRing, ego2img: torch.Tensor, ego_warp: torch.Tensor,
                     time_delta: torch.Tensor, gaussian_attributes: bool | None = None,
-                    prune=None, budget=None) -> ODGOutput:
+                    budget=None) -> ODGOutput:
         """``decode`` over the frames cached in ``ring`` (newest first, T = len(ring)), with
         the geometry of those T frames as for ``decode``: no per-step re-layout of history."""
         T = len(ring)
@@ -113,7 +111,7 @@ class ODG(nn.Module):
                                    ego_warp.index_select(1, index),
                                    time_delta.index_select(1, index),
                                    self._frame_index(slots, ego2img.device),
-                                   gaussian_attributes, prune, budget)
+                                   gaussian_attributes, budget)
 
     def _frame_index(self, slots: list[int], device) -> torch.Tensor | None:
         """Stored frame read by each of the model's ``num_frames`` time steps: ``slots`` for
@@ -132,7 +130,7 @@ class ODG(nn.Module):
         return self._index_cache[key]
 
     def _decode_stored(self, mlvl, ego2img, ego_warp, time_delta, frame_index,
-                       gaussian_attributes, prune, budget=None) -> ODGOutput:
+                       gaussian_attributes, budget=None) -> ODGOutput:
         """mlvl: L levels of F stored frames in a sampling layout; geometry [B, F, ...] in the
         same storage order; frame_index [num_frames] (see ``SpatioTemporalSampling``)."""
         B = ego2img.shape[0]
@@ -143,7 +141,7 @@ class ODG(nn.Module):
         if gaussian_attributes is None:
             gaussian_attributes = self.training
         layers, keep_scores = self.decoder(query, means, boxes, mlvl, geometry,
-                                           gaussian_attributes, prune, budget)
+                                           gaussian_attributes, budget)
         return ODGOutput(init_means=means, layers=layers, num_dynamic=self.num_dynamic,
                          keep_scores=keep_scores)
 

@@ -18,9 +18,8 @@ class LayerOutput:
     boxes      [B, D, 10]    (cx, cy, cz, log w, log l, log h, sin yaw, cos yaw, vx, vy) or None
     box_logits [B, D, 10]    box class logits (classes.BOX_CLASSES order) or None
     scales, rotations, opacities are None when the Phi MLPs were not run (inference).
-    query_index indices of the queries this layer ran on when earlier layers dropped some
-                (adaptive inference: [Q'] after a ``PruneRule``, [B, Q'] under a query
-                budget), else None; num_dynamic: D of this layer.
+    query_index [B, Q'] indices of the queries this layer ran on when a query budget left
+                some to the skip layer (budget.py), else None; num_dynamic: D of this layer.
     """
     means: torch.Tensor
     logits: torch.Tensor

@@ -119,8 +119,8 @@ def evaluate(model, cfg, infos, occ_root=None, save_pred: str | None = None, dev
     oldest frame for the rest). miou_convention: see metrics/miou.py. budget: a
     ``network.budget.QueryBudget`` for every keyframe, or an ``online.budget_policy.
     BudgetPolicy`` (query_budget auto), or None (every query); the result then says which
-    budgets ran (``query_budget``). decode_options go to ``ODG.decode`` (e.g. prune=...).
-    The result also says whether the grid was padded."""
+    budgets ran (``query_budget``). decode_options go to ``ODG.decode``. The result also
+    says whether the grid was padded."""
     data_cfg = cfg if frames is None else cfg.replace(num_frames=frames)
     dataset = OccDataset(infos, data_cfg, occ_root=occ_root, train=False)
     score = OccScore(dataset.dataset, rayiou=rayiou, miou_convention=miou_convention)

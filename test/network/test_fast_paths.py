@@ -15,7 +15,7 @@ import torch
 
 from odg_ros.geometry import ego_to_image
 from odg_ros.network import ODG
-from odg_ros.network.decoder import PruneRule
+from odg_ros.network.budget import budget_ladder
 from odg_ros.network.feature_ring import FeatureRing
 from odg_ros.network.sampling import SpatioTemporalSampling, camera_rows_layout
 from odg_ros.rig import ring_cameras
@@ -152,27 +152,25 @@ def assert_outputs_close(a, b, tol):
         torch.testing.assert_close(x.boxes, y.boxes, rtol=tol, atol=tol)
 
 
-@pytest.mark.parametrize("frames,prune", [(3, False), (2, False), (3, True)])
-def test_model_decode_fast_layout_equals_plain_layout(frames, prune):
+@pytest.mark.parametrize("frames,budget", [(3, False), (2, False), (3, True)])
+def test_model_decode_fast_layout_equals_plain_layout(frames, budget):
     torch.manual_seed(0)
     cfg = tiny_config(num_frames=3, image_size=(32, 88))
     model = ODG(cfg).eval()
     images, e2i, warp, dt = model_inputs(cfg, frames)
-    rule = None
+    chosen = None
+    if budget:   # the layers after the budget's refine fewer queries than the model has
+        model.decoder.budget_heads.set_trained(True)
+        chosen = budget_ladder(cfg)[-1]
     with torch.no_grad():
-        if prune:   # a threshold that drops about half of the queries after layer 5
-            layer = model(images, e2i, warp, dt).layers[4]
-            score = layer.logits.amax(dim=(2, 3)).sigmoid()[0]
-            D = cfg.num_dynamic
-            score[:D] = torch.maximum(score[:D], layer.box_logits.amax(-1).sigmoid()[0])
-            rule = PruneRule(float(score.median()), after_layer=5)
-        fast = model(images, e2i, warp, dt, prune=rule)
+        fast = model(images, e2i, warp, dt, budget=chosen)
         model.fast_sampling = False
-        plain = model(images, e2i, warp, dt, prune=rule)
+        plain = model(images, e2i, warp, dt, budget=chosen)
     assert_outputs_close(fast, plain, 1e-3)
-    if prune:
-        kept = fast.last.query_index.tolist()
-        assert 0 < len(kept) < cfg.num_queries and kept == plain.last.query_index.tolist()
+    if budget:
+        kept = fast.layers[-2].query_index
+        assert 0 < kept.shape[1] < cfg.num_queries and torch.equal(
+            kept, plain.layers[-2].query_index)
 
 
 def test_decode_ring_equals_decode_over_the_cached_list_while_streaming():

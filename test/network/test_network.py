@@ -233,54 +233,6 @@ def test_online_inputs_geometry_is_consistent():
         assert d == pytest.approx(20.0 + 10.0 * float(dt[0, t]) - float(mount[0]), rel=1e-5)
 
 
-def test_adaptive_pruning_drops_empty_queries_and_dynamic_queries_without_object():
-    from odg_ros.network.decoder import PruneRule
-    cfg = tiny_config()
-    model = ODG(cfg).eval()
-    _, inputs = run(model, cfg)
-    with torch.no_grad():
-        full = model(*inputs)
-        # scores forced so exactly queries 0 (dynamic, an object) and 10 (static, occupied)
-        # survive; dynamic query 1 has confident points but no object
-        keep_hook = {}
-        original = PruneRule.keep
-
-        def keep(self, logits, box_logits, num_dynamic):
-            logits, box_logits = logits.clone().fill_(-8.0), box_logits.clone().fill_(-8.0)
-            if "kept" in keep_hook:  # later layers: the two survivors stay
-                logits.fill_(5.0)
-                box_logits.fill_(5.0)
-            else:
-                logits[:, [1, 10]] = 5.0
-                box_logits[:, 0, 3] = 5.0
-            kept = original(self, logits, box_logits, num_dynamic)
-            keep_hook.setdefault("kept", kept)
-            return kept
-        PruneRule.keep = keep
-        try:
-            pruned = model(*inputs, prune=PruneRule(threshold=0.05, after_layer=2))
-        finally:
-            PruneRule.keep = original
-    assert keep_hook["kept"].tolist() == [0, 10]
-    assert pruned.layers[1].means.shape == full.layers[1].means.shape  # before pruning
-    last = pruned.last
-    assert last.means.shape[1] == 2 and last.query_index.tolist() == [0, 10]
-    assert last.num_dynamic == 1 and last.boxes.shape[1] == 1
-    assert last.scales is None  # Phi MLPs skipped at inference
-
-
-def test_pruning_with_nothing_to_drop_equals_the_full_model():
-    from odg_ros.network.decoder import PruneRule
-    cfg = tiny_config()
-    model = ODG(cfg).eval()
-    _, inputs = run(model, cfg)
-    with torch.no_grad():
-        full = model(*inputs)
-        same = model(*inputs, prune=PruneRule(threshold=0.0, after_layer=2))
-    torch.testing.assert_close(full.last.means, same.last.means)
-    torch.testing.assert_close(full.last.boxes, same.last.boxes)
-
-
 def test_every_trainable_parameter_gets_a_gradient():
     """A parameter without gradient is dead weight, and breaks DDP's all-reduce."""
     cfg = tiny_config()
