@@ -17,7 +17,9 @@ from dataclasses import dataclass
 from ..network.budget import QueryBudget
 
 PATIENCE = 3              # frames in a row that could do with less before stepping down
-MARGIN = 1.25             # a budget covers a need n if it keeps at least MARGIN * n queries
+# a budget covers a need n if it keeps at least MARGIN * n queries; 1.5 keeps dense traffic
+# within 0.3 mIoU and RayIoU of the full budget (docs/results/query_budget.md)
+MARGIN = 1.5
 
 
 @dataclass

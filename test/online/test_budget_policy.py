@@ -12,9 +12,12 @@ LADDER = [QueryBudget(200, 100), QueryBudget(120, 52), QueryBudget(72, 28)]
 def test_needs_pick_the_smallest_covering_rung():
     policy = BudgetPolicy(LADDER)
     assert policy.covering_level(0, 0) == 2
-    assert policy.covering_level(57, 22) == 2          # 1.25 x 57 = 72 (rounded up)
-    assert policy.covering_level(58, 0) == 1
-    assert policy.covering_level(0, 23) == 1           # 1.25 x 23 = 29 > 28
+    assert policy.covering_level(48, 18) == 2          # 1.5 x 48 = 72, 1.5 x 18 = 27
+    assert policy.covering_level(49, 0) == 1           # 1.5 x 49 = 74 (rounded up) > 72
+    assert policy.covering_level(0, 19) == 1           # 1.5 x 19 = 29 > 28
+    assert policy.covering_level(80, 34) == 1
+    assert policy.covering_level(81, 0) == 0
+    assert policy.covering_level(0, 35) == 0
     assert policy.covering_level(150, 0) == 0
     assert policy.covering_level(500, 500) == 0        # more than the model has: all of it
 
@@ -26,7 +29,7 @@ def test_the_first_needs_of_a_scene_set_the_rung_directly():
     assert policy.update(10, 2, 1) == LADDER[2]
     policy.reset()
     assert policy.budget == LADDER[0]
-    assert policy.update(90, 2, 1) == LADDER[1]
+    assert policy.update(70, 2, 1) == LADDER[1]
 
 
 def test_up_at_once_down_after_patience_one_rung_at_a_time():
@@ -34,7 +37,7 @@ def test_up_at_once_down_after_patience_one_rung_at_a_time():
     assert policy.update(190, 0, 0) == LADDER[0]       # a busy first frame
     levels = [LADDER.index(policy.update(10, 2, 1)) for _ in range(7)]
     assert levels == [0, 0, 1, 1, 1, 2, 2]
-    assert policy.update(10, 40, 1) == LADDER[1]       # dynamic queries needed: up at once
+    assert policy.update(10, 30, 1) == LADDER[1]       # dynamic queries needed: up at once
     assert policy.update(10, 2, 30) == LADDER[1]       # many objects tracked: stays up
     assert policy.update(190, 0, 0) == LADDER[0]       # a busy static scene: full at once
 
