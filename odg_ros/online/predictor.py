@@ -366,8 +366,8 @@ class OnlinePredictor:
         ego2img, warps, deltas, frame_index, _ = self.layout.unpack(self._packed)
         with precision_context(self.precision, self.device):
             return self.online_step.model._decode_stored(self.ring.all_levels(), ego2img, warps,
-                                                         deltas, frame_index, False, None,
-                                                         budget)
+                                                         deltas, frame_index, False,
+                                                         budget=budget)
 
 
 def _inverse(matrices: np.ndarray) -> np.ndarray:

@@ -140,7 +140,7 @@ class OnlineStep(nn.Module):
         self.ring.write_slot(self.features(x), slot)
         with precision_context(self.precision, self.device):
             output = self.model._decode_stored(self.ring.all_levels(), ego2img, ego_warp,
-                                               time_delta, frame_index, False, None, budget)
+                                               time_delta, frame_index, False, budget=budget)
         results = self._results(output, packed)
         if budget is None:
             return results
