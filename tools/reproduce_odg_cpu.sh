@@ -341,6 +341,24 @@ OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.commands t
     $DDP_OPTS --out runs/cpu690b --init runs/odg_cpu_stage36.pt \
     --steps 1200 --warmup 50 --seed 1
 export_int8 runs/cpu690b/final.pt model/odg_cpu.pt
-# the shipped file, (37):
+# (38), shipped: the query-budget heads trained on top of (37), every other weight frozen
+# (docs/query_budget.md); the worlds of every scene class, none of them a held-out seed
+odg synth --out data/synth8s2 --scenes 8 --seconds 8 --seed 2
+odg prepare --dataroot data/synth8s2 --out data/synth8s2/infos_train.pkl --split train
+for spec in "open-road 31 normal 3" "city-quiet 32 quiet 3" "city-dense 33 dense 3" \
+        "open-road 34 quiet 3" "city-normal 41 normal 4" "open-road 42 dense 4" \
+        "city-quiet 43 quiet 4" "city-dense 44 dense 4" "open-road 45 normal 4" \
+        "city-normal 46 normal 4"; do
+    set -- $spec
+    roads=city; [ "$1" = open-road ] && roads=open-road
+    odg synth --out "data/budget/$1-$2" --scenes "$4" --seconds 4 --seed "$2" --traffic "$3" \
+        --roads "$roads"
+    odg prepare --dataroot "data/budget/$1-$2" --out "data/budget/$1-$2/infos_all.pkl" --split all
+done
+mv model/odg_cpu.pt runs/odg_cpu_stage37.pt
+OMP_NUM_THREADS=1 python -m tools.train_budget_heads --checkpoint runs/odg_cpu_stage37.pt \
+    --data data/synth8s2/infos_train.pkl data/budget/*/infos_all.pkl \
+    --cache runs/budget/cache --out model/odg_cpu.pt --skip-epochs 12
+# the shipped file, (38) (its full-budget outputs are (37)'s):
 odg eval --checkpoint model/odg_cpu.pt --data data/synth24/infos_val.pkl
 odg eval --checkpoint model/odg_cpu.pt --data data/synth8s18/infos_all.pkl

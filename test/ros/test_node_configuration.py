@@ -49,14 +49,22 @@ def test_a_misspelt_boolean_stops_the_node(rclpy_module):
     assert "visibility" in line and "expecting type 'BOOL'" in line
 
 
-def test_a_query_budget_is_checked_before_the_model_runs(rclpy_module):
-    """A word the schema does not know, and a fraction (a ROS double) that the shipped
-    checkpoint, without trained budget heads, cannot run: one FATAL line each (the latter
-    after the checkpoint's "loaded" line)."""
+def test_a_query_budget_is_checked_before_the_model_runs(rclpy_module, tmp_path):
+    """A word the schema does not know, and a fraction (a ROS double) that a checkpoint
+    without trained budget heads cannot run: one FATAL line each (the latter after the
+    checkpoint's "loaded" line)."""
+    from odg_ros.network.checkpoint import load_model, save_checkpoint
+    from odg_ros.resources import resource_path
     line = one_fatal_line(run_node("--ros-args", "-p", "query_budget:=half", "-p",
                                    "device:=cpu"))
     assert "query_budget='half': expected one of: full, auto or a fraction 0 < f <= 1" in line
-    result = run_node("--ros-args", "-p", "query_budget:=0.6", "-p", "device:=cpu")
+    model, _ = load_model(resource_path("model/odg_cpu.pt"))
+    assert model.decoder.budget_heads.is_trained            # the shipped file runs budgets
+    model.decoder.budget_heads.set_trained(False)
+    untrained = tmp_path / "untrained_heads.pt"
+    save_checkpoint(untrained, model)
+    result = run_node("--ros-args", "-p", "query_budget:=0.6", "-p", "device:=cpu", "-p",
+                      f"checkpoint:={untrained}")
     lines = (result.stdout + result.stderr).strip().splitlines()
     assert result.returncode == 1 and "loaded" in lines[0] and len(lines) == 2, lines
     assert "[FATAL]" in lines[1] and "query_budget 0.6: this checkpoint's keep-score and " \
