@@ -86,12 +86,16 @@ class SweepConfig:
 
 
 def default_configs(num_frames: int, device: str = "cpu") -> list[SweepConfig]:
-    """History 1, 2, .., k; query budgets 1/2 and 1/4 (the tiny variants); bf16 autocast;
-    the plain path; on CUDA also fp16, torch.compile and CUDA graphs."""
+    """History 1, 2, .., k; the learned query budgets (auto and the ladder's two smaller
+    rungs: they need trained budget heads, as the shipped checkpoint has); fixed smaller
+    query sets 1/2 and 1/4 (the tiny variants); bf16 autocast; the plain path; on CUDA also
+    fp16, torch.compile and CUDA graphs."""
     k = num_frames
     histories = sorted({h for h in (1, 2, 4, 8) if h < k})
     configs = [SweepConfig(f"full-h{k}", frames=k)]
     configs += [SweepConfig(f"full-h{h}", frames=h) for h in histories]
+    configs += [SweepConfig(f"budget-{name}-h{k}", frames=k, budget=name)
+                for name in ("auto", "0.6", "0.35")]
     configs += [SweepConfig(f"q50-h{k}", frames=k, queries=0.5),
                 SweepConfig(f"q25-h{k}", frames=k, queries=0.25),
                 SweepConfig(f"bf16-h{k}", frames=k, precision="bf16"),

@@ -68,6 +68,8 @@ def test_select_configs_by_name_and_from_json(tmp_path):
     names = [c.name for c in defaults]
     assert names[:3] == ["full-h4", "full-h1", "full-h2"]
     assert {"q50-h4", "q25-h4", "bf16-h4", "plain-h4"} <= set(names)
+    assert {(c.name, c.budget) for c in defaults if c.budget} == {
+        ("budget-auto-h4", "auto"), ("budget-0.6-h4", "0.6"), ("budget-0.35-h4", "0.35")}
     assert not any("fp16" in n or "compile" in n for n in names)   # CUDA only
     assert [c.name for c in select_configs("q25-h4,full-h1", 4)] == ["q25-h4", "full-h1"]
     with pytest.raises(ValueError, match="unknown configurations"):
