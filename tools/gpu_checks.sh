@@ -19,7 +19,8 @@
 #   5. node_l          ~6-8 min
 #   6. tests,train     ~4 min (the AOTInductor test compiles C++); ~3 min
 #   7. node            odg demo (~2 min) and the node's overhead (~1 min)
-#   8. bench,sweep     64 s, 7 min;  9. presets  ~7 min (two more ODG-L compiles: estimate)
+#   8. bench,sweep     64 s, ~8 min (7 before the three budget rows); 9. presets  ~7 min
+#                      (two more ODG-L compiles: estimate)
 #
 # PART ("all" runs every one in this order):
 #   first    the first call on a machine (above): node_first.json, train_odg_t_b{1,4}.csv,
