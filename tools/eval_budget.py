@@ -1,7 +1,8 @@
 """Accuracy of query budgets per scene class: the full model, each fixed budget of the ladder,
-``query_budget: auto``, the same budgets with a broken (random) or a hand-made (best point
-score) ranking, and models with a fixed smaller query set, all on the same keyframes (the
-backbone runs once per keyframe; every configuration decodes its features).
+``query_budget: auto`` (with ``--margins`` also under other margins), the same budgets with
+a broken (random) or a hand-made (best point score) ranking, and models with a fixed smaller
+query set, all on the same keyframes (the backbone runs once per keyframe; every
+configuration decodes its features).
 
     OMP_NUM_THREADS=1 python -m tools.eval_budget --checkpoint runs/budget/odg_cpu.pt \
         --data quiet=data/quiet/infos_val.pkl dense=data/dense/infos_val.pkl --out eval.json
@@ -32,6 +33,7 @@ from odg_ros.network.checkpoint import load_model
 from odg_ros.network.postprocess import box_list
 from odg_ros.online.budget_policy import BudgetPolicy
 from odg_ros.bench.sweep import query_budget as smaller_query_set
+from odg_ros.commands.common import positive_float
 from odg_ros.train import budget_heads as heads
 from odg_ros.train.evaluate import predicted_grid
 
@@ -135,12 +137,17 @@ def point_score(query, inputs, num_dynamic):
     return torch.cat([inputs[:, :num_dynamic, 1], inputs[:, num_dynamic:, 0]], dim=1)
 
 
-def configurations(model, cfg, include) -> list[Config]:
+def configurations(model, cfg, include, margins=()) -> list[Config]:
+    """margins: also ``auto`` under these margins (``auto-m1.25``; plain ``auto`` has the
+    policy's own)."""
     ladder = budget_ladder(cfg)
     configs = [Config("full", model, cfg)]
     for budget in ladder[1:]:
         configs.append(Config(f"keep-{budget.name}", model, cfg, budget=budget))
     configs.append(Config("auto", model, cfg, policy=BudgetPolicy(ladder)))
+    for margin in margins:
+        configs.append(Config(f"auto-m{margin:g}", model, cfg,
+                              policy=BudgetPolicy(ladder, margin=margin)))
     if "oracles" in include:
         for budget in ladder[1:]:
             for kind in ("change", "truth"):
@@ -205,6 +212,8 @@ def main(argv=None) -> int:
     parser.add_argument("--oracles", action="store_true",
                         help="also the budgets ranked by a perfect keep-score (its target on "
                              "the keyframe) and by the ground-truth gain: bounds")
+    parser.add_argument("--margins", type=positive_float, nargs="+", default=(),
+                        help="also auto with these margins (online/budget_policy.py)")
     parser.add_argument("--out", required=True)
     args = parser.parse_args(argv)
     model, cfg = load_model(args.checkpoint)
@@ -217,7 +226,7 @@ def main(argv=None) -> int:
             classes.update(scene_classes(item))
     include = {name for name, wanted in (("baselines", args.baselines),
                                          ("oracles", args.oracles)) if wanted}
-    configs = configurations(model, cfg, include)
+    configs = configurations(model, cfg, include, args.margins)
     results = {"checkpoint": args.checkpoint, "threads": torch.get_num_threads(),
                "classes": {}}
     for name, infos in classes.items():

@@ -9,7 +9,7 @@ from odg_ros.train import budget_heads as heads
 from odg_ros.network.postprocess import occupancy_grid
 from testing.helpers import model_inputs, tiny_config
 from odg_ros.network import decoder as decoder_module
-from tools.eval_budget import Config, oracle_scores
+from tools.eval_budget import Config, configurations, main, oracle_scores
 
 
 @pytest.fixture(scope="module")
@@ -74,3 +74,18 @@ def test_an_oracle_budget_refines_the_queries_its_oracle_ranks_first(model_and_c
     finally:
         decoder_module.ranked_queries = ranked
     assert len(seen) == 1 and torch.equal(seen[0][0], truth)
+
+
+def test_auto_under_other_margins(model_and_cfg, capsys):
+    """--margins adds auto under each margin: the same needs give each its own rung."""
+    model, cfg = model_and_cfg
+    configs = {c.name: c for c in configurations(model, cfg, set(), margins=(1.0, 2.0))}
+    assert [n for n in configs if n.startswith("auto")] == ["auto", "auto-m1", "auto-m2"]
+    # the tiny model's ladder keeps 20 / 12 / 8 static queries: 8 needed fit the smallest
+    # rung at margin 1, only the full budget at margin 2 (16 > 12)
+    assert [b.static for b in configs["auto"].policy.ladder] == [20, 12, 8]
+    assert configs["auto-m1"].policy.covering_level(8, 0) == 2
+    assert configs["auto-m2"].policy.covering_level(8, 0) == 0
+    with pytest.raises(SystemExit):
+        main(["--checkpoint", "x.pt", "--data", "x.pkl", "--out", "x.json", "--margins", "0"])
+    assert "--margins" in capsys.readouterr().err
