@@ -22,8 +22,8 @@ def shipped():
     return model, cfg
 
 
-def world_keyframes(root, seed: int, traffic: str, cfg):
-    """(decode arguments, batch) per keyframe of a one-scene, one-second world."""
+def world_keyframes(root, seed: int, traffic: str, cfg) -> OccDataset:
+    """The keyframes of a one-scene, one-second world of this seed and traffic."""
     from odg_ros.data.prepare import build_infos, save_infos
     from odg_ros.data.synth.city.scene import SceneKind
     from odg_ros.data.synth.generate import generate
@@ -33,12 +33,9 @@ def world_keyframes(root, seed: int, traffic: str, cfg):
     return OccDataset(load_infos_file(root / "infos.pkl"), cfg, train=False)
 
 
-def decode_arguments(model, batch):
-    images = batch["images"]
-    B, T = images.shape[:2]
-    feats = model.extract_features(images.flatten(0, 1))
-    frames = [[f.unflatten(0, (B, T))[:, t] for f in feats] for t in range(T)]
-    return frames, batch["ego2img"], batch["ego_warp"], batch["time_delta"]
+def run(model, batch, **decode_options):
+    return model(batch["images"], batch["ego2img"], batch["ego_warp"], batch["time_delta"],
+                 **decode_options)
 
 
 @torch.no_grad()
@@ -54,15 +51,14 @@ def test_the_shipped_keep_scores_rank_a_quiet_street(shipped, tmp_path):
         dataset = world_keyframes(tmp_path, 9101, "quiet", cfg)
         for index in range(len(dataset)):
             batch = to_device(collate([dataset[index]]), "cpu")
-            arguments = decode_arguments(model, batch)
-            full = torch.as_tensor(predicted_grid(model.decode(*arguments), cfg)).flatten()
+            full = torch.as_tensor(predicted_grid(run(model, batch), cfg)).flatten()
             for name, meter in meters.items():
                 if name == "reversed":
                     learned = heads.scores_of
                     heads.scores_of = lambda query, inputs, dynamic: -learned(query, inputs,
                                                                                dynamic)
                 try:
-                    output = model.decode(*arguments, budget=smallest)
+                    output = run(model, batch, budget=smallest)
                 finally:
                     heads.__dict__.pop("scores_of", None)
                 grid = torch.as_tensor(predicted_grid(output, cfg)).flatten()
@@ -83,7 +79,7 @@ def test_dense_traffic_keeps_the_full_budget(shipped, tmp_path):
     dataset = world_keyframes(tmp_path, 9103, "dense", cfg)
     for index in range(len(dataset)):
         batch = to_device(collate([dataset[index]]), "cpu")
-        output = model.decode(*decode_arguments(model, batch), budget=policy.budget)
+        output = run(model, batch, budget=policy.budget)
         static, dynamic = needed_queries(output.keep_scores, output.num_dynamic,
                                          model.decoder.budget_heads.threshold)[0].tolist()
         # measured: 87 and 85 static, 41 dynamic queries needed
