@@ -212,3 +212,49 @@ def test_export_writes_the_calibrated_threshold_and_the_int8_weights(tiny_split,
     for key, value in model.state_dict().items():
         torch.testing.assert_close(value, reference[key], rtol=0, atol=1e-6, msg=key)
     assert out.stat().st_size < checkpoint.stat().st_size / 2
+
+
+def test_export_calibrates_the_probabilities_and_keeps_the_shipped_grid(tiny_split, tmp_path,
+                                                                        capsys):
+    """--keep-thresholds on a shipped (int8) checkpoint: the same stored weights, bit for bit,
+    the same thresholds and so the same grid; a calibration added, what else the file
+    recorded kept."""
+    data, checkpoint = tiny_split
+    shipped = tmp_path / "shipped.pt"
+    save_checkpoint(shipped, load_model(checkpoint)[0], compress="int8",
+                    extra={"budget_heads": {"steps": 7}})
+    out = tmp_path / "calibrated.pt"
+    assert main(["export", "--checkpoint", str(shipped), "--out", str(out), "--compress", "int8",
+                 "--calibrate", str(data), str(data), "--keep-thresholds"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["fitted"]["keyframes"] == 6 and "mIoU_by_threshold" not in report
+    before, after = (torch.load(p, weights_only=False) for p in (shipped, out))
+    assert before["model"].keys() == after["model"].keys()
+    for key, value in before["model"].items():
+        stored = after["model"][key]
+        if isinstance(value, dict):                                # int8: q and scale
+            assert all(torch.equal(value[k], stored[k]) for k in value), key
+        else:
+            assert torch.equal(value, stored), key
+    assert after["budget_heads"] == {"steps": 7}
+    cfg_before, cfg_after = load_model(shipped)[1], load_model(out)[1]
+    assert cfg_after.calibration is not None and cfg_before.calibration is None
+    assert cfg_after.replace(calibration=None) == cfg_before
+    # the grid: the same labels from both files
+    from odg_ros.data.dataset import OccDataset
+    from odg_ros.train.evaluate import padded_grid, predict_split
+    grids = []
+    for path in (shipped, out):
+        model, cfg = load_model(path)
+        dataset = OccDataset(str(data), cfg)
+        grids.append([padded_grid(o, cfg)[0].numpy() for _, _, o in
+                      predict_split(model, dataset, progress=False)])
+    for a, b in zip(*grids):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_keep_thresholds_needs_calibrate(tiny_split, tmp_path, capsys):
+    _, checkpoint = tiny_split
+    assert main(["export", "--checkpoint", str(checkpoint), "--out", str(tmp_path / "a.pt"),
+                 "--keep-thresholds"]) == 2
+    assert "--calibrate" in capsys.readouterr().err

@@ -1,0 +1,170 @@
+"""The calibration (network/calibration.py, train/calibrate.py): confidence and box scores as
+probabilities, the missed-occupancy hazard; checked by hand on small grids, the fits recover
+known parameters, the grid's labels never change, and the step applies it with no host
+read."""
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from odg_ros.config import load_preset
+from odg_ros.network.calibration import (ABOVE, HAZARD_FLOOR, INSIDE, OCCUPIED, UNDER,
+                                         Calibration, column_features)
+from odg_ros.train.calibrate import fit_hazard, fit_logistic
+
+C = 17
+FREE = 17
+SHAPE = (200, 200, 16)
+
+
+def calibration_values(**changes):
+    values = {"label_scale": [1.0 + 0.1 * c for c in range(C)],
+              "label_bias": [-0.5 + 0.05 * c for c in range(C)],
+              "hazard_inside": [0.0] * (C + 1), "hazard_above": [0.0] * (C + 1),
+              "hazard_near": [0.0] * C, "free_scale": 0.7, "free_bias": -0.3,
+              "box": [1.5, -0.2]}
+    values.update(changes)
+    return values
+
+
+def config(**changes):
+    return load_preset("odg_cpu", calibration=calibration_values(**changes))
+
+
+def scene():
+    """A road everywhere (z = 2), a car at (50..52, 60, 3..5) and a roof over nothing at
+    (100, 100, 10)."""
+    labels = np.full(SHAPE, FREE, np.uint8)
+    labels[:, :, 2] = 11
+    labels[50:53, 60, 3:6] = 4
+    labels[100, 100, 10] = 15
+    return labels
+
+
+def test_zones_in_a_column():
+    present, near, zone = column_features(torch.from_numpy(scene().reshape(-1)), SHAPE, C)
+    zone = zone.numpy()
+    assert (zone[50, 60, :2] == UNDER).all() and (zone[50, 60, 2:6] >= OCCUPIED).all()
+    assert (zone[50, 60, 6:] == ABOVE).all()
+    assert (zone[100, 100, 3:10] == INSIDE).all()            # between the road and the roof
+    assert (zone[0, 0, 3:] == ABOVE).all() and (zone[0, 0, :2] == UNDER).all()
+    present, near = present.numpy(), near.numpy()
+    assert present[4, 50, 60] and present[11, 50, 60] and present[FREE, 50, 60]
+    assert not present[4, 50, 62] and near[4, 50, 61] and not near[4, 50, 62]
+    assert near[4, 49, 59] and not near[4, 48, 60]
+
+
+def test_hazard_and_confidence_by_hand():
+    inside, above, near = [0.0] * (C + 1), [0.0] * (C + 1), [0.0] * C
+    above[FREE], above[4], inside[15], near[4] = 0.001, 0.05, 0.3, 0.02
+    cfg = config(hazard_inside=inside, hazard_above=above, hazard_near=near)
+    calibration = Calibration(cfg)
+    labels = scene()
+    raw = np.where(labels != FREE, 200, 0).astype(np.uint8)
+    confidence, hazard = calibration(torch.from_numpy(labels.reshape(-1)),
+                                     torch.from_numpy(raw.reshape(-1)))
+    hazard = hazard.numpy().reshape(SHAPE)
+    confidence = confidence.numpy().reshape(SHAPE)
+    # above the car: the free baseline + the car's above rate + next to a car (itself)
+    assert hazard[51, 60, 8] == pytest.approx(0.001 + 0.05 + 0.02)
+    assert hazard[51, 61, 8] == pytest.approx(0.001 + 0.02)      # next to it
+    assert hazard[10, 10, 8] == pytest.approx(0.001)             # open road
+    assert hazard[100, 100, 5] == pytest.approx(0.3)             # under the roof
+    assert hazard[100, 100, 12] == pytest.approx(0.001)          # above it
+    assert hazard[51, 60, 0] == 0 and hazard[51, 60, 4] == 0     # under the road, the car
+    # occupied: per class, sigmoid(scale logit(score) + bias)
+    score = 200 / 255
+    for label, (x, y, z) in ((4, (51, 60, 4)), (11, (10, 10, 2)), (15, (100, 100, 10))):
+        scale, bias = 1.0 + 0.1 * label, -0.5 + 0.05 * label
+        expected = 1 / (1 + math.exp(-(scale * math.log(score / (1 - score)) + bias)))
+        assert confidence[x, y, z] == round(255 * expected)
+    # free: 1 - sigmoid(free_scale log(hazard + floor) + free_bias)
+    for at in ((51, 60, 8), (10, 10, 8), (51, 60, 0)):
+        p = 1 / (1 + math.exp(-(0.7 * math.log(hazard[at] + HAZARD_FLOOR) - 0.3)))
+        assert confidence[at] == round(255 * (1 - p))
+
+
+def test_without_a_calibration_the_confidence_is_the_raw_score():
+    calibration = Calibration(load_preset("odg_cpu"))
+    labels = torch.from_numpy(scene().reshape(-1))
+    raw = torch.randint(0, 256, labels.shape, dtype=torch.uint8)
+    confidence, hazard = calibration(labels, raw)
+    assert confidence is raw and hazard is None
+    score = torch.rand(10)
+    assert calibration.box_score(score) is score
+
+
+def test_box_scores_keep_their_order():
+    calibration = Calibration(config())
+    score = torch.sort(torch.rand(100), descending=True).values
+    calibrated = calibration.box_score(score)
+    assert (calibrated.diff() <= 0).all() and not torch.equal(calibrated, score)
+
+
+@pytest.mark.parametrize("change, message", [
+    (dict(label_scale=[1.0] * 3), "label_scale"),
+    (dict(hazard_near=[-0.1] * C), "negative"),
+    (dict(free_bias=float("nan")), "not finite"),
+    (dict(box=[-1.0, 0.0]), "box"),
+])
+def test_a_calibration_that_does_not_fit_is_refused(change, message):
+    with pytest.raises(ValueError, match=message):
+        config(**change)
+
+
+def test_fit_logistic_recovers_a_known_map():
+    rng = np.random.default_rng(0)
+    x = rng.normal(size=200_000)
+    y = rng.random(200_000) < 1 / (1 + np.exp(-(1.7 * x - 0.4)))
+    a, b = fit_logistic(x, y)
+    assert a == pytest.approx(1.7, abs=0.05) and b == pytest.approx(-0.4, abs=0.05)
+    # binned data (counts as weights) gives the same
+    bins = np.round(x, 1)
+    values = np.unique(bins)
+    index = np.searchsorted(values, bins)
+    right = np.bincount(index, y, minlength=len(values))
+    total = np.bincount(index, minlength=len(values))
+    a2, b2 = fit_logistic(np.r_[values, values], np.r_[np.ones(len(values)),
+                                                       np.zeros(len(values))],
+                          np.r_[right, total - right])
+    assert a2 == pytest.approx(a, abs=0.05) and b2 == pytest.approx(b, abs=0.05)
+
+
+def test_fit_hazard_recovers_known_rates():
+    rng = np.random.default_rng(0)
+    rates = np.array([0.0, 0.02, 0.3, 0.1])
+    paths = rng.exponential(3.0, size=(100_000, 4)) * (rng.random((100_000, 4)) < 0.5)
+    seen = rng.random(100_000) < np.exp(-paths @ rates)
+    fitted = fit_hazard(paths, seen, steps=600)
+    np.testing.assert_allclose(fitted, rates, atol=0.01)
+
+
+def test_the_calibrated_step_changes_no_label_and_reads_nothing_back():
+    """The same model with and without a calibration: the same labels, bit for bit, the
+    confidence and box scores mapped; no host read inside the calibrated step."""
+    from odg_ros.online.predictor import OnlinePredictor
+    from testing.online import HostSyncCounter, make_model, make_sets
+    model, cfg = make_model()
+    above = [0.0] * (C + 1)
+    above[FREE] = 0.01
+    calibrated_cfg = cfg.replace(calibration=calibration_values(hazard_above=above))
+    sets = make_sets(cfg, 3)
+    plain = OnlinePredictor(model, cfg, "cpu", keep_output=True)
+    calibrated = OnlinePredictor(model, calibrated_cfg, "cpu")
+    for s in sets:
+        a, b = plain.step(*s), calibrated.step(*s)
+        np.testing.assert_array_equal(a.grid, b.grid)
+        assert (a.grid != FREE).sum() > 50
+        occupied = a.grid != FREE
+        table = Calibration(calibrated_cfg).label_table.numpy().reshape(C + 1, 256)
+        np.testing.assert_array_equal(b.confidence[occupied],
+                                      table[a.grid[occupied], a.confidence[occupied]])
+        assert (b.confidence[~occupied] > 200).all()                  # free: P(free) high
+        assert [x["label"] for x in a.boxes] == [x["label"] for x in b.boxes]
+        expected = Calibration(calibrated_cfg).box_score(torch.tensor([x["score"]
+                                                                       for x in a.boxes]))
+        np.testing.assert_allclose([x["score"] for x in b.boxes], expected.numpy(), atol=1e-6)
+    with torch.inference_mode(), HostSyncCounter() as counter:
+        calibrated.online_step(calibrated._images, calibrated._packed)
+    assert counter.ops > 1000 and counter.syncs == []
