@@ -131,6 +131,42 @@ def test_eval_command_reports_grid_and_boxes(tiny_split, capsys):
     assert "MEAN" in table and "boxes: mAP" in table
 
 
+def test_eval_reports_what_a_planner_reads_per_split_and_together(tiny_split, capsys):
+    """Two named splits: each scored alone and both together; the visibility beside the
+    ground-truth grid's ceiling, calibration error and flips; in JSON and in the table. (The
+    tiny world's mask_camera is a block, not what cameras see: the figures' values are
+    checked in test/metrics/test_planner.py.)"""
+    data, checkpoint = tiny_split
+    assert main(["eval", "--checkpoint", str(checkpoint), "--data", f"one={data}",
+                 f"two={data}", "--no-rayiou", "--json"]) == 0
+    result = json.loads(capsys.readouterr().out)
+    assert set(result["sets"]) == {"one", "two"} and result["samples"] == 6
+    assert result["sets"]["one"]["mIoU"] == result["sets"]["two"]["mIoU"] == result["mIoU"]
+    for scored in [result] + list(result["sets"].values()):
+        visibility = scored["visibility"]
+        assert visibility["min_clear"] == 0.8
+        for grid in ("model", "ground_truth_grid"):
+            assert set(visibility[grid]["voxels"]) == {
+                "observed_precision", "observed_recall", "free_observed_precision",
+                "free_observed_recall"}
+            assert set(visibility[grid]["bev"]) == {"known_precision", "known_recall",
+                                                    "free_precision", "free_recall"}
+        truth = visibility["ground_truth_grid"]["voxels"]
+        assert 0 < truth["observed_precision"] <= 1 and 0 < truth["observed_recall"] <= 1
+        assert scored["confidence"]["calibrated"] is False      # the tiny model has none
+        assert scored["confidence"]["free"]["samples"] > 0
+        assert scored["stability"]["pairs"] == (4 if scored is result else 2)
+    assert result["visibility"]["model"] == result["sets"]["one"]["visibility"]["model"]
+    assert main(["eval", "--checkpoint", str(checkpoint), "--data", str(data), "--no-rayiou",
+                 "--visibility-min-clear", "0.5"]) == 0
+    table = capsys.readouterr().out
+    assert "what a planner reads" in table and "truth grid" in table
+    assert "visibility_min_clear 0.5" in table and "expected calibration error" in table
+    assert main(["eval", "--checkpoint", str(checkpoint), "--data", f"a={data}", f"a={data}",
+                 "--no-rayiou"]) == 2
+    assert "NAME" in capsys.readouterr().err
+
+
 def test_eval_overrides_reach_the_model(tiny_split, capsys, tmp_path):
     data, checkpoint = tiny_split
     args = ["eval", "--checkpoint", str(checkpoint), "--data", str(data), "--no-rayiou", "--json"]
