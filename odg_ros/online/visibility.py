@@ -54,7 +54,7 @@ LINE, BALL, FREE = 3, 6, 7
 # far voxels are; in voxels: the radius of a ball occluder, how far behind a sample a plane's
 # crossing may lie, and the horizontal distance between samples; the occluder tests run on
 # WINDOW samples from the first occupied one, up to CANDIDATES times along a ray.
-CELLS = (32, 64)
+CELLS = (24, 64)
 HORIZON = 0.03
 BALL_RADIUS, PLANE_REACH, STEP = 0.35, 0.75, 0.9
 CANDIDATES, WINDOW = 3, 8
@@ -119,6 +119,11 @@ class Visibility(nn.Module):
                                         * STEP).to(device), persistent=False)
         self.register_buffer("layer_bits", torch.arange(self.grid_shape[2] + 2, dtype=torch.int32,
                                                         device=device), persistent=False)
+        self.register_buffer("layers", torch.arange(self.grid_shape[2], dtype=torch.float32,
+                                                     device=device), persistent=False)
+        # which image edges hold strictly (u < u1 w, v < v1 w)
+        self.register_buffer("strict_edges", torch.tensor([0.0, 1.0, 0.0, 1.0], device=device),
+                             persistent=False)
         self.register_buffer("kind_table", torch.tensor(_kind_table(), dtype=torch.uint8,
                                                         device=device), persistent=False)
         for axis, name in enumerate("xyz"):
@@ -368,9 +373,11 @@ class Visibility(nn.Module):
         # ray running away from the plane or along it does not cross it (<= 0). Behind
         # its ball or line, or where the ray is not clear enough: beyond the cell's depth.
         n = normal.index_select(1, cell).view(3, X, Y, Z)
-        inverse = (n[0] * dx + n[1] * dy + n[2] * dz).view(-1)
-        behind = ((inverse > 0) & (inverse * (distance - self.tolerance) > distance)) | \
-            (distance > beyond.index_select(0, cell))
+        # (in place where a result is fresh: every [X, Y, Z] tensor allocated costs)
+        inverse = (n[0] * dx).addcmul_(n[1], dy).addcmul_(n[2], dz).view(-1)
+        behind = (distance - self.tolerance).mul_(inverse) > distance
+        behind &= inverse > 0
+        behind |= distance > beyond.index_select(0, cell)
         return (inside & ~behind).to(torch.uint8)
 
     def voxel_cells(self, ego2img, bounds, cells):
@@ -380,27 +387,28 @@ class Visibility(nn.Module):
         rows, columns = self.cells
         origin, centre, first_az, az_size, first_tan, tan_size = cells
         camera = self.column_cameras(ego2img, bounds)                       # [X, Y]
-        inside = self.in_image(ego2img[camera], bounds[camera]).view(-1)
+        inside = self.in_image(ego2img, bounds, camera).view(-1)
         # per column [X, Y, 1]: its camera's centre, the horizontal distance and the
         # azimuth cell (a column of the bordered map: 0 and columns + 1 are outside)
         o = origin[camera][..., None]
         dx = self.centre_x[:, None, None] - o[:, :, 0]
         dy = self.centre_y[None, :, None] - o[:, :, 1]
-        horizontal = torch.sqrt(dx * dx + dy * dy).clamp(min=1e-3)
+        squared = dx * dx + dy * dy
+        horizontal = torch.sqrt(squared).clamp(min=1e-3)
         offset = torch.remainder(torch.atan2(dy, dx) - centre[camera][..., None] + math.pi,
                                  2 * math.pi) - math.pi
         a = ((offset - first_az[camera][..., None]) / az_size[camera][..., None]).floor()
         # the map's first row (the border above is row 0) of this column
         base = camera[..., None] * ((rows + 2) * (columns + 2)) + a.clamp(-1, columns) + 1 \
             + (columns + 2)
-        # per voxel [X, Y, Z]: its row (warped elevation, as ``warp`` with the divisions
-        # done per column), cell and distance
-        dz = self.centre_z - o[:, :, 2]
         per_row = 1.0 / tan_size[camera][..., None]
-        warped = torch.log1p(dz.abs() * (1.0 / (self.horizon * horizontal))) * torch.sign(dz)
-        row = torch.addcmul(-first_tan[camera][..., None] * per_row, warped, per_row).floor()
-        cell = torch.add(base, row.clamp(-1, rows), alpha=columns + 2).int().view(-1)
-        distance = torch.sqrt(horizontal * horizontal + dz * dz).view(-1)
+        # per voxel [X, Y, Z] (in place where a result is fresh): its row (warped elevation,
+        # as ``warp`` with the divisions done per column), cell and distance
+        dz = self.centre_z - o[:, :, 2]
+        row = dz.abs().mul_(1.0 / (self.horizon * horizontal)).log1p_().mul_(torch.sign(dz))
+        row = row.mul_(per_row).sub_(first_tan[camera][..., None] * per_row).floor_()
+        cell = row.clamp_(-1, rows).mul_(columns + 2).add_(base).int().view(-1)
+        distance = (dz * dz).add_(squared).sqrt_().view(-1)
         return inside, cell, distance, (dx, dy, dz)
 
     def optical_paths(self, rates, ego2img, img2ego, bounds, voxels, chunk: int = 8):
@@ -434,24 +442,36 @@ class Visibility(nn.Module):
             out.append(sums.reshape(-1, sums.shape[-1])[where] * (STEP * norm)[:, None])
         return torch.cat(out, -1)
 
-    def in_image(self, ego2img, bounds) -> torch.Tensor:
+    def in_image(self, ego2img, bounds, camera) -> torch.Tensor:
         """bool [X, Y, Z]: the voxel centres inside the image of their column's camera
-        (``ego2img`` [X, Y, 4, 4] and ``bounds`` [X, Y, 4] per column); NaN geometry sees
-        nothing."""
-        e = ego2img[:, :, :3]                                                 # [X, Y, 3, 4]
+        (``ego2img`` [N, 4, 4], ``bounds`` [N, 4], ``camera`` long [X, Y]); NaN geometry
+        sees nothing."""
+        e = ego2img[:, :3]                                                    # [N, 3, 4]
         # each image edge as a plane through the camera, its normal pointing inwards:
         # u >= u0 w, u < u1 w, v >= v0 w, v < v1 w (the first two also put it in front:
         # they add up to (u1 - u0) w > 0)
-        b = bounds[..., None]
-        edges = torch.stack([e[:, :, 0] - b[:, :, 0] * e[:, :, 2],
-                             b[:, :, 2] * e[:, :, 2] - e[:, :, 0],
-                             e[:, :, 1] - b[:, :, 1] * e[:, :, 2],
-                             b[:, :, 3] * e[:, :, 2] - e[:, :, 1]])           # [4, X, Y, 4]
-        # per plane: the column's part (x, y and the constant) once, then the height's
-        at_column = (edges[..., 0] * self.centre_x[:, None] + edges[..., 1] * self.centre_y
-                     + edges[..., 3])[..., None]                                # [4, X, Y, 1]
-        side = torch.addcmul(at_column, edges[..., 2, None], self.centre_z)     # [4, X, Y, Z]
-        return (side[0] >= 0) & (side[1] > 0) & (side[2] >= 0) & (side[3] > 0)
+        b = bounds[:, :, None]
+        edges = torch.stack([e[:, 0] - b[:, 0] * e[:, 2], b[:, 2] * e[:, 2] - e[:, 0],
+                             e[:, 1] - b[:, 1] * e[:, 2], b[:, 3] * e[:, 2] - e[:, 1]], -1)
+        x, y, slope, constant = edges[camera].unbind(-2)                  # [X, Y, 4] each
+        # along a column, each is linear in the height: inside on one side of the layer
+        # where it crosses 0, so the image holds a range of layers [lowest, highest]
+        at_column = x * self.centre_x[:, None, None] + y * self.centre_y[:, None] + constant
+        big = 1e6
+        crossing = torch.nan_to_num((-at_column / slope - self.centre_z[0]) / self.voxel,
+                                    nan=0.0, posinf=big, neginf=-big)          # in layers
+        # rising (slope > 0): the layers k >= crossing (k > crossing for the strict edges u1,
+        # v1); falling: k <= crossing (k <); level (or NaN): all of them or none (masks and
+        # sums, not selects: cheaper)
+        strict = self.strict_edges
+        up = strict * (torch.floor(crossing) + 1) + (1 - strict) * torch.ceil(crossing)
+        down = strict * (torch.ceil(crossing) - 1) + (1 - strict) * torch.floor(crossing)
+        rising, falling = (slope > 0).float(), (slope < 0).float()
+        level = 1 - rising - falling
+        none = big * (1 - 2 * (at_column > 0).float())           # level: none unless inside
+        lowest = (rising * up - falling * big + level * none).amax(-1, keepdim=True)
+        highest = (falling * down + rising * big - level * none).amin(-1, keepdim=True)
+        return (self.layers >= lowest) & (self.layers <= highest)
 
     def bordered_maps(self, kind, hazard, cells):
         """The depth maps as the voxel test reads them, flat over [N, rows + 2, columns + 2]
