@@ -8,13 +8,15 @@ host read).
   per class). For a free voxel, that it is free: a logistic map of the log of its
   missed-occupancy hazard (below).
 * **Missed-occupancy hazard**: how likely a ray through a voxel the grid calls free is stopped
-  there by something the grid missed, per voxel length of the ray. It is read from what the
-  grid holds in the voxel's column and in the 8 columns around it: per class present in the
-  column, one rate for the free voxels between the column's lowest and highest occupied voxel
-  and one for those above it, plus one rate per class present next to it (the free class's
-  rates are the baseline of every column); 0 under the column's lowest occupied voxel (under
-  the surface; the depth test handles it). The visibility (online/visibility.py) sums it along
-  each camera ray: the ray is clear up to a voxel with probability exp(-sum).
+  there by something the grid missed, per voxel length of the ray. A sum of rates, each for
+  one fact about the voxel and the classes the grid holds around it (``HAZARD_RATES``): per
+  class in its own column, where the voxel lies in that column (between the lowest and
+  highest occupied voxel, up to 1.6 m above the highest, higher); per class in the 8
+  columns around it, or in the ring of 16 around those, and whether the voxel is at the
+  height of a car's or a person's body (``BODY``, 0-2 m). The free class's rates are the
+  baseline of every column. 0 under a column's lowest occupied voxel (under the surface:
+  the depth test handles it). The visibility (online/visibility.py) sums it along each
+  camera ray: the ray is clear up to a voxel with probability exp(-sum).
 * **Box score**: the probability that a published box is right (its class, centre within
   2 m): one logistic map of its score's logit, monotone, so the ranking and the boxes that
   pass ``box_score_threshold`` stay the same.
@@ -34,10 +36,22 @@ from torch import nn
 HAZARD_FLOOR = 1e-4
 # the raw score's range inside its logit: a score byte of 0 or 255 stays finite
 SCORE_FLOOR = 0.5 / 255.0
-# zone of a voxel in its column: 0 under the lowest occupied voxel, 1 between the lowest and
-# highest, 2 above the highest (or in a column with nothing occupied); +4: occupied
-UNDER, INSIDE, ABOVE, OCCUPIED = 0, 1, 2, 4
-ZONES = 8
+# where a free voxel lies in its column: under the lowest occupied voxel, between the lowest
+# and the highest, up to ABOVE_LOW layers above the highest (or anywhere in a column with
+# nothing occupied), higher; OCCUPIED: not free
+UNDER, INSIDE, ABOVE_LOW, ABOVE_HIGH, OCCUPIED = 0, 1, 2, 3, 8
+ABOVE_LOW_LAYERS = 4
+# heights of a car's or a person's body (m, grid frame: the ground at 0)
+BODY = (0.0, 2.0)
+# the rates of the hazard, by name: (how many: per class "C" or "C+1" with free, what for)
+HAZARD_RATES = {
+    "hazard_inside": ("C+1", "class in the column, voxel between its lowest and highest"),
+    "hazard_above_low": ("C+1", "class in the column, voxel up to 1.6 m above its highest"),
+    "hazard_above_high": ("C+1", "class in the column, voxel higher"),
+    "hazard_near_body": ("C", "class in the 3 x 3 columns around, voxel at body height"),
+    "hazard_near_other": ("C", "class in the 3 x 3 columns around, voxel at another height"),
+    "hazard_ring_body": ("C", "class in the ring of 16 columns around those, body height"),
+}
 
 
 def logit(p: torch.Tensor) -> torch.Tensor:
@@ -45,11 +59,14 @@ def logit(p: torch.Tensor) -> torch.Tensor:
     return torch.log(p) - torch.log1p(-p)
 
 
+def rate_lengths(num_classes: int) -> dict[str, int]:
+    return {key: num_classes + (size == "C+1") for key, (size, _) in HAZARD_RATES.items()}
+
+
 def check_calibration(values: dict, num_classes: int) -> None:
     """A clear error for a calibration dict that does not fit a model of ``num_classes``."""
     lengths = {"label_scale": num_classes, "label_bias": num_classes,
-               "hazard_inside": num_classes + 1, "hazard_above": num_classes + 1,
-               "hazard_near": num_classes}
+               **rate_lengths(num_classes)}
     for key, length in lengths.items():
         if len(values.get(key, ())) != length:
             raise ValueError(f"calibration {key}: expected {length} values, got "
@@ -64,8 +81,7 @@ def check_calibration(values: dict, num_classes: int) -> None:
         [values["free_scale"], values["free_bias"]] + list(box or ())
     if not all(math.isfinite(v) for v in numbers):
         raise ValueError("calibration: a value is not finite")
-    if min(v for key in ("hazard_inside", "hazard_above", "hazard_near")
-           for v in values[key]) < 0:
+    if min(v for key in HAZARD_RATES for v in values[key]) < 0:
         raise ValueError("calibration: a hazard rate is negative")
 
 
@@ -94,24 +110,38 @@ class Calibration(nn.Module):
         table = torch.cat([table, torch.zeros(1, 256, **f32)])
         self.register_buffer("label_table", (table * 255).round().to(torch.uint8).view(-1),
                              persistent=False)
-        self.register_buffer("rates", torch.tensor(
-            [values["hazard_inside"], values["hazard_above"]], **f32), persistent=False)
-        self.register_buffer("near_rates", torch.tensor(values["hazard_near"], **f32),
-                             persistent=False)
+        # the rates as [which, class]: own column (inside, above low, above high) over C + 1
+        # classes; around (near body, near other, ring body) over C
+        self.register_buffer("own_rates", torch.tensor(
+            [values[k] for k in ("hazard_inside", "hazard_above_low", "hazard_above_high")],
+            **f32), persistent=False)
+        self.register_buffer("around_rates", torch.tensor(
+            [values[k] for k in ("hazard_near_body", "hazard_near_other", "hazard_ring_body")],
+            **f32), persistent=False)
         self.free_scale, self.free_bias = float(values["free_scale"]), \
             float(values["free_bias"])
         box = values.get("box")
         self.box = None if box is None else (float(box[0]), float(box[1]))
+        self.register_buffer("body", body_layers(cfg).to(device), persistent=False)
+        # the codes of free voxels (occupied ones take their confidence from label_table)
+        self.register_buffer("free_codes", (torch.arange(16, device=device) < OCCUPIED)
+                             .float(), persistent=False)
 
-    # ------------------------------------------------------------------- per column
-    def column_hazards(self, present, near) -> torch.Tensor:
-        """[ZONES, X, Y]: the hazard of a free voxel by its zone (0 for the others)."""
+    def column_hazards(self, features) -> torch.Tensor:
+        """[X, Y, 16]: the hazard of a free voxel by its code (``voxel_codes``) in each
+        column; 0 for the occupied ones."""
+        present, near, ring, _ = features
         C1, X, Y = present.shape
-        flat = present.view(C1, X * Y).float()
-        by_zone = self.rates @ flat + (self.near_rates @ near.view(C1 - 1, X * Y).float())
-        zero = torch.zeros_like(by_zone[0])
-        return torch.stack([zero, by_zone[0], by_zone[1]] + [zero] * (ZONES - 3)).view(
-            ZONES, X, Y)
+        own = self.own_rates @ present.view(C1, X * Y).float()                 # [3, X*Y]
+        near = near.view(C1 - 1, X * Y).float()
+        around = torch.stack([self.around_rates[0] @ near + self.around_rates[2]
+                              @ ring.view(C1 - 1, X * Y).float(),
+                              self.around_rates[1] @ near])                      # [2, X*Y]
+        zero = torch.zeros_like(own[0])
+        # code = zone + 4 body height; UNDER gets nothing from around either
+        by_code = [zero, own[0] + around[1], own[1] + around[1], own[2] + around[1],
+                   zero, own[0] + around[0], own[1] + around[0], own[2] + around[0]]
+        return torch.stack(by_code + [zero] * 8, -1).view(X, Y, 16)
 
     # ---------------------------------------------------------------------- outputs
     def forward(self, labels: torch.Tensor, confidence: torch.Tensor):
@@ -121,20 +151,18 @@ class Calibration(nn.Module):
         if not self.calibrated:
             return confidence, None
         X, Y, Z = self.grid_shape
-        present, near, zone = column_features(labels, self.grid_shape, self.num_classes)
-        hazards = self.column_hazards(present, near)                      # [ZONES, X, Y]
-        # one look-up per voxel from its column's table of zones
-        index = (torch.arange(X * Y, device=labels.device).view(X, Y, 1) * ZONES
-                 + zone).view(-1)
-        hazard = hazards.permute(1, 2, 0).reshape(-1).index_select(0, index)
+        features = column_features(labels, self.grid_shape, self.num_classes)
+        hazards = self.column_hazards(features)                               # [X, Y, 16]
+        # one look-up per voxel from its column's table of codes
+        index = (torch.arange(X * Y, device=labels.device).view(X, Y, 1) * 16
+                 + voxel_codes(features[3], self.body)).view(-1)
+        hazard = hazards.view(-1).index_select(0, index)
         free = 1.0 - torch.sigmoid(self.free_scale * torch.log(hazards + HAZARD_FLOOR)
                                    + self.free_bias)
-        free_bytes = torch.where(torch.arange(ZONES, device=labels.device)[:, None, None]
-                                 < OCCUPIED, (free * 255).round(), torch.zeros_like(free))
-        free_bytes = free_bytes.to(torch.uint8).permute(1, 2, 0).reshape(-1)
+        free_bytes = ((free * 255).round() * self.free_codes).to(torch.uint8)
         occupied = self.label_table.index_select(
             0, (labels.int() * 256 + confidence.int()).view(-1))
-        return free_bytes.index_select(0, index) + occupied, hazard
+        return free_bytes.view(-1).index_select(0, index) + occupied, hazard
 
     def box_score(self, score: torch.Tensor) -> torch.Tensor:
         """Box scores [..] -> the probability that each box is right (as is without a box
@@ -144,11 +172,18 @@ class Calibration(nn.Module):
         return torch.sigmoid(self.box[0] * logit(score) + self.box[1])
 
 
+def body_layers(cfg) -> torch.Tensor:
+    """float [Z]: 1 for the layers whose centre lies at body height (``BODY``), else 0."""
+    Z = cfg.grid_shape[2]
+    centre = (torch.arange(Z, dtype=torch.float32) + 0.5) * cfg.voxel_size + cfg.pc_range[2]
+    return ((centre > BODY[0]) & (centre <= BODY[1])).float()
+
+
 def column_features(labels: torch.Tensor, grid_shape, num_classes: int):
     """labels uint8 [X*Y*Z] -> (which classes each column holds: uint8 [C + 1, X, Y], the
-    free class last; which of the classes 0..C-1 the 3 x 3 columns around it hold: uint8
-    [C, X, Y]; the zone of every voxel in its column: uint8 [X, Y, Z], UNDER, INSIDE or ABOVE,
-    + OCCUPIED where occupied)."""
+    free class last; which of the classes 0..C-1 the 3 x 3 columns around it hold, and which
+    only the ring of 16 around those: uint8 [C, X, Y] each; the zone of every voxel in its
+    column: uint8 [X, Y, Z], UNDER ... ABOVE_HIGH, or OCCUPIED)."""
     X, Y, Z = grid_shape
     C = num_classes
     grid = labels.view(X * Y, Z)
@@ -156,6 +191,7 @@ def column_features(labels: torch.Tensor, grid_shape, num_classes: int):
     present.scatter_(0, grid.transpose(0, 1).long(), 1)
     present = present.view(C + 1, X, Y)
     near = _max3x3(present[:C])
+    ring = _max3x3(near) - near
     occupied = grid != C                                                    # [X*Y, Z]
     layers = torch.arange(Z, device=labels.device)
     # the lowest and highest occupied layer of each column (-1: none)
@@ -164,8 +200,31 @@ def column_features(labels: torch.Tensor, grid_shape, num_classes: int):
                          Z - (occupied * (Z - layers)).amax(-1, keepdim=True),
                          torch.full_like(top, -1))
     zone = (layers > bottom).to(torch.uint8) + (layers > top).to(torch.uint8) \
-        + occupied.to(torch.uint8) * OCCUPIED
-    return present, near, zone.view(X, Y, Z)
+        + (layers > top + ABOVE_LOW_LAYERS).to(torch.uint8)
+    zone = torch.where(occupied, torch.full_like(zone, OCCUPIED), zone)
+    return present, near, ring, zone.view(X, Y, Z)
+
+
+def voxel_codes(zone: torch.Tensor, body: torch.Tensor) -> torch.Tensor:
+    """[X, Y, Z] codes 0..15 of the column tables: zone + 4 at body height (OCCUPIED: 8)."""
+    return torch.where(zone == OCCUPIED, zone, zone + 4 * body.to(zone.dtype)).long()
+
+
+def hazard_indicators(labels: torch.Tensor, cfg, names=None):
+    """{rate name: float [k, X, Y, Z]} of 0/1: which voxels each rate of HAZARD_RATES (per
+    class) applies to, for fitting them (train/calibrate.py); ``names``: only these."""
+    C = cfg.num_classes
+    present, near, ring, zone = column_features(labels, cfg.grid_shape, C)
+    body = body_layers(cfg).to(labels.device).bool()
+    free = (zone == INSIDE) | (zone == ABOVE_LOW) | (zone == ABOVE_HIGH)
+    where = {"hazard_inside": (zone == INSIDE, present),
+             "hazard_above_low": (zone == ABOVE_LOW, present),
+             "hazard_above_high": (zone == ABOVE_HIGH, present),
+             "hazard_near_body": (free & body, near),
+             "hazard_near_other": (free & ~body, near),
+             "hazard_ring_body": (free & body, ring)}
+    return {name: (where[name][0][None] & where[name][1][..., None].bool()).float()
+            for name in (names or HAZARD_RATES)}
 
 
 def _max3x3(grid: torch.Tensor) -> torch.Tensor:

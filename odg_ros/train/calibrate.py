@@ -110,25 +110,6 @@ def fit_hazard(paths: np.ndarray, seen: np.ndarray, weight: np.ndarray | None = 
     return torch.nn.functional.softplus(raw).detach().numpy()
 
 
-def hazard_features(labels: torch.Tensor, cfg, channels: slice) -> torch.Tensor:
-    """The per-voxel indicator grids [k, X, Y, Z] float of the hazard's rates ``channels``
-    (calibration.py's order: inside x present class 0..C, above x present 0..C, inside or
-    above x class 0..C-1 next to it)."""
-    from ..network.calibration import ABOVE, INSIDE, column_features
-    C = cfg.num_classes
-    present, near, zone = column_features(labels, cfg.grid_shape, C)
-    grids = []
-    for j in range(*channels.indices(3 * C + 2)):
-        if j <= C:
-            grids.append((zone == INSIDE) & present[j][..., None].bool())
-        elif j <= 2 * C + 1:
-            grids.append((zone == ABOVE) & present[j - C - 1][..., None].bool())
-        else:
-            grids.append(((zone == INSIDE) | (zone == ABOVE)) & near[j - 2 * C - 2][..., None]
-                         .bool())
-    return torch.stack(grids).float()
-
-
 @torch.no_grad()
 def fit_probabilities(model, cfg, infos_list, limit: int | None = None, device="cpu",
                       progress: bool = True, seed: int = 0) -> dict:
@@ -138,7 +119,8 @@ def fit_probabilities(model, cfg, infos_list, limit: int | None = None, device="
     scores against the GT boxes. -> {"calibration": the dict, "report": what it was fitted
     on, with the visibility's precision and recall per min_clear on those keyframes}."""
     from ..metrics.planner import ConfidenceScore
-    from ..network.calibration import HAZARD_FLOOR, Calibration
+    from ..network.calibration import (HAZARD_FLOOR, HAZARD_RATES, Calibration,
+                                       hazard_indicators, rate_lengths)
     from ..online.visibility import Visibility
     from .evaluate import PublishedGrid, padded_grid
     C, free_label = cfg.num_classes, cfg.num_classes
@@ -175,9 +157,8 @@ def fit_probabilities(model, cfg, infos_list, limit: int | None = None, device="
             voxels = rng.choice(candidates, min(HAZARD_SAMPLES, len(candidates)),
                                 replace=False)
             index_tensor = torch.as_tensor(voxels, device=device)
-            parts = [hard.optical_paths(hazard_features(labels, cfg, slice(j, j + 8)),
-                                        geometry[0], geometry[1], geometry[2], index_tensor)
-                     for j in range(0, 3 * C + 2, 8)]
+            parts = [hard.optical_paths(hazard_indicators(labels, cfg, [name])[name],
+                                        *geometry, index_tensor) for name in HAZARD_RATES]
             paths.append(torch.cat(parts, -1).cpu().numpy().astype(np.float32))
             seen.append(mask[voxels])
             weights.append(np.full(len(voxels), len(candidates) / max(len(voxels), 1)))
@@ -198,11 +179,12 @@ def fit_probabilities(model, cfg, infos_list, limit: int | None = None, device="
     # the hazard
     paths, seen, weights = np.concatenate(paths), np.concatenate(seen), np.concatenate(weights)
     rates = fit_hazard(paths, seen, weights)
-    values = {"label_scale": scale, "label_bias": bias,
-              "hazard_inside": rates[:C + 1].tolist(),
-              "hazard_above": rates[C + 1:2 * C + 2].tolist(),
-              "hazard_near": rates[2 * C + 2:].tolist(), "free_scale": 1.0, "free_bias": 0.0,
+    values = {"label_scale": scale, "label_bias": bias, "free_scale": 1.0, "free_bias": 0.0,
               "box": None}
+    start = 0
+    for name, length in rate_lengths(C).items():
+        values[name] = rates[start:start + length].tolist()
+        start += length
     # free voxels: P(occupied) from log(hazard), on the same keyframes
     calibration = Calibration(cfg.replace(calibration=values), device)
     edges = np.linspace(np.log(HAZARD_FLOOR), np.log(10.0), 201)

@@ -9,8 +9,9 @@ import pytest
 import torch
 
 from odg_ros.config import load_preset
-from odg_ros.network.calibration import (ABOVE, HAZARD_FLOOR, INSIDE, OCCUPIED, UNDER,
-                                         Calibration, column_features)
+from odg_ros.network.calibration import (ABOVE_HIGH, ABOVE_LOW, HAZARD_FLOOR, HAZARD_RATES,
+                                         INSIDE, OCCUPIED, UNDER, Calibration,
+                                         column_features, hazard_indicators, rate_lengths)
 from odg_ros.train.calibrate import fit_hazard, fit_logistic
 
 C = 17
@@ -21,9 +22,8 @@ SHAPE = (200, 200, 16)
 def calibration_values(**changes):
     values = {"label_scale": [1.0 + 0.1 * c for c in range(C)],
               "label_bias": [-0.5 + 0.05 * c for c in range(C)],
-              "hazard_inside": [0.0] * (C + 1), "hazard_above": [0.0] * (C + 1),
-              "hazard_near": [0.0] * C, "free_scale": 0.7, "free_bias": -0.3,
-              "box": [1.5, -0.2]}
+              "free_scale": 0.7, "free_bias": -0.3, "box": [1.5, -0.2]}
+    values.update({name: [0.0] * n for name, n in rate_lengths(C).items()})
     values.update(changes)
     return values
 
@@ -43,22 +43,30 @@ def scene():
 
 
 def test_zones_in_a_column():
-    present, near, zone = column_features(torch.from_numpy(scene().reshape(-1)), SHAPE, C)
+    present, near, ring, zone = column_features(torch.from_numpy(scene().reshape(-1)), SHAPE,
+                                                C)
     zone = zone.numpy()
-    assert (zone[50, 60, :2] == UNDER).all() and (zone[50, 60, 2:6] >= OCCUPIED).all()
-    assert (zone[50, 60, 6:] == ABOVE).all()
+    assert (zone[50, 60, :2] == UNDER).all() and (zone[50, 60, 2:6] == OCCUPIED).all()
+    assert (zone[50, 60, 6:10] == ABOVE_LOW).all() and (zone[50, 60, 10:] == ABOVE_HIGH).all()
     assert (zone[100, 100, 3:10] == INSIDE).all()            # between the road and the roof
-    assert (zone[0, 0, 3:] == ABOVE).all() and (zone[0, 0, :2] == UNDER).all()
-    present, near = present.numpy(), near.numpy()
+    assert (zone[0, 0, 3:7] == ABOVE_LOW).all() and (zone[0, 0, :2] == UNDER).all()
+    present, near, ring = present.numpy(), near.numpy(), ring.numpy()
     assert present[4, 50, 60] and present[11, 50, 60] and present[FREE, 50, 60]
     assert not present[4, 50, 62] and near[4, 50, 61] and not near[4, 50, 62]
     assert near[4, 49, 59] and not near[4, 48, 60]
+    assert ring[4, 50, 62] and ring[4, 48, 58] and not ring[4, 50, 61] and not ring[4, 50, 63]
 
 
 def test_hazard_and_confidence_by_hand():
-    inside, above, near = [0.0] * (C + 1), [0.0] * (C + 1), [0.0] * C
-    above[FREE], above[4], inside[15], near[4] = 0.001, 0.05, 0.3, 0.02
-    cfg = config(hazard_inside=inside, hazard_above=above, hazard_near=near)
+    rates = {name: [0.0] * n for name, n in rate_lengths(C).items()}
+    rates["hazard_above_low"][FREE] = 0.001
+    rates["hazard_above_high"][FREE] = 0.002
+    rates["hazard_above_low"][4] = 0.05
+    rates["hazard_inside"][15] = 0.3
+    rates["hazard_near_body"][4] = 0.02
+    rates["hazard_near_other"][4] = 0.01
+    rates["hazard_ring_body"][4] = 0.04
+    cfg = config(**rates)
     calibration = Calibration(cfg)
     labels = scene()
     raw = np.where(labels != FREE, 200, 0).astype(np.uint8)
@@ -66,13 +74,17 @@ def test_hazard_and_confidence_by_hand():
                                      torch.from_numpy(raw.reshape(-1)))
     hazard = hazard.numpy().reshape(SHAPE)
     confidence = confidence.numpy().reshape(SHAPE)
-    # above the car: the free baseline + the car's above rate + next to a car (itself)
-    assert hazard[51, 60, 8] == pytest.approx(0.001 + 0.05 + 0.02)
-    assert hazard[51, 61, 8] == pytest.approx(0.001 + 0.02)      # next to it
-    assert hazard[10, 10, 8] == pytest.approx(0.001)             # open road
-    assert hazard[100, 100, 5] == pytest.approx(0.3)             # under the roof
-    assert hazard[100, 100, 12] == pytest.approx(0.001)          # above it
-    assert hazard[51, 60, 0] == 0 and hazard[51, 60, 4] == 0     # under the road, the car
+    # layer 6 (1.6 m): body height, up to 1.6 m above the car (its top is layer 5)
+    assert hazard[51, 60, 6] == pytest.approx(0.001 + 0.05 + 0.02)
+    assert hazard[51, 60, 8] == pytest.approx(0.001 + 0.05 + 0.01)   # above the body
+    assert hazard[51, 60, 11] == pytest.approx(0.002 + 0.01)         # higher still
+    assert hazard[51, 61, 6] == pytest.approx(0.001 + 0.02)          # next to it
+    assert hazard[51, 62, 6] == pytest.approx(0.001 + 0.04)          # in the ring
+    assert hazard[51, 62, 8] == pytest.approx(0.002)     # the ring: at body height only
+    assert hazard[10, 10, 5] == pytest.approx(0.001)                 # open road
+    assert hazard[100, 100, 5] == pytest.approx(0.3)                 # under the roof
+    assert hazard[100, 100, 12] == pytest.approx(0.001)              # above it
+    assert hazard[51, 60, 0] == 0 and hazard[51, 60, 4] == 0         # under the road, the car
     # occupied: per class, sigmoid(scale logit(score) + bias)
     score = 200 / 255
     for label, (x, y, z) in ((4, (51, 60, 4)), (11, (10, 10, 2)), (15, (100, 100, 10))):
@@ -83,6 +95,22 @@ def test_hazard_and_confidence_by_hand():
     for at in ((51, 60, 8), (10, 10, 8), (51, 60, 0)):
         p = 1 / (1 + math.exp(-(0.7 * math.log(hazard[at] + HAZARD_FLOOR) - 0.3)))
         assert confidence[at] == round(255 * (1 - p))
+
+
+def test_the_step_hazard_is_the_sum_of_the_rates_the_fit_sees():
+    """train/calibrate.py fits one rate per indicator (hazard_indicators); the step's hazard
+    is exactly their weighted sum."""
+    from testing.helpers import driving_scene
+    labels = torch.from_numpy(driving_scene(np.random.default_rng(0)).reshape(-1))
+    rng = np.random.default_rng(1)
+    rates = {name: (rng.random(n) * 0.1).tolist() for name, n in rate_lengths(C).items()}
+    cfg = config(**rates)
+    _, hazard = Calibration(cfg)(labels, torch.zeros_like(labels))
+    indicators = hazard_indicators(labels, cfg)
+    expected = sum((indicators[name] * torch.tensor(rates[name])[:, None, None, None]).sum(0)
+                   for name in HAZARD_RATES)
+    torch.testing.assert_close(hazard.view(SHAPE), expected, rtol=1e-5, atol=1e-6)
+    assert (hazard > 0).float().mean() > 0.5
 
 
 def test_without_a_calibration_the_confidence_is_the_raw_score():
@@ -104,7 +132,7 @@ def test_box_scores_keep_their_order():
 
 @pytest.mark.parametrize("change, message", [
     (dict(label_scale=[1.0] * 3), "label_scale"),
-    (dict(hazard_near=[-0.1] * C), "negative"),
+    (dict(hazard_near_body=[-0.1] * C), "negative"),
     (dict(free_bias=float("nan")), "not finite"),
     (dict(box=[-1.0, 0.0]), "box"),
 ])
@@ -148,7 +176,8 @@ def test_the_calibrated_step_changes_no_label_and_reads_nothing_back():
     model, cfg = make_model()
     above = [0.0] * (C + 1)
     above[FREE] = 0.01
-    calibrated_cfg = cfg.replace(calibration=calibration_values(hazard_above=above))
+    calibrated_cfg = cfg.replace(calibration=calibration_values(hazard_above_low=above,
+                                                                hazard_above_high=above))
     sets = make_sets(cfg, 3)
     plain = OnlinePredictor(model, cfg, "cpu", keep_output=True)
     calibrated = OnlinePredictor(model, calibrated_cfg, "cpu")
