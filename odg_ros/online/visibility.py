@@ -91,7 +91,8 @@ class Visibility(nn.Module):
     precision."""
 
     def __init__(self, grid_shape, pc_range, voxel_size: float, free_label: int,
-                 min_clear: float = DEFAULT_MIN_CLEAR, cells=CELLS, horizon: float = HORIZON, device="cpu"):
+                 min_clear: float = DEFAULT_MIN_CLEAR, cells=CELLS, horizon: float = HORIZON,
+                 device="cpu"):
         super().__init__()
         if not 0.0 <= float(min_clear) < 1.0:
             raise ValueError(f"min_clear {min_clear}: expected a probability in [0, 1)")
@@ -111,14 +112,14 @@ class Visibility(nn.Module):
         farthest = torch.maximum(low.abs(), high.abs())[:2]
         reach = (float(torch.linalg.vector_norm(farthest)) + 4.0) / self.voxel
         samples = int(math.ceil(reach / STEP))
-        if samples > 255:                  # the occupied samples of a ray are counted in uint8
-            raise ValueError(f"a grid reaching {reach * self.voxel:.0f} m needs {samples} "
-                             "samples a ray; at most 255 are supported")
+        if self.grid_shape[2] + 2 > 31:       # a column's occupied layers: bits of an int32
+            raise ValueError(f"{self.grid_shape[2]} layers: at most 29 are supported")
         self.register_buffer("low", low.to(device), persistent=False)
         self.register_buffer("ranges", ((torch.arange(samples, dtype=torch.float32) + 0.5)
                                         * STEP).to(device), persistent=False)
-        self.register_buffer("layer_bits", torch.arange(self.grid_shape[2] + 2, dtype=torch.int32,
-                                                        device=device), persistent=False)
+        self.register_buffer("layer_bits", 2 ** torch.arange(self.grid_shape[2] + 2,
+                                                             dtype=torch.int32, device=device),
+                             persistent=False)
         self.register_buffer("layers", torch.arange(self.grid_shape[2], dtype=torch.float32,
                                                      device=device), persistent=False)
         # which image edges hold strictly (u < u1 w, v < v1 w)
@@ -145,7 +146,7 @@ class Visibility(nn.Module):
             before, after = list(inner), list(inner)
             before[axis], after[axis] = slice(None, -2), slice(2, None)
             # both neighbours free: their product is 1
-            code += (padded[tuple(before)] * padded[tuple(after)]) << axis
+            code += padded[tuple(before)] * padded[tuple(after)] * (1 << axis)
         return self.kind_table.index_select(0, code.view(-1).int()).view(self.grid_shape)
 
     # ------------------------------------------------------------------ camera cells
@@ -240,17 +241,19 @@ class Visibility(nn.Module):
         stacks = padded.view(-1, Z + 2)
         N, A, E, S = len(origin), hx.shape[1], tan.shape[1], self.ranges.shape[0]
         # whether each sample is in an occupied voxel: a bit (its layer) of its column's mask,
-        # read once per azimuth; then the occupied samples up to each (S < 256)
-        masks = ((stacks != FREE).int() << self.layer_bits).sum(-1, dtype=torch.int32)
+        # read once per azimuth; then the occupied samples up to each
+        # (multiplications and a bitwise and: ONNX has no shift of int32)
+        masks = ((stacks != FREE).int() * self.layer_bits).sum(-1, dtype=torch.int32)
         under = masks.index_select(0, column.view(-1)).view(N, A, 1, S)
-        occupied = ((under >> layer.int()[:, None]) & 1).to(torch.uint8)         # [N, A, E, S]
-        count = occupied.cumsum(-1, dtype=torch.uint8)
+        bit = self.layer_bits.index_select(0, layer.view(-1)).view(N, 1, E, S)
+        occupied = ((under & bit) != 0).to(torch.uint8)                         # [N, A, E, S]
+        count = occupied.cumsum(-1, dtype=torch.int32)           # (ONNX sums no uint8)
         window = torch.arange(WINDOW, device=kind.device)
         norm = torch.sqrt(1 + tan * tan)                     # ray length per horizontal unit
         geometry = (stacks, column, layer, place, hx, hy, tan, norm)
         at_hit = torch.zeros((N, A, E, 1), dtype=torch.long, device=kind.device)
         pending = torch.ones((N, A, E), dtype=torch.bool, device=kind.device)
-        seen = torch.zeros((N, A, E), dtype=torch.uint8, device=kind.device)
+        seen = torch.zeros((N, A, E), dtype=torch.int32, device=kind.device)
         for _ in range(CANDIDATES):
             # the next occupied sample of every ray (S: none), and a window from it
             entry = torch.searchsorted(count, seen[..., None] + 1)[..., 0]   # [N, A, E]
@@ -284,8 +287,9 @@ class Visibility(nn.Module):
         limit = (self.max_optical_depth / (STEP * norm))[:, None, :, None]      # [N, 1, E, 1]
         S = self.ranges.shape[0]
         clear = (optical <= limit).sum(-1, dtype=torch.int32)     # samples still clear
-        depth = torch.where(clear < S, self.ranges[clear.clamp(max=S - 1)] * norm[:, None]
-                            * self.voxel, torch.full_like(optical[..., 0], float("inf")))
+        last = self.ranges[clear.clamp(max=S - 1).long()]
+        depth = torch.where(clear < S, last * norm[:, None] * self.voxel,
+                            torch.full_like(optical[..., 0], float("inf")))
         k = CLEAR_SUBSAMPLE
         N, A, E = depth.shape                                  # -> every cell of the map
         return depth.transpose(1, 2)[:, :, None, :, None].expand(N, E, k, A, k).reshape(

@@ -197,3 +197,45 @@ def test_the_calibrated_step_changes_no_label_and_reads_nothing_back():
     with torch.inference_mode(), HostSyncCounter() as counter:
         calibrated.online_step(calibrated._images, calibrated._packed)
     assert counter.ops > 1000 and counter.syncs == []
+
+
+def test_the_calibration_and_the_hazard_visibility_export_to_onnx(tmp_path):
+    """The calibrated part of the step (confidence, hazard, visibility with min_clear) as
+    ONNX in onnxruntime equals PyTorch (the whole step's export: test_onnx_export.py)."""
+    ort = pytest.importorskip("onnxruntime", reason="onnxruntime is not installed")
+    pytest.importorskip("onnxscript", reason="onnxscript (torch.onnx's exporter) is missing")
+    from odg_ros.online.onnx_export import _searchsorted
+    from odg_ros.online.visibility import Visibility, image_bounds
+    from testing.helpers import driving_scene
+    from odg_ros.rig import ring_ego2img
+    rates = {name: [0.002] * n for name, n in rate_lengths(C).items()}
+    cfg = config(**rates)
+
+    class Part(torch.nn.Module):
+        def __init__(self):
+            super().__init__()
+            self.calibration = Calibration(cfg)
+            self.visibility = Visibility(cfg.grid_shape, cfg.pc_range, cfg.voxel_size, FREE,
+                                         0.7)
+
+        def forward(self, labels, raw, ego2img, img2ego, bounds):
+            confidence, hazard = self.calibration(labels, raw)
+            return confidence, hazard, self.visibility(labels, ego2img, img2ego, bounds,
+                                                       hazard=hazard)
+
+    labels = torch.from_numpy(driving_scene(np.random.default_rng(0)).reshape(-1))
+    raw = torch.randint(0, 256, labels.shape, dtype=torch.uint8)
+    ego2img = ring_ego2img((128, 352), 1)[0, 0]
+    inputs = (labels, raw, ego2img, torch.linalg.inv(ego2img),
+              torch.tensor(image_bounds([(900, 1600)] * 6, (128, 352))))
+    path = tmp_path / "part.onnx"
+    with torch.no_grad():
+        torch.onnx.export(Part().eval(), inputs, str(path), dynamo=True, opset_version=20,
+                          custom_translation_table={torch.ops.aten.searchsorted.Tensor:
+                                                    _searchsorted}, verbose=False)
+        expected = [t.numpy() for t in Part().eval()(*inputs)]
+    session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    got = session.run(None, {i.name: t.numpy() for i, t in zip(session.get_inputs(), inputs)})
+    np.testing.assert_array_equal(got[0], expected[0])
+    np.testing.assert_allclose(got[1], expected[1], rtol=1e-5, atol=1e-7)
+    assert (got[2] != expected[2]).mean() < 1e-3 and expected[2].sum() > 10_000
