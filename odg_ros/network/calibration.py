@@ -122,10 +122,12 @@ class Calibration(nn.Module):
             float(values["free_bias"])
         box = values.get("box")
         self.box = None if box is None else (float(box[0]), float(box[1]))
-        self.register_buffer("body", body_layers(cfg).to(device), persistent=False)
-        # the codes of free voxels (occupied ones take their confidence from label_table)
-        self.register_buffer("free_codes", (torch.arange(16, device=device) < OCCUPIED)
-                             .float(), persistent=False)
+        self.register_buffer("body", body_layers(cfg).to(torch.uint8).to(device),
+                             persistent=False)
+        X, Y, _ = self.grid_shape
+        self.register_buffer("column_starts", torch.arange(X * Y, dtype=torch.int32,
+                                                           device=device).view(X, Y, 1) * 16,
+                             persistent=False)
 
     def column_hazards(self, features) -> torch.Tensor:
         """[X, Y, 16]: the hazard of a free voxel by its code (``voxel_codes``) in each
@@ -154,12 +156,13 @@ class Calibration(nn.Module):
         features = column_features(labels, self.grid_shape, self.num_classes)
         hazards = self.column_hazards(features)                               # [X, Y, 16]
         # one look-up per voxel from its column's table of codes
-        index = (torch.arange(X * Y, device=labels.device).view(X, Y, 1) * 16
-                 + voxel_codes(features[3], self.body)).view(-1)
+        # (int32 throughout: a uint8 + int64 sum converts every voxel on the way)
+        index = (voxel_codes(features[3], self.body).int() + self.column_starts).view(-1)
         hazard = hazards.view(-1).index_select(0, index)
-        free = 1.0 - torch.sigmoid(self.free_scale * torch.log(hazards + HAZARD_FLOOR)
-                                   + self.free_bias)
-        free_bytes = ((free * 255).round() * self.free_codes).to(torch.uint8)
+        free = 1.0 - torch.sigmoid(self.free_scale * torch.log(hazards[..., :OCCUPIED]
+                                                               + HAZARD_FLOOR) + self.free_bias)
+        free_bytes = torch.cat([(free * 255).round().to(torch.uint8), torch.zeros_like(
+            hazards[..., OCCUPIED:], dtype=torch.uint8)], -1)
         occupied = self.label_table.index_select(
             0, (labels.int() * 256 + confidence.int()).view(-1))
         return free_bytes.view(-1).index_select(0, index) + occupied, hazard
@@ -183,31 +186,50 @@ def column_features(labels: torch.Tensor, grid_shape, num_classes: int):
     """labels uint8 [X*Y*Z] -> (which classes each column holds: uint8 [C + 1, X, Y], the
     free class last; which of the classes 0..C-1 the 3 x 3 columns around it hold, and which
     only the ring of 16 around those: uint8 [C, X, Y] each; the zone of every voxel in its
-    column: uint8 [X, Y, Z], UNDER ... ABOVE_HIGH, or OCCUPIED)."""
+    column: uint8 [X, Y, Z], UNDER ... ABOVE_HIGH, or OCCUPIED).
+
+    Per column, the classes and the occupied layers are bits of an int32, or-ed / summed
+    down the column (no int64 index of every voxel: this runs in every step)."""
     X, Y, Z = grid_shape
     C = num_classes
-    grid = labels.view(X * Y, Z)
-    present = torch.zeros((C + 1, X * Y), dtype=torch.uint8, device=labels.device)
-    present.scatter_(0, grid.transpose(0, 1).long(), 1)
-    present = present.view(C + 1, X, Y)
+    if C + 1 > 31 or Z > 24:
+        raise ValueError(f"{C} classes, {Z} layers: at most 30 and 24 are supported")
+    device = labels.device
+    powers = 2 ** torch.arange(max(C + 1, Z), dtype=torch.int32, device=device)
+    bits = powers.index_select(0, labels.int()).view(X * Y, Z)
+    while bits.shape[1] % 2 == 0:         # an or down the column, halving it: 16 -> 8 -> ...
+        half = bits.shape[1] // 2
+        bits = bits[:, :half] | bits[:, half:]
+    classes = _or_columns(bits)
+    present = ((classes[None] & powers[:C + 1, None]) != 0).to(torch.uint8).view(C + 1, X, Y)
     near = _max3x3(present[:C])
     ring = _max3x3(near) - near
-    occupied = grid != C                                                    # [X*Y, Z]
-    layers = torch.arange(Z, device=labels.device)
-    # the lowest and highest occupied layer of each column (-1: none)
-    top = (occupied * (layers + 1)).amax(-1, keepdim=True) - 1
-    bottom = torch.where(occupied.any(-1, keepdim=True),
-                         Z - (occupied * (Z - layers)).amax(-1, keepdim=True),
-                         torch.full_like(top, -1))
-    zone = (layers > bottom).to(torch.uint8) + (layers > top).to(torch.uint8) \
-        + (layers > top + ABOVE_LOW_LAYERS).to(torch.uint8)
+    occupied = (labels != C).view(X * Y, Z)
+    # the occupied layers as bits (disjoint: a sum is an or); layer + 1 of the lowest and the
+    # highest (0: none), from the lowest bit (m & -m) and the highest (log2, exact in float)
+    layers = (occupied.int() * powers[:Z]).sum(-1, dtype=torch.int32, keepdim=True)
+    some = (layers > 0).to(torch.uint8)
+    top = (torch.log2(layers.float().clamp(min=1)).floor().to(torch.uint8) + 1) * some
+    bottom = (torch.log2((layers & -layers).float().clamp(min=1)).to(torch.uint8) + 1) * some
+    above_ground = torch.arange(1, Z + 1, dtype=torch.uint8, device=device)
+    zone = (above_ground > bottom).to(torch.uint8) + (above_ground > top).to(torch.uint8) \
+        + (above_ground > top + ABOVE_LOW_LAYERS).to(torch.uint8)
     zone = torch.where(occupied, torch.full_like(zone, OCCUPIED), zone)
     return present, near, ring, zone.view(X, Y, Z)
 
 
+def _or_columns(bits: torch.Tensor) -> torch.Tensor:
+    """The bitwise or of each row of an int32 [n, k]."""
+    out = bits[:, 0]
+    for i in range(1, bits.shape[1]):
+        out = out | bits[:, i]
+    return out
+
+
 def voxel_codes(zone: torch.Tensor, body: torch.Tensor) -> torch.Tensor:
-    """[X, Y, Z] codes 0..15 of the column tables: zone + 4 at body height (OCCUPIED: 8)."""
-    return torch.where(zone == OCCUPIED, zone, zone + 4 * body.to(zone.dtype)).long()
+    """uint8 [X, Y, Z] codes 0..15 of the column tables: zone + 4 at body height (OCCUPIED:
+    8); ``body`` uint8 [Z], 1 at body height."""
+    return torch.where(zone == OCCUPIED, zone, zone + body * 4)
 
 
 def hazard_indicators(labels: torch.Tensor, cfg, names=None):

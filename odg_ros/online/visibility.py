@@ -56,8 +56,8 @@ LINE, BALL, FREE = 3, 6, 7
 # WINDOW samples from the first occupied one, up to CANDIDATES times along a ray.
 CELLS = (24, 64)
 HORIZON = 0.03
-BALL_RADIUS, PLANE_REACH, STEP = 0.35, 0.75, 0.9
-CANDIDATES, WINDOW = 3, 8
+BALL_RADIUS, PLANE_REACH, STEP = 0.35, 0.75, 1.0
+CANDIDATES, WINDOW = 3, 6
 # one ray of the optical depth for every CLEAR_SUBSAMPLE x CLEAR_SUBSAMPLE cells
 CLEAR_SUBSAMPLE = 2
 # the node's visibility_min_clear: precision first (chosen on training worlds,
@@ -251,19 +251,21 @@ class Visibility(nn.Module):
         window = torch.arange(WINDOW, device=kind.device)
         norm = torch.sqrt(1 + tan * tan)                     # ray length per horizontal unit
         geometry = (stacks, column, layer, place, hx, hy, tan, norm)
-        at_hit = torch.zeros((N, A, E, 1), dtype=torch.long, device=kind.device)
-        pending = torch.ones((N, A, E), dtype=torch.bool, device=kind.device)
-        seen = torch.zeros((N, A, E), dtype=torch.int32, device=kind.device)
+        # the windows of every ray: from its next occupied sample (S: none) after the end of
+        # the window before; they depend on the occupied samples only, so all are tested at
+        # once (one pass of the tests over CANDIDATES x WINDOW samples)
+        seen = torch.zeros((N, A, E, 1), dtype=torch.int32, device=kind.device)
+        windows, exists = [], []
         for _ in range(CANDIDATES):
-            # the next occupied sample of every ray (S: none), and a window from it
-            entry = torch.searchsorted(count, seen[..., None] + 1)[..., 0]   # [N, A, E]
-            at = (entry[..., None] + window).clamp(max=S - 1)                 # [N, A, E, W]
-            hit = self._occluder_tests(at, *geometry)[0]
-            take = pending & (entry < S) & hit.any(-1)
-            first = at.gather(-1, hit.to(torch.uint8).argmax(-1, keepdim=True))
-            at_hit = torch.where(take[..., None], first, at_hit)
-            pending = pending & ~take
-            seen = count.gather(-1, at[..., -1:])[..., 0]
+            entry = torch.searchsorted(count, seen + 1)                       # [N, A, E, 1]
+            at = (entry + window).clamp(max=S - 1)                            # [N, A, E, W]
+            windows.append(at)
+            exists.append((entry < S).expand(N, A, E, WINDOW))
+            seen = count.gather(-1, at[..., -1:])
+        at = torch.cat(windows, -1)
+        hit = self._occluder_tests(at, *geometry)[0] & torch.cat(exists, -1)
+        pending = ~hit.any(-1)
+        at_hit = at.gather(-1, hit.to(torch.uint8).argmax(-1, keepdim=True))
         # the first hit of every ray again, with its distance, kind and plane
         _, along, k, plane = self._occluder_tests(at_hit, *geometry, full=True)
         hit = ~pending
