@@ -1,4 +1,4 @@
-"""The node's online step (``OnlineStep``) as an ONNX graph with named inputs (``odg export --onnx``).
+"""The node's online step as an ONNX graph with named inputs (``odg export --onnx``).
 
 An ONNX graph has no state: the node's step writes the newest set's features into a ring
 it keeps, the exported one takes the history of features as inputs and returns it updated.
