@@ -41,8 +41,7 @@ from .rig import IntrinsicsRange, check_intrinsics, set_ego2img
 # the node's defaults (config/odg_node.schema.yaml: history_max_gap, max_speed,
 # history_interval); a test keeps them equal
 MAX_GAP, MAX_SPEED, MIN_INTERVAL = 1.0, 70.0, 0.45
-_DTYPES = {"tensor(float)": np.float32, "tensor(float16)": np.float16,
-           "tensor(bfloat16)": None}
+_DTYPES = {"tensor(float)": np.float32, "tensor(float16)": np.float16}
 
 
 def camera_set_geometry(intrinsics, image_hws, sensor2ego, camera_poses, reference_pose,
