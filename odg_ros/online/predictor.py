@@ -21,13 +21,13 @@ import numpy as np
 import torch
 
 from ..config import ModelConfig
-from ..geometry import invert_transforms
+from ..geometry import invert_projections
 from ..network.outputs import ODGOutput
 from ..network.postprocess import box_dicts
 from ..network.precision import precision_context
 from ..network.budget import budget_ladder, budget_of
 from .budget_policy import BudgetPolicy
-from .history import Frame, FrameHistory
+from .history import Frame, FrameHistory, history_geometry
 from .step import MODES, OnlineStep
 
 LOG = logging.getLogger(__name__)
@@ -255,19 +255,9 @@ class OnlinePredictor:
         """History frames (newest first) stored in ring ``slots`` -> the packed buffer, in
         storage-slot order; empty slots get the oldest frame's geometry (finite, never read).
         With the current set's inverse ego2img and image ``bounds`` for its visibility."""
-        current, oldest = frames[0], frames[-1]
-        k, N = self.layout.capacity, self.cfg.num_cams
-        # the warps of all frames in one stacked computation (ego_warp's products)
-        frame_warps = invert_transforms(np.stack([f.pose for f in frames])) @ current.pose
-        ego2img = np.broadcast_to(oldest.ego2img, (k, N, 4, 4)).copy()
-        warps = np.broadcast_to(frame_warps[-1], (k, 4, 4)).copy()
-        deltas = np.full(k, current.stamp - oldest.stamp)
-        for frame, slot, warp in zip(frames, slots, frame_warps):
-            ego2img[slot] = frame.ego2img
-            warps[slot] = warp
-            deltas[slot] = current.stamp - frame.stamp
-        frame_index = slots + [slots[-1]] * (self.cfg.num_frames - len(slots))
-        img2ego = _inverse(current.ego2img) if self.visibility else np.eye(4)
+        ego2img, warps, deltas, frame_index = history_geometry(
+            frames, slots, self.layout.capacity, self.cfg.num_frames)
+        img2ego = invert_projections(frames[0].ego2img) if self.visibility else np.eye(4)
         self.layout.pack(self._packed_host.numpy(), ego2img, warps, deltas, frame_index,
                          slots[0], img2ego, bounds)
 
@@ -286,8 +276,7 @@ class OnlinePredictor:
         t0 = time.perf_counter()
         # the newest kept set is provisional while it is closer than min_interval to the one
         # before it: this set takes its place
-        kept = self.history.frames()
-        replace = len(kept) > 1 and kept[0].stamp - kept[1].stamp < self.min_interval
+        replace = self.history.newest_is_provisional(self.min_interval)
         reset = self.history.push(Frame(features=None, pose=np.asarray(pose, np.float64),
                                         ego2img=np.asarray(ego2img, np.float64),
                                         stamp=float(stamp)), replace_newest=replace)
@@ -369,17 +358,3 @@ class OnlinePredictor:
                                                          deltas, frame_index, False,
                                                          budget=budget)
 
-
-def _inverse(matrices: np.ndarray) -> np.ndarray:
-    """The inverses of [N, 4, 4] matrices; NaN for a singular one (its camera then observes
-    nothing: visibility.py reads no voxel through NaN geometry)."""
-    try:
-        return np.linalg.inv(matrices)
-    except np.linalg.LinAlgError:
-        out = np.full_like(matrices, np.nan, dtype=np.float64)
-        for i, m in enumerate(matrices):
-            try:
-                out[i] = np.linalg.inv(m)
-            except np.linalg.LinAlgError:
-                pass
-        return out
