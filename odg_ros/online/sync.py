@@ -59,6 +59,8 @@ class CameraSet:
     stamps: dict[str, float]
     payloads: dict[str, Any]
     completed_at: float | None = None      # steady clock, when its last message came
+    waited: float = 0.0       # seconds it waited for its poses / extrinsics (waiting.py)
+    expired: bool = False     # handed on because that wait ran out
 
     @property
     def reference_camera(self) -> str:
