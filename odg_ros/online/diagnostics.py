@@ -33,6 +33,14 @@ LOAD_COUNTERS = ("stale_sets_dropped", "tf_ignored", "tf_received", "tf_frames_f
 INPUT_COUNTERS = ("sets_completed", "tf_received")
 
 
+def transform_topics_needed(pose_source: str, extrinsics_source: str) -> tuple[bool, bool]:
+    """(whether /tf is needed, whether one of /tf and /tf_static is) for "never received":
+    /tf carries the ego pose (pose_source tf); camera transforms may come on either
+    (extrinsics_source tf) or not at all (auto: the rig file then). /tf_static on its own is
+    never needed."""
+    return pose_source == "tf", pose_source != "tf" and extrinsics_source == "tf"
+
+
 class InputMonitor:
     """Per input topic: messages received and the steady time of the last one. Thread-safe:
     the subscription callbacks record, a timer reads.
@@ -88,11 +96,14 @@ class InputMonitor:
 
 class PipelineStats:
     """Thread-safe: outputs are recorded by the worker, status read by a timer. ``inputs``:
-    the InputMonitor of the node's subscriptions (None: inputs judged by the counters)."""
+    the InputMonitor of the node's subscriptions (None: inputs judged by the counters);
+    ``first_set_grace_s``: how long the first complete set may wait for its poses before it
+    counts as silent (the pipeline's pose_wait)."""
 
     def __init__(self, window: int = 100, rate_window_s: float = 5.0,
                  stale_after_s: float = 5.0, clock=time.monotonic,
-                 max_tf_rate: float = float("inf"), inputs: InputMonitor | None = None):
+                 max_tf_rate: float = float("inf"), inputs: InputMonitor | None = None,
+                 first_set_grace_s: float = 0.0):
         self._lock = threading.Lock()
         self._clock = clock
         self.inputs = inputs
@@ -108,6 +119,7 @@ class PipelineStats:
         self.max_tf_rate = float(max_tf_rate)
         self._previous_counters: dict[str, int] = {}
         self._first_set: float | None = None       # steady time the first set completed
+        self.first_set_grace_s = float(first_set_grace_s)
         # (clock, counters) of the reports of the last stale_after_s: what happened meanwhile
         self._counter_history: deque[tuple[float, dict[str, int]]] = deque()
         self._window_base: dict[str, int] = {}
@@ -183,10 +195,11 @@ class PipelineStats:
         skipped or dropped incomplete since the last call, before the first output, when no
         input came for ``stale_after_s`` ("no input for N s": a stopped bag, a dead driver),
         or when /tf brings more than ``max_tf_rate`` transforms/s; ERROR when no output came
-        for ``stale_after_s`` (since the first complete camera set or the last output) while
-        inputs kept arriving, with the dominant reason they were dropped over that time:
-        never before the first complete set (a node waiting for its cameras is not failing;
-        its WARN names what it waits for). The needed topics that never sent are named in
+        for ``stale_after_s`` (since the last output, or the first complete camera set plus
+        the wait it may spend on its poses, ``first_set_grace_s``) while inputs kept
+        arriving, with the dominant reason they were dropped over that time: never before
+        the first complete set (a node waiting for its cameras is not failing; its WARN
+        names what it waits for). The needed topics that never sent are named in
         every non-OK message. ``extrinsics``: camera -> where its extrinsics come from
         (reported as values).
         """
@@ -232,8 +245,8 @@ class PipelineStats:
         skipped = f" (skipped: {problem_text})" if problem_text else ""
         with self._lock:
             first_set = self._first_set
-        silent_for = (snap["seconds_since_output"] if snap["outputs"]
-                      else None if first_set is None else now - first_set)
+        silent_for = (snap["seconds_since_output"] if snap["outputs"] else None
+                      if first_set is None else now - first_set - self.first_set_grace_s)
         if silent_for is not None and silent_for > self.stale_after_s and arriving:
             message = f"no output for {silent_for:.1f} s while inputs arrive"
             drops = {k: v for k, v in window.items()
@@ -256,7 +269,7 @@ class PipelineStats:
             return WARN, "waiting for the first complete camera set" + skipped
         if snap["outputs"] == 0:
             return WARN, (f"waiting for the first output (the first set completed "
-                          f"{silent_for:.1f} s ago)" + skipped)
+                          f"{now - first_set:.1f} s ago)" + skipped)
         if snap["seconds_since_output"] > self.stale_after_s:
             return ERROR, f"no output for {snap['seconds_since_output']:.1f} s" + skipped
         if problems:

@@ -3,11 +3,11 @@
 The node (odg_ros/ros/node.py) only converts messages and publishes; everything it decides
 lives here so it is unit-tested without rclpy::
 
-    on_image ─> CameraSetSync ─> WaitingSets ─> prepare(): CameraInfo check, poses at
-    on_camera_info (K, size)       (poses,       every camera stamp, extrinsics, ego2img,
-    on_pose ─> PoseBuffer ─notify─> extrinsics)  decode + resize
-    transforms_arrived ─notify─────┘             ─> LatestMailbox ─> infer(): OnlinePredictor
-                                                                     .step ─> OnlineResult
+    on_image ─> CameraSetSync ─> WaitingSets ──> prepare(): CameraInfo check, poses at
+    on_camera_info (K, size)        ^ (until its   every camera stamp, extrinsics, ego2img,
+    on_pose ─> PoseBuffer ─ notify ─┤  poses are   decode + resize ─> LatestMailbox
+    transforms_arrived ──── notify ─┘  there)      ─> infer(): OnlinePredictor.step
+                                                                  ─> OnlineResult
 
 A complete set whose poses or camera transforms have not arrived yet waits for them, up to
 ``pose_wait`` seconds of the node's clock (online/waiting.py: the newest ready set wins,

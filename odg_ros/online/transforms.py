@@ -20,7 +20,9 @@ What a hostile or busy TF tree cannot do to it (tf2's rules where tf2 has one):
 * with ``wanted`` frames set (the frames looked up from: the ego frame and the camera frames),
   only the dynamic transforms on their chains up the tree are converted and stored; every
   other one is dropped by its child frame name before any arithmetic (``wants``) and counted
-  in ``counters['tf_ignored']``.
+  in ``counters['tf_ignored']``. ``keep_children_of`` keeps the direct children of a frame as
+  well (base_link -> every sensor: a camera's frame is known from its CameraInfo, which can
+  come after the first /tf that carries it).
 
 A lookup that fails only because its data has not arrived yet (frames not connected yet, or
 a dynamic edge's stamp newer than its newest transform, within the gap bound) raises a
@@ -63,6 +65,7 @@ class TransformBuffer:
         self._dynamic: dict[str, list] = {}
         self._wanted: frozenset[str] | None = None
         self._needed: frozenset[str] | None = None      # child frames whose edges we keep
+        self._parents: frozenset[str] = frozenset()      # ... and every child of these
         self._last_prune = clock()
         self.counters = {"tf_received": 0, "tf_ignored": 0, "tf_frames_forgotten": 0,
                          "pose_teleports": 0}
@@ -79,12 +82,16 @@ class TransformBuffer:
                 self._wanted = wanted
                 self._update_needed()
 
-    def wants(self, child: str) -> bool:
-        """Whether a dynamic transform to ``child`` is worth converting (cheap, no lock: a
-        frozenset read is atomic). Counts the ones that are not."""
+    def keep_children_of(self, frames) -> None:
+        """Keep every dynamic transform whose parent is one of ``frames`` too."""
+        self._parents = frozenset(frames)
+
+    def wants(self, child: str, parent: str | None = None) -> bool:
+        """Whether a dynamic transform ``parent`` -> ``child`` is worth converting (cheap, no
+        lock: a frozenset read is atomic). Counts the ones that are not."""
         needed = self._needed
         self.counters["tf_received"] += 1
-        if needed is None or child in needed:
+        if needed is None or child in needed or parent in self._parents:
             return True
         self.counters["tf_ignored"] += 1
         return False

@@ -100,6 +100,9 @@ def test_only_the_needed_chains_are_converted_the_rest_dropped_by_name():
     assert not any(tf.wants(name) for name in busy)
     assert tf.counters["tf_ignored"] == 251       # map before it was needed + the 250
     assert tf.counters["tf_received"] == 255
+    # a sensor's first /tf before its CameraInfo named its frame: kept as a child of the ego
+    tf.keep_children_of({"base_link"})
+    assert tf.wants("CAM_BACK", "base_link") and not tf.wants("fixed_frame_0", "world")
 
 
 # ------------------------------------------------------------------ plausibility

@@ -85,6 +85,21 @@ def test_the_no_output_timer_starts_at_the_first_complete_set():
     assert "never received" not in status["message"]
 
 
+def test_the_first_set_may_wait_pose_wait_before_the_timer_runs():
+    clock = [0.0]
+    inputs, _ = make(clock)
+    stats = diagnostics.PipelineStats(stale_after_s=5.0, clock=lambda: clock[0], inputs=inputs,
+                                      first_set_grace_s=1.0)
+    stats.record_complete_set()
+    for t, level in ((5.9, diagnostics.WARN), (6.1, diagnostics.ERROR)):
+        clock[0] = t
+        for topic in TOPICS:
+            inputs.received(topic)
+        status = stats.status({"sets_completed": 1, "pose_miss": 1})
+        assert status["level"] == level, status["message"]
+    assert status["message"].startswith("no output for 5.1 s while inputs arrive")
+
+
 def test_never_received_names_only_the_topics_the_configuration_needs():
     """/tf_static is optional when transforms can come from /tf; with camera transforms from
     TF but poses from odometry, one of /tf and /tf_static is needed."""
@@ -101,6 +116,10 @@ def test_never_received_names_only_the_topics_the_configuration_needs():
     assert "never received" not in stats.status({})["message"]
     assert dict(stats.status({})["values"])["/tf_static: received"] == "0"    # reported
 
+    needed = diagnostics.transform_topics_needed
+    assert needed("tf", "auto") == needed("tf", "tf") == needed("tf", "rig") == (True, False)
+    assert needed("odometry", "tf") == (False, True)
+    assert needed("odometry", "auto") == needed("odometry", "rig") == (False, False)
     either = diagnostics.InputMonitor()
     either.watch("/tf", needed=False)
     either.watch("/tf_static", needed=False)
