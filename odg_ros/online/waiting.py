@@ -25,6 +25,9 @@ clock went backwards past its arrival (the bag looped) is dropped as stale, and 
 waiting set when a set older than them arrives (synchronisation restarted after a time jump):
 neither can be processed in stamp order any more.
 
+At most ``capacity`` sets wait (16: over a second of 12 Hz cameras); one more drops the
+oldest as stale, which costs nothing the rule above would not drop anyway.
+
 Thread-safe: ``put`` and ``notify`` from the input callbacks (they never wait for a probe),
 ``get`` from one consumer thread; probes run outside the lock.
 """
