@@ -284,10 +284,13 @@ class OnlinePipeline:
         """WaitingSets' probe: READY, FAILED (a look-up fails for good) or PENDING (one waits
         for data not received yet). ``final``: its wait ran out (a source that can settle
         does so: extrinsics auto takes the rig file)."""
+        start = time.perf_counter()
         try:
-            self._look_up(camera_set, settle=final)
+            looked_up = self._look_up(camera_set, settle=final)
         except BadInput as error:
             return PENDING if error.pending else FAILED
+        # kept for prepare (the set is handed on next): the look-ups are not done twice
+        camera_set.looked_up = (looked_up, time.perf_counter() - start)
         return READY
 
     def _look_up(self, camera_set: CameraSet, settle: bool = False):
@@ -333,7 +336,12 @@ class OnlinePipeline:
         names = self.camera_names
         t_lookup = time.perf_counter()
         try:
-            infos, poses, sensor2ego = self._look_up(camera_set)
+            if camera_set.looked_up is not None:
+                (infos, poses, sensor2ego), seconds = camera_set.looked_up
+                camera_set.looked_up = None
+                t_lookup -= seconds                   # timed as it was done, in the probe
+            else:
+                infos, poses, sensor2ego = self._look_up(camera_set)
         except BadInput as error:
             if not error.pending:
                 raise
