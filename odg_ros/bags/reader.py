@@ -11,7 +11,8 @@
   refuses (``File end magic is invalid``). Its messages are read in file order (there is no
   index to sort them by; rosbag2 falls back to file order too) up to the first record that is
   cut or damaged, and ``Bag.damage`` says how much that is;
-* a single ``.mcap`` file.
+* a single ``.mcap`` file, or a folder of complete ones without ``metadata.yaml``, read in
+  log-time order by their index.
 
 ``find_bags`` turns a path into the bags it names: a bag, or a folder of bags (its
 sub-folders that are bags, in name order).
@@ -80,12 +81,14 @@ class Bag:
         """``(topic, log_time_ns, msgtype, cdr_bytes)``: log-time order for a complete bag,
         file order up to the damage for one that ended badly."""
         wanted = None if topics is None else set(topics)
-        if self._mcap_files:
-            for topic, log_ns, msgtype, raw in _stream_messages(self._mcap_files):
-                if wanted is None or topic in wanted:
-                    yield topic, log_ns, msgtype, raw
+        if not self._mcap_files:
+            yield from _rosbags_messages(self.path, wanted)
             return
-        yield from _rosbags_messages(self.path, wanted)
+        source = (_stream_messages(self._mcap_files) if self.damaged_at is not None
+                  else _indexed_messages(self._mcap_files))
+        for topic, log_ns, msgtype, raw in source:
+            if wanted is None or topic in wanted:
+                yield topic, log_ns, msgtype, raw
 
 
 def is_bag_folder(path: Path) -> bool:
@@ -262,6 +265,17 @@ def _stream_records(files: list[Path], progress: _Progress):
 
 def _stream_messages(files: list[Path]):
     yield from _stream_records(files, _Progress())
+
+
+def _indexed_messages(files: list[Path]):
+    """Complete MCAP files without metadata.yaml: each in log-time order by its index."""
+    from mcap.reader import make_reader
+
+    for path in files:
+        with open(path, "rb") as f:
+            for schema, channel, message in make_reader(f).iter_messages(log_time_order=True):
+                yield channel.topic, message.log_time, schema.name if schema else "", \
+                    message.data
 
 
 def _open_stream(path: Path, files: list[Path]) -> Bag:
