@@ -31,7 +31,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--remap", "-m", nargs="+", metavar="OLD:=NEW", default=[],
                         action="extend",
                         help="rename topics as they are published, ROS remapping rules "
-                             "(e.g. /diagnostics:=/can/diagnostics)")
+                             "(e.g. /diagnostics:=/can/diagnostics; default: none)")
     parser.add_argument("--wait-for-subscribers", type=nonnegative_float, default=0.0,
                         metavar="S",
                         help="before publishing, wait up to S seconds until every topic has a "
