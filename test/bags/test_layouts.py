@@ -1,7 +1,7 @@
 """The layout fixtures say what docs/bags.md says of each converter (no rclpy): topics, types,
 frames, stamps against log times, CameraInfo quirks, what is missing; `odg bag rig` names
 cameras and frames as each layout does; the params files of config/bags/ set only parameters
-the node knows (or will: the pose work's names are listed here)."""
+the node knows (or is about to: those names are listed here)."""
 from __future__ import annotations
 
 import subprocess
@@ -23,8 +23,9 @@ from odg_ros.rig import CAMERA_NAMES
 from testing.bag_layouts import GAPS, keyframe_gaps, keyframe_groups
 
 ROOT = Path(__file__).resolve().parents[2]
-# Parameters the params files use that the node gets with the pose work (max_pose_gap,
-# pose_wait; extrinsics_source auto) and with rig intrinsics (intrinsics_source).
+# Parameters the params files use that this release's node does not have yet: the pose
+# interpolation bound and wait (max_pose_gap, pose_wait; also extrinsics_source: auto) and
+# intrinsics from the rig file (intrinsics_source).
 PENDING = {"max_pose_gap", "pose_wait", "intrinsics_source"}
 
 
