@@ -6,7 +6,7 @@ export PATH := $(CURDIR)/$(VENV)/bin:$(PATH)
 
 PY_DEPS := "numpy<2" scipy pyyaml tqdm pillow simplejpeg matplotlib \
 	pytest pytest-timeout hypothesis \
-	rosbags mcap mcap-ros2-support nuscenes-devkit \
+	rosbags mcap mcap-ros2-support nuscenes-devkit opencv-python-headless \
 	onnx onnxruntime onnxscript
 ROS_WHEELS := ros-rclpy ros-rmw-fastrtps-cpp ros-sensor-msgs ros-std-msgs ros-geometry-msgs \
 	ros-nav-msgs ros-visualization-msgs ros-diagnostic-msgs ros-rosgraph-msgs

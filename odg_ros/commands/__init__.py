@@ -22,8 +22,8 @@ SUBCOMMANDS = {
     "profile": "ops and host syncs of a training step, by phase and source line",
     "eval": "run a checkpoint over a split and score it",
     "export": "training checkpoint -> shipped one (compressed, score threshold calibrated)",
-    "bag": "write rosbag2 MCAP bags (synth world or nuScenes)",
-    "replay": "publish a rosbag2 bag with rclpy",
+    "bag": "write rosbag2 MCAP bags (synth world or nuScenes), or a scene's rig file",
+    "replay": "publish rosbag2 bags with rclpy, one after the other",
     "demo": "the end-to-end demo: world -> bag -> node -> planner stand-in -> scores",
     "ablation": "the ablation table and plot of several odg eval --json results",
 }
