@@ -137,9 +137,13 @@ def profile_preset(cfg, model, iters: int, warmup: int, progress: bool = True) -
         medians = variant.recorder.medians()
         stages = stage_summary(medians, cfg.num_layers)
 
-        def run():
-            variant.predictor.step(*sets[0])
-        decoder = variant.predictor.online_step.model.decoder
+        predictor = variant.predictor
+
+        @torch.no_grad()        # not inference mode: there linear, conv2d, attention reach a
+        def run():              # dispatch mode whole, and torch's FLOP formulas miss them
+            predictor.online_step(torch.from_numpy(sets[0][0]), predictor._packed,
+                                  predictor.budget)
+        decoder = predictor.online_step.model.decoder
         flops, ops = flops_by_part(decoder, run), ops_by_part(run)
         row = {"budget": budget.name, "static": budget.static, "dynamic": budget.dynamic,
                "queries_refined": budget.static + budget.dynamic,
