@@ -1,7 +1,7 @@
 """Named time ranges on the online step: where ``odg bench`` reads its per-stage and
 per-layer times, on the very step the node runs.
 
-``mark(name)`` wraps a stage of ``OnlineStep`` (step.py). It costs about a microsecond and
+``mark(name)`` wraps a stage of ``OnlineStep`` (step.py). It costs about 2 microseconds and
 records nothing, unless
 - a ``MarkRecorder`` is recording (``with recorder:``; odg bench): wall time per range on the
   CPU, CUDA events on a GPU (read after the step: no host wait inside it);
