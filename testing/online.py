@@ -12,6 +12,7 @@ from torch.utils._python_dispatch import TorchDispatchMode
 
 from odg_ros.geometry import make_transform
 from odg_ros.network import ODG
+from odg_ros.network.precision import precision_context
 from odg_ros.online.images import EncodedImage
 from odg_ros.online.rig import load_rig, set_ego2img
 from odg_ros.preprocess import adjust_intrinsics
@@ -24,6 +25,18 @@ def make_model():
     cfg = tiny_config(score_threshold=0.0, box_score_threshold=0.0)
     torch.manual_seed(0)
     return ODG(cfg).eval(), cfg
+
+
+@torch.inference_mode()
+def raw_output(predictor, budget=None):
+    """The decoder's full output (``ODGOutput``, every layer) over the predictor's ring as its
+    last step saw it: the eager decoder run again on the step's packed geometry, to compare
+    a step's raw outputs with a reference."""
+    step = predictor.online_step
+    ego2img, warps, deltas, frame_index, _ = step.layout.unpack(predictor._packed)
+    with precision_context(predictor.precision, predictor.device):
+        return step.model._decode_stored(step.ring.all_levels(), ego2img, warps, deltas,
+                                         frame_index, False, budget=budget)
 
 
 def make_sets(cfg, num_sets, seed=0):

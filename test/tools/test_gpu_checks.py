@@ -100,6 +100,7 @@ def test_report_tables_from_the_results_of_a_run(tmp_path):
     bench = bench_node_step(cfg, "cpu", ("eager",), iters=1, warmup=0, model=model,
                             progress=False, precisions=("fp32", "bf16"))
     (tmp_path / "node_tiny.json").write_text(json.dumps(bench))
+    (tmp_path / "bench.json").write_text(json.dumps({"tiny-fp32": bench}))
     seconds = [9.0] * 4 + [0.5, 0.7, 0.6, 0.6, 0.8, 0.8, 0.8, 0.8]   # one read every 4 steps
     rows = ["step,seconds,skipped_total"] + [f"{i + 1},{s},0" for i, s in enumerate(seconds)]
     (tmp_path / "train_odg_t_b4.csv").write_text("\n".join(rows) + "\n")
@@ -137,6 +138,7 @@ def test_report_tables_from_the_results_of_a_run(tmp_path):
         assert f"| tiny | {variant} | {cfg.image_size[0]} x {cfg.image_size[1]} |" in text
     assert "| tiny | eager-bf16 | " in text.split("Largest differences")[1]
     assert "(not summarised: demo.json: JSONDecodeError" in text
+    assert f"| tiny-fp32 (eager-fp32) | {cfg.image_size[0]} x {cfg.image_size[1]} |" in text
 
 
 def test_report_tables_of_the_first_h100_run_give_its_numbers():
