@@ -58,7 +58,7 @@ TORCH211_DEPS := torch==2.11.0 "numpy>=2" scipy pyyaml tqdm pillow simplejpeg ma
 	pytest pytest-timeout hypothesis onnx onnxruntime onnxscript
 TORCH211_TESTS := test/network/test_das_one_answer.py test/network/test_network.py \
 	test/network/test_fast_paths.py test/network/test_hard_precision.py \
-	test/network/test_query_budget.py test/network/test_flex_step.py test/online/test_compiled_step.py \
+	test/network/test_query_budget.py test/online/test_compiled_step.py \
 	test/online/test_graph_replay_standin.py test/online/test_predictor_budget.py \
 	test/online/test_online_predictor.py test/online/test_online_step.py \
 	test/online/test_onnx_export.py test/commands/test_export.py \
