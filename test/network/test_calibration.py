@@ -179,7 +179,7 @@ def test_the_calibrated_step_changes_no_label_and_reads_nothing_back():
     calibrated_cfg = cfg.replace(calibration=calibration_values(hazard_above_low=above,
                                                                 hazard_above_high=above))
     sets = make_sets(cfg, 3)
-    plain = OnlinePredictor(model, cfg, "cpu", keep_output=True)
+    plain = OnlinePredictor(model, cfg, "cpu")
     calibrated = OnlinePredictor(model, calibrated_cfg, "cpu")
     for s in sets:
         a, b = plain.step(*s), calibrated.step(*s)

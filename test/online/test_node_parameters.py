@@ -11,6 +11,7 @@ import yaml
 from odg_ros.config import load_preset
 from odg_ros.network.precision import PRECISIONS
 from odg_ros.online import parameters
+from odg_ros.online.extrinsics import SOURCES as EXTRINSICS_SOURCES
 from odg_ros.resources import resource_path
 
 
@@ -31,8 +32,14 @@ def test_params_file_holds_every_parameter_at_its_default():
 def test_schema_enums_match_the_code():
     schema = parameters.load_schema()
     assert schema["precision"].enum == PRECISIONS
+    assert schema["extrinsics_source"].enum == EXTRINSICS_SOURCES
     for preset in schema["preset"].enum:
         load_preset(preset)           # every listed preset exists
+    # the node's default visibility is the step's (precision first), and a value the step
+    # refuses (a ray clear with probability 1) never passes the schema
+    from odg_ros.online.visibility import DEFAULT_MIN_CLEAR
+    assert schema["visibility_min_clear"].default == DEFAULT_MIN_CLEAR
+    assert schema["visibility_min_clear"].maximum < 1.0
 
 
 @pytest.mark.parametrize("name, value, expected", [
@@ -50,6 +57,7 @@ def test_schema_enums_match_the_code():
     ("query_budget", "1.5", "query_budget='1.5': expected"),
     ("query_budget", math.nan, "query_budget=nan: expected"),
     ("query_budget", True, "query_budget=True: expected"),
+    ("visibility_min_clear", 1.0, "visibility_min_clear=1.0: expected 0 to 0.99"),
 ])
 def test_bad_values_are_named(name, value, expected):
     with pytest.raises(ValueError, match=None) as info:
