@@ -190,6 +190,9 @@ def test_the_calibrated_step_changes_no_label_and_reads_nothing_back():
         np.testing.assert_array_equal(b.confidence[occupied],
                                       table[a.grid[occupied], a.confidence[occupied]])
         assert (b.confidence[~occupied] > 200).all()                  # free: P(free) high
+        # the hazard reaches the visibility: it only hides, and hides far free space
+        assert not (b.observed & ~a.observed).any()
+        assert b.observed.sum() < 0.9 * a.observed.sum()
         assert [x["label"] for x in a.boxes] == [x["label"] for x in b.boxes]
         expected = Calibration(calibrated_cfg).box_score(torch.tensor([x["score"]
                                                                        for x in a.boxes]))
