@@ -9,6 +9,7 @@ import torch
 
 from odg_ros.commands import main
 from odg_ros.network.checkpoint import load_model, save_checkpoint
+from odg_ros.online.visibility import DEFAULT_MIN_CLEAR
 from odg_ros.train.calibrate import calibrate_thresholds
 from odg_ros.train.evaluate import evaluate
 
@@ -144,7 +145,7 @@ def test_eval_reports_what_a_planner_reads_per_split_and_together(tiny_split, ca
     assert result["sets"]["one"]["mIoU"] == result["sets"]["two"]["mIoU"] == result["mIoU"]
     for scored in [result] + list(result["sets"].values()):
         visibility = scored["visibility"]
-        assert visibility["min_clear"] == 0.8
+        assert visibility["min_clear"] == DEFAULT_MIN_CLEAR
         for grid in ("model", "ground_truth_grid"):
             assert set(visibility[grid]["voxels"]) == {
                 "observed_precision", "observed_recall", "free_observed_precision",
