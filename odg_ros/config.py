@@ -64,6 +64,9 @@ class ModelConfig:
     max_distance_to_centroid: float = 3.0
     occupancy_padding: bool = True       # OPUS's test-time closing of the grid (network/padding)
     box_score_threshold: float = 0.3
+    # what the grid's confidence, hazard and box scores mean as probabilities, fitted on training
+    # worlds by odg export --calibrate (network/calibration.py); None: raw scores
+    calibration: dict | None = None
 
     def __post_init__(self) -> None:
         self.image_size = tuple(self.image_size)
@@ -82,6 +85,9 @@ class ModelConfig:
                              f"label set ({occ_labels(self.dataset).num_classes} classes + free)")
         if self.backbone not in ("resnet18", "resnet34", "resnet50"):
             raise ValueError(f"unknown backbone {self.backbone!r}")
+        if self.calibration is not None:
+            from .network.calibration import check_calibration
+            check_calibration(self.calibration, self.num_classes)
 
     @property
     def labels(self) -> OccLabels:

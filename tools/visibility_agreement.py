@@ -1,19 +1,26 @@
 """How well the node's visibility (free / occupied / unknown) agrees with the world's own
-``mask_camera``: the voxel IoU of "observed" over held-out keyframes.
+``mask_camera`` over held-out keyframes, and what it costs.
 
-    python -m tools.visibility_agreement --data data/synth24/infos_val.pkl
-    python -m tools.visibility_agreement --data data/synth24/infos_val.pkl \
+    python -m tools.visibility_agreement --data data/held_out/city-dense/infos_all.pkl
+    python -m tools.visibility_agreement --data data/held_out/city-dense/infos_all.pkl \
         --checkpoint model/odg_cpu.pt
-    python -m tools.visibility_agreement --data data/synth24/infos_val.pkl --device cuda
-    python -m tools.visibility_agreement --data data/synth24/infos_val.pkl \
+    python -m tools.visibility_agreement --data data/held_out/city-dense/infos_all.pkl \
+        --device cuda
+    python -m tools.visibility_agreement --data data/held_out/city-dense/infos_all.pkl \
         --checkpoint model/odg_cpu.pt --step-share 12
 
 Without --checkpoint the visibility is computed from the ground-truth occupancy (what the
-method can reach when the grid is right), on --device, and timed there (the median per
-keyframe: CPU time of one thread on the CPU, CUDA events on a GPU); with it, from the grid
-the node's online step predicts on the CPU (keyframes in scene order, history as in the
-node). Prints one line per scene and a JSON summary (IoU over all voxels of all keyframes,
-and the mean per keyframe).
+method can reach when the grid is right; the predicted surfaces alone), on --device, and
+timed there (the median per keyframe: CPU time of one thread on the CPU, CUDA events on a
+GPU); with it, from the grid the node's online step predicts on the CPU (keyframes in scene
+order, history as in the node; the checkpoint's hazard and --min-clear as the node's
+visibility_min_clear). Prints one line per scene and a JSON summary (over all voxels of all
+keyframes: IoU, precision and recall of "observed"; the mean IoU per keyframe).
+
+--step-share N times the node's online step on the first N keyframes (one thread, set by set
+interleaved, medians): with and without the visibility, and without the calibration too
+(the confidence as raw scores, no hazard): the visibility's share of the step and the
+calibration's.
 """
 from __future__ import annotations
 
@@ -27,7 +34,7 @@ from tqdm import tqdm
 
 from odg_ros.config import load_preset
 from odg_ros.data.dataset import OccDataset
-from odg_ros.online.visibility import Visibility, image_bounds
+from odg_ros.online.visibility import DEFAULT_MIN_CLEAR, Visibility, image_bounds
 
 
 def keyframe_inputs(dataset: OccDataset, index: int):
@@ -62,7 +69,7 @@ def timed(visibility, device, semantics, ego2img, bounds):
         return observed.cpu().numpy(), begin.elapsed_time(end) / 1e3
 
 
-def predicted_observed(checkpoint: str, dataset: OccDataset, progress: bool):
+def predicted_observed(checkpoint: str, dataset: OccDataset, progress: bool, min_clear: float):
     """observed bool [X, Y, Z] per keyframe from the online step's predicted grid."""
     from odg_ros.network.checkpoint import load_model
     from odg_ros.online.predictor import OnlinePredictor
@@ -71,7 +78,8 @@ def predicted_observed(checkpoint: str, dataset: OccDataset, progress: bool):
     for index in tqdm(range(len(dataset)), desc="online step", disable=not progress):
         info = dataset.infos[index]
         if info["scene_token"] != scene:
-            predictor, scene = OnlinePredictor(model, cfg, "cpu"), info["scene_token"]
+            predictor = OnlinePredictor(model, cfg, "cpu", min_clear=min_clear)
+            scene = info["scene_token"]
         ego2img, bounds, _, _ = keyframe_inputs(dataset, index)
         images = np.stack([dataset.load_image(info["cams"][c]) for c in dataset.camera_names])
         prediction = predictor.step(images, ego2img, np.asarray(info["ego_pose"]),
@@ -79,27 +87,37 @@ def predicted_observed(checkpoint: str, dataset: OccDataset, progress: bool):
         yield prediction.observed
 
 
-def step_share(checkpoint: str, dataset: OccDataset, sets: int) -> dict:
-    """The CPU time of the online step with and without the visibility, interleaved set by
-    set on the same keyframes (one thread) -> medians and the visibility's share."""
+def step_share(checkpoint: str, dataset: OccDataset, sets: int, min_clear: float) -> dict:
+    """The CPU time of the online step with and without the visibility, and without the
+    calibration too, interleaved set by set on the same keyframes (one thread) -> medians
+    and the shares of the step with both."""
     from odg_ros.network.checkpoint import load_model
     from odg_ros.online.predictor import OnlinePredictor
     model, cfg = load_model(checkpoint, device="cpu")
-    predictors = {on: OnlinePredictor(model, cfg, "cpu", visibility=on) for on in (True, False)}
-    times = {True: [], False: []}
-    for index in tqdm(range(min(sets, len(dataset))), desc="step with / without"):
+    variants = {"with": (cfg, True), "without visibility": (cfg, False),
+                "without visibility and calibration": (cfg.replace(calibration=None), False)}
+    predictors = {name: OnlinePredictor(model, c, "cpu", visibility=on, min_clear=min_clear)
+                  for name, (c, on) in variants.items()}
+    times = {name: [] for name in variants}
+    for index in tqdm(range(min(sets, len(dataset))), desc="step variants"):
         info = dataset.infos[index]
         ego2img, bounds, _, _ = keyframe_inputs(dataset, index)
         images = np.stack([dataset.load_image(info["cams"][c]) for c in dataset.camera_names])
-        for on, predictor in predictors.items():
+        for name, predictor in predictors.items():
             start = time.process_time()
             predictor.step(images, ego2img, np.asarray(info["ego_pose"]),
                            info["timestamp"] * 1e-6, bounds=bounds)
-            times[on].append(time.process_time() - start)
-    with_ms, without_ms = (1e3 * float(np.median(times[on][1:])) for on in (True, False))
-    return {"step_ms_median_with_visibility": round(with_ms, 1),
-            "step_ms_median_without": round(without_ms, 1),
-            "visibility_share_of_the_step": round((with_ms - without_ms) / with_ms, 3)}
+            times[name].append(time.process_time() - start)
+    ms = {name: 1e3 * float(np.median(t[1:])) for name, t in times.items()}
+    full = ms["with"]
+    return {"calibrated": cfg.calibration is not None, "min_clear": min_clear,
+            "step_ms_median_with_visibility": round(full, 1),
+            "step_ms_median_without": round(ms["without visibility"], 1),
+            "step_ms_median_without_calibration_either": round(
+                ms["without visibility and calibration"], 1),
+            "visibility_share_of_the_step": round((full - ms["without visibility"]) / full, 3),
+            "calibration_share_of_the_step": round(
+                (ms["without visibility"] - ms["without visibility and calibration"]) / full, 3)}
 
 
 def main(argv=None) -> int:
@@ -114,7 +132,11 @@ def main(argv=None) -> int:
                         help="where the visibility of the ground truth runs and is timed")
     parser.add_argument("--step-share", type=int, default=0, metavar="N",
                         help="with --checkpoint: instead, time the online step with and "
-                             "without the visibility on the first N keyframes (CPU)")
+                             "without the visibility (and the calibration) on the first N "
+                             "keyframes (CPU)")
+    parser.add_argument("--min-clear", type=float, default=DEFAULT_MIN_CLEAR,
+                        help="with --checkpoint: the node's visibility_min_clear (default "
+                             f"{DEFAULT_MIN_CLEAR})")
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
     cfg = load_preset(args.preset)
@@ -125,12 +147,14 @@ def main(argv=None) -> int:
     if args.limit:
         dataset.infos = dataset.infos[:args.limit]
     if args.step_share:
-        print(json.dumps(step_share(args.checkpoint, dataset, args.step_share), indent=2))
+        print(json.dumps(step_share(args.checkpoint, dataset, args.step_share, args.min_clear),
+                         indent=2))
         return 0
     device = torch.device(args.device)
     visibility = Visibility(cfg.grid_shape, cfg.pc_range, cfg.voxel_size, cfg.num_classes,
                             device=device)
-    predicted = predicted_observed(args.checkpoint, dataset, True) if args.checkpoint else None
+    predicted = predicted_observed(args.checkpoint, dataset, True, args.min_clear) \
+        if args.checkpoint else None
     totals, per_keyframe, per_scene, seconds = np.zeros(4), [], {}, []
     for index in tqdm(range(len(dataset)), desc="keyframes", disable=predicted is not None):
         ego2img, bounds, mask, semantics = keyframe_inputs(dataset, index)
@@ -151,6 +175,8 @@ def main(argv=None) -> int:
     summary = {"data": args.data, "grid": "predicted by " + args.checkpoint
                if args.checkpoint else "ground truth", "keyframes": len(per_keyframe),
                "iou_observed": round(float(totals[0] / totals[1]), 4),
+               "precision_observed": round(float(totals[0] / (totals[0] + totals[2])), 4),
+               "recall_observed": round(float(totals[0] / (totals[0] + totals[3])), 4),
                "mean_keyframe_iou": round(float(np.mean(per_keyframe)), 4),
                # of the voxels said observed, hidden in truth; of those seen, said unknown
                "observed_but_hidden": round(float(totals[2] / (totals[0] + totals[2])), 4),

@@ -61,6 +61,17 @@ def nonnegative_int(text: str) -> int:
     return _number(text, int, 0, strict=False)
 
 
+def probability(text: str) -> float:
+    """A probability in [0, 1)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not 0.0 <= value < 1.0:
+        raise argparse.ArgumentTypeError(f"{text}: expected a probability in [0, 1)")
+    return value
+
+
 def positive_float(text: str) -> float:
     return _number(text, float, 0.0, strict=True)
 

@@ -1,28 +1,39 @@
-"""``odg eval --checkpoint CKPT --data INFOS [--save-pred DIR] [--miou-convention C]
-[--query-budget full|auto|FRACTION] [--json]``.
+"""``odg eval --checkpoint CKPT --data [NAME=]INFOS ... [--save-pred DIR]
+[--miou-convention C] [--query-budget full|auto|FRACTION] [--visibility-min-clear P]
+[--json]``.
 
 The grid is padded as OPUS pads it at test time (``network/padding.py``) unless
-``--set occupancy_padding=false``."""
+``--set occupancy_padding=false``. Several ``--data`` splits (scene classes) are scored each
+and together. Beside mIoU, RayIoU and box mAP: what a planner reads (metrics/planner.py):
+the visibility against mask_camera, the confidence's calibration error, label flips."""
 from __future__ import annotations
 
 import json
 
+from pathlib import Path
+
 from ..metrics.detection import format_detection
+from ..metrics.planner import format_planner
 from ..metrics.score import format_table
 from ..network.checkpoint import load_model
 from ..network.precision import resolve_device
 from ..online.predictor import resolve_budget
-from ..train.evaluate import evaluate
-from .common import (config_overrides, device, existing_dir, existing_file, infos_file,
-                     positive_int)
+from ..online.visibility import DEFAULT_MIN_CLEAR
+from ..train.evaluate import BEV_BAND, evaluate
+from .common import (UserError, config_overrides, device, existing_dir, existing_file,
+                     infos_file, positive_int, probability)
 from .score import add_miou_convention
 
 
 def add_arguments(parser):
     parser.add_argument("--checkpoint", required=True, type=existing_file,
                         help="checkpoint file (odg train / odg export; model/odg_cpu.pt ships)")
-    parser.add_argument("--data", required=True, type=infos_file,
-                        help="infos of the split to evaluate (odg prepare)")
+    parser.add_argument("--data", required=True, type=named_infos, nargs="+",
+                        metavar="[NAME=]INFOS",
+                        help="infos of the split to evaluate (odg prepare); several (scene "
+                             "classes, e.g. city-dense=data/held_out/city-dense/infos_all.pkl; "
+                             "a plain path is named after its folder) are scored each and "
+                             "together")
     parser.add_argument("--occ-root", type=existing_dir, default=None,
                         help="GT root (default: the infos' occ_root, else <dataroot>/gts)")
     parser.add_argument("--save-pred", default=None,
@@ -39,6 +50,14 @@ def add_arguments(parser):
                              "query_budget parameter: full (default), auto (chosen per "
                              "keyframe from the one before) or a fraction in (0, 1]; the "
                              "result then says the mean share of the queries refined")
+    parser.add_argument("--visibility-min-clear", type=probability, default=DEFAULT_MIN_CLEAR,
+                        help="the node's visibility_min_clear: the least probability of a "
+                             f"clear ray for a voxel to count as observed (default "
+                             f"{DEFAULT_MIN_CLEAR})")
+    parser.add_argument("--bev-band", type=float, nargs=2, default=list(BEV_BAND),
+                        metavar=("MIN_Z", "MAX_Z"),
+                        help="the node's bev_min_z and bev_max_z (m, grid frame; default "
+                             f"{BEV_BAND[0]} {BEV_BAND[1]})")
     parser.add_argument("--json", action="store_true", help="print JSON only")
     parser.add_argument("--set", action="append", metavar="KEY=VALUE",
                         help="config override at inference, e.g. motion_compensation=false "
@@ -51,13 +70,21 @@ def run(args) -> int:
     model, cfg = load_model(args.checkpoint, device=device, **config_overrides(args.set))
     budgets, policy = resolve_budget(args.query_budget, model, cfg)
     budget = policy if policy is not None else budgets[0]
-    result = evaluate(model, cfg, args.data, occ_root=args.occ_root, save_pred=args.save_pred,
+    names = [name for name, _ in args.data]
+    if len(set(names)) != len(names):
+        raise UserError(f"--data names {names}: give each split its own NAME=")
+    data = args.data[0][1] if len(args.data) == 1 else dict(args.data)
+    result = evaluate(model, cfg, data, occ_root=args.occ_root, save_pred=args.save_pred,
                       device=device, rayiou=not args.no_rayiou, limit=args.limit,
                       progress=not args.json, miou_convention=args.miou_convention,
-                      budget=budget)
+                      budget=budget, min_clear=args.visibility_min_clear,
+                      bev_band=tuple(args.bev_band))
     if args.json:
         print(json.dumps(result, indent=2))
     else:
+        for name, values in result.get("sets", {}).items():
+            print(f"{name}: mIoU {_number(values['mIoU'])}, RayIoU "
+                  f"{_number(values.get('RayIoU'))}, {values['samples']} keyframes")
         print(format_table(result))
         print(f"grid padding (OPUS test time): {'on' if cfg.occupancy_padding else 'off'}")
         print(f"mIoU over the dynamic classes: {result['mIoU_dynamic']}")
@@ -68,4 +95,16 @@ def run(args) -> int:
             print(f"query budget {use['mode']}: on average "
                   f"{100 * use['mean_refined_fraction']:.1f} % of the queries refined "
                   f"(keyframes per budget: {use['keyframes_per_budget']})")
+        print(format_planner(result))
     return 0
+
+
+def _number(value) -> str:
+    return "-" if value is None else f"{value:.2f}"
+
+
+def named_infos(text: str) -> tuple[str, str]:
+    """[NAME=]INFOS -> (name, path); a plain path is named after its folder."""
+    name, _, path = text.rpartition("=") if "=" in text else ("", "", text)
+    path = infos_file(path)
+    return name or Path(path).resolve().parent.name, path

@@ -103,6 +103,18 @@ class OccScore:
                 raise ValueError("RayIoU needs the sample's LiDAR origins")
             self.rayiou.add(pred, gt, origins)
 
+    def merge(self, other: "OccScore") -> None:
+        """Add the keyframes ``other`` scored (the same dataset, convention and RayIoU on or
+        off) to this score, as if they had been added here."""
+        self.miou.confusion += other.miou.confusion
+        self.miou.samples += other.miou.samples
+        if self.rayiou is not None:
+            for name in ("gt_count", "pred_count", "tp_count"):
+                setattr(self.rayiou, name, getattr(self.rayiou, name)
+                        + getattr(other.rayiou, name))
+            self.rayiou.samples += other.rayiou.samples
+            self.rayiou.rays += other.rayiou.rays
+
     def result(self) -> dict:
         """Report in percent (0..100), NaN as None (JSON null)::
 

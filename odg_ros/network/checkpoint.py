@@ -53,11 +53,12 @@ def decompress_state(state: dict) -> dict:
 
 
 def save_checkpoint(path, model: ODG, extra: dict | None = None,
-                    compress: str | None = None) -> None:
+                    compress: str | None = None, state: dict | None = None) -> None:
     """Atomic write (temp file + rename) so a crash never leaves a truncated checkpoint.
     ``compress`` ("fp16" | "int8", see compress_state) shrinks a shipped checkpoint; loading
-    casts everything back to the model's float32."""
-    state = compress_state(model.state_dict(), compress)
+    casts everything back to the model's float32. ``state``: the weights as stored already
+    compressed that way (written as they are), instead of the model's."""
+    state = compress_state(model.state_dict(), compress) if state is None else state
     payload = {"config": model.cfg.to_dict(), "model": state, "compression": compress,
                **(extra or {})}
     path = Path(path)

@@ -27,12 +27,13 @@ from torch import nn
 from torch.export.pt2_archive.constants import AOTINDUCTOR_DIR
 
 from .step import OnlineStep
+from .visibility import DEFAULT_MIN_CLEAR
 
 FORMAT = "odg-online-step-2"    # 2: the observed output and the visibility geometry
 SIGNATURE_FILE = "odg_step.json"
 # what a signature holds, in the order a mismatch is reported
-SIGNATURE_KEYS = ("format", "torch", "device", "precision", "capacity", "visibility", "config",
-                  "weights")
+SIGNATURE_KEYS = ("format", "torch", "device", "precision", "capacity", "visibility",
+                  "visibility_min_clear", "config", "weights")
 
 
 class StaleArtifact(ValueError):
@@ -62,15 +63,17 @@ def weights_hash(model: nn.Module) -> str:
 
 
 def step_signature(model: nn.Module, cfg, capacity: int, device, precision: str,
-                   visibility: bool = True) -> dict:
+                   visibility: bool = True, min_clear: float = DEFAULT_MIN_CLEAR) -> dict:
     """What a compiled step is valid for (compared key by key when it is loaded)."""
     return {"format": FORMAT, "torch": torch.__version__, "device": torch.device(device).type,
             "precision": precision, "capacity": int(capacity), "visibility": bool(visibility),
+            "visibility_min_clear": float(min_clear) if visibility else None,
             "config": json.loads(json.dumps(cfg.to_dict())), "weights": weights_hash(model)}
 
 
 def export_artifact(model: nn.Module, cfg, path, capacity: int | None = None, device="cpu",
-                    precision: str = "fp32", visibility: bool = True) -> tuple[Path, dict]:
+                    precision: str = "fp32", visibility: bool = True,
+                    min_clear: float = DEFAULT_MIN_CLEAR) -> tuple[Path, dict]:
     """Compile the online step over a ring of ``capacity`` (default: the model's frames) into
     ``path`` (.pt2) -> (the path, its signature)."""
     from torch.export.pt2_archive._package import package_pt2
@@ -79,7 +82,8 @@ def export_artifact(model: nn.Module, cfg, path, capacity: int | None = None, de
         raise ValueError(f"{path}: a compiled step is a .pt2 file")
     k = cfg.num_frames if capacity is None else int(capacity)
     model = model.to(device).eval()
-    step = OnlineStep(model, cfg, k, device, precision, visibility=visibility).eval()
+    step = OnlineStep(model, cfg, k, device, precision, visibility=visibility,
+                      min_clear=min_clear).eval()
     H, W = cfg.image_size
     images = torch.zeros(cfg.num_cams, H, W, 3, dtype=torch.uint8, device=device)
     packed = torch.zeros(step.layout.size)
@@ -89,7 +93,7 @@ def export_artifact(model: nn.Module, cfg, path, capacity: int | None = None, de
         exported = torch.export.export(RingInputStep(step).eval(), example, strict=False)
         files = torch._inductor.aot_compile(exported.module(check_guards=False), example,
                                             options={"aot_inductor.package": True})
-    signature = step_signature(model, cfg, k, device, precision, visibility)
+    signature = step_signature(model, cfg, k, device, precision, visibility, min_clear)
     package_pt2(str(path), aoti_files={"model": files},
                 extra_files={SIGNATURE_FILE: json.dumps(signature)})
     return path, signature

@@ -27,8 +27,8 @@ from torch.profiler import record_function
 
 PREFIX = "odg."
 # OnlineStep's stages in execution order (``padding`` where the model pads its grid,
-# ``visibility`` where the step computes it)
-STEP_STAGES = ("backbone", "decoder", "grid", "padding", "boxes", "visibility")
+# ``calibration`` where its checkpoint is calibrated, ``visibility`` where the step computes it)
+STEP_STAGES = ("backbone", "decoder", "grid", "padding", "calibration", "boxes", "visibility")
 # the parts of a decoder layer, in execution order (attributes of decoder.DecoderLayer)
 LAYER_PARTS = ("position", "box_position", "attention", "sampling", "mixing", "ffn", "points",
                "boxes")

@@ -36,6 +36,7 @@ from torch import nn
 
 from ..classes import BOX_CLASSES
 from .step import OnlineStep
+from .visibility import DEFAULT_MIN_CLEAR
 
 # name -> what it is (the docs' table and the export report say the same)
 INPUTS = {
@@ -156,14 +157,16 @@ def example_inputs(step: OnlineStep, seed: int = 0) -> dict[str, torch.Tensor]:
 SINGLE_FILE_LIMIT = 2 ** 31 - 2 ** 26
 
 
-def export_onnx(model: nn.Module, cfg, path, capacity: int | None = None, opset: int = 20):
+def export_onnx(model: nn.Module, cfg, path, capacity: int | None = None, opset: int = 20,
+                min_clear: float = DEFAULT_MIN_CLEAR):
     """Write the online step over a history of ``capacity`` frames (default: the model's)
     to ``path`` -> the NamedInputStep exported, its example inputs by name, and every file
     written [(path, bytes)]: ``path`` alone when the graph fits one file, else ``path`` and
-    its external weights."""
+    its external weights. ``min_clear``: the visibility's, as the node's
+    ``visibility_min_clear``."""
     from torch.nn.attention import SDPBackend, sdpa_kernel
     k = cfg.num_frames if capacity is None else int(capacity)
-    step = OnlineStep(model.eval(), cfg, k, "cpu").eval()
+    step = OnlineStep(model.eval(), cfg, k, "cpu", min_clear=min_clear).eval()
     named = NamedInputStep(step).eval()
     inputs = example_inputs(step)
     levels = len(step.ring._memory)
@@ -178,11 +181,11 @@ def export_onnx(model: nn.Module, cfg, path, capacity: int | None = None, opset:
                                                     torch.ops.aten.searchsorted.Tensor:
                                                         _searchsorted},
                           verbose=False, external_data=True)
-    files = _single_file_if_it_fits(Path(path), metadata(cfg, k))
+    files = _single_file_if_it_fits(Path(path), metadata(cfg, k, min_clear))
     return named, inputs, files
 
 
-def metadata(cfg, capacity: int) -> dict[str, str]:
+def metadata(cfg, capacity: int, min_clear: float = DEFAULT_MIN_CLEAR) -> dict[str, str]:
     """What a deployment needs to read the outputs, stored in the file (onnxruntime:
     ``session.get_modelmeta().custom_metadata_map``)."""
     from ..classes import occ_labels
@@ -194,6 +197,8 @@ def metadata(cfg, capacity: int) -> dict[str, str]:
             "odg.box_classes": json.dumps(list(BOX_CLASSES[:cfg.num_box_classes])),
             "odg.image_size": json.dumps(list(cfg.image_size)),
             "odg.history_frames": json.dumps(capacity),
+            "odg.visibility_min_clear": json.dumps(min_clear),
+            "odg.calibrated": json.dumps(cfg.calibration is not None),
             "odg.inputs": "docs/compiled_node.md, ONNX export"}
 
 

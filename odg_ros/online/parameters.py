@@ -230,6 +230,8 @@ def model_settings(schema: dict[str, Parameter] | None = None) -> dict[str, Para
              "tuple[float, ...]": "float_array"}
     rules = {}
     for f in dataclasses.fields(ModelConfig):
+        if f.name not in schema and str(f.type) not in kinds:
+            continue                   # no text form (the calibration: odg export fits it)
         if f.name in schema:
             rules[f.name] = schema[f.name]
         else:

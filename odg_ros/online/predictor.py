@@ -28,6 +28,7 @@ from ..network.budget import QueryBudget, budget_ladder, budget_of
 from .budget_policy import BudgetPolicy
 from .history import Frame, FrameHistory, history_geometry
 from .step import MODES, OnlineStep
+from .visibility import DEFAULT_MIN_CLEAR
 
 LOG = logging.getLogger(__name__)
 # compile="auto": graphs on CUDA; on the CPU the mode measured fastest for odg_cpu
@@ -132,7 +133,8 @@ class OnlinePredictor:
                  max_gap: float = 1.0, num_frames: int | None = None,
                  min_interval: float = 0.0,
                  precision: str = "fp32", compile: str = "eager", compiled_step=None,
-                 visibility: bool = True, query_budget="full"):
+                 visibility: bool = True, query_budget="full",
+                 min_clear: float = DEFAULT_MIN_CLEAR):
         """num_frames: history length k (current set included), at most cfg.num_frames
         (None = cfg.num_frames); max_gap: seconds between sets that restart the history;
         min_interval: seconds between the history frames kept, so the decoder sees the
@@ -147,7 +149,9 @@ class OnlinePredictor:
         of ``odg export --aoti`` run instead of compiling (artifact.py; refused with a
         StaleArtifact if built for another model, configuration, precision, history length,
         device or torch). The grid's free label is the model's class count (cfg.num_classes).
-        visibility: also compute which voxels the cameras observe (online/visibility.py).
+        visibility: also compute which voxels the cameras observe (online/visibility.py);
+        min_clear: the least probability that the ray to a voxel is clear for it to count as
+        observed (the node's visibility_min_clear; needs a calibrated checkpoint).
         query_budget: full, auto (each step's budget chosen from the one before,
         online/budget_policy.py) or a fraction of the queries (network/budget.py); every
         budget is its own static-shape step, compiled and captured at start-up."""
@@ -168,8 +172,10 @@ class OnlinePredictor:
                              "query_budget full with compiled_step")
         start = time.perf_counter()
         self.visibility = bool(visibility)
+        self.min_clear = float(min_clear)
         self.online_step = OnlineStep(model, cfg, k, self.device, precision,
-                                      visibility=self.visibility).eval()
+                                      visibility=self.visibility,
+                                      min_clear=self.min_clear).eval()
         self.ring = self.online_step.ring              # same capacity: slots follow history
         self.layout = self.online_step.layout
         cuda = self.device.type == "cuda"
@@ -196,7 +202,8 @@ class OnlinePredictor:
         """The .pt2 step, checked against this predictor -> f(images, packed) on the ring."""
         from .artifact import load_artifact, step_signature
         compiled = load_artifact(path, step_signature(model, self.cfg, capacity, self.device,
-                                                      precision, self.visibility),
+                                                      precision, self.visibility,
+                                                      self.min_clear),
                                  for_cuda_graph=self.mode == "graphs")
         ring = self.ring
 

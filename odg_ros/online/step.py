@@ -28,13 +28,14 @@ from torch import nn
 from ..config import ModelConfig
 from ..network.backbone import folded_for_inference
 from ..network.budget import QueryBudget, needed_queries
+from ..network.calibration import Calibration
 from ..network.feature_ring import FeatureRing
 from ..network.padding import pad_occupancy
 from ..network.postprocess import ranked_boxes, voxelise
 from ..network.precision import half_dtype, precision_context, with_half_matrix_weights
 from ..preprocess import IMAGENET_MEAN, IMAGENET_STD
 from .marks import mark
-from .visibility import Visibility
+from .visibility import DEFAULT_MIN_CLEAR, Visibility
 
 MODES = ("eager", "compiled", "graphs")
 
@@ -86,16 +87,21 @@ class GeometryLayout:
 class OnlineStep(nn.Module):
     """One online step over device tensors; holds the feature ring (written in place).
     visibility: compute which voxels the cameras observe (online/visibility.py); without it
-    the ``observed`` output is empty."""
+    the ``observed`` output is empty; min_clear: its least probability of a clear ray. The
+    confidence and box scores are the checkpoint's calibrated probabilities where it has a
+    calibration (network/calibration.py)."""
 
     def __init__(self, model: nn.Module, cfg: ModelConfig, capacity: int, device,
-                 precision: str = "fp32", visibility: bool = True):
+                 precision: str = "fp32", visibility: bool = True,
+                 min_clear: float = DEFAULT_MIN_CLEAR):
         super().__init__()
         self.model, self.cfg, self.precision = model, cfg, precision
         self.free_label = cfg.num_classes           # Occ3D: free = the class count
         self.device = torch.device(device)
+        self.calibration = Calibration(cfg, device)
         self.visibility = Visibility(cfg.grid_shape, cfg.pc_range, cfg.voxel_size,
-                                     self.free_label, device=device) if visibility else None
+                                     self.free_label, min_clear, device=device) \
+            if visibility else None
         self.layout = GeometryLayout(capacity, cfg.num_cams, cfg.num_frames)
         self.register_buffer("mean", torch.tensor(IMAGENET_MEAN, device=device),
                              persistent=False)
@@ -161,6 +167,11 @@ class OnlineStep(nn.Module):
                 labels, confidence = (t.flatten(1) for t in pad_occupancy(
                     labels.view(grid), confidence.view(grid), self.free_label,
                     self.cfg.score_threshold))
+        labels, confidence = labels[0], confidence[0]
+        hazard = None
+        if self.calibration.calibrated:
+            with mark("calibration"):
+                confidence, hazard = self.calibration(labels, confidence)
         if layer.boxes is None:                        # a model without dynamic queries
             empty = layer.means.new_zeros(1, 0)
             boxes, score = layer.means.new_zeros(1, 0, 9), empty
@@ -169,9 +180,11 @@ class OnlineStep(nn.Module):
             with mark("boxes"):
                 boxes, score, label, valid = ranked_boxes(layer.boxes, layer.box_logits,
                                                           self.cfg.box_score_threshold)
+                score = self.calibration.box_score(score)
         if self.visibility is None:
             observed = labels.new_zeros(0)
         else:
             with mark("visibility"):
-                observed = self.visibility(labels[0], *self.layout.current_view(packed))
-        return labels[0], confidence[0], boxes[0], score[0], label[0], valid[0], observed
+                observed = self.visibility(labels, *self.layout.current_view(packed),
+                                           hazard=hazard)
+        return labels, confidence, boxes[0], score[0], label[0], valid[0], observed

@@ -1,9 +1,17 @@
 """Which voxels the cameras observe, from the predicted grid: free / occupied / unknown.
 
-A voxel is observed when a camera sees it: its centre projects into a camera's image and
-lies no farther along its own ray than the first predicted surface there (plus half a
-voxel diagonal, as Occ3D's ``mask_camera`` allows). Everything else is unknown: outside
-every image, or behind a predicted surface.
+A voxel is observed when a camera sees it: its centre projects into a camera's image, it
+lies no farther along its own ray than the first predicted surface there (plus half a voxel
+diagonal, as Occ3D's ``mask_camera`` allows), and the ray is clear up to it with a probability
+of at least ``min_clear``. Everything else is unknown: outside every image, behind a predicted
+surface, or behind space the grid calls free where it too often misses an occluder.
+
+That probability comes from a hazard per voxel (``network/calibration.py``, fitted on training
+worlds against their ``mask_camera``): how likely a ray through a voxel the grid calls free is
+stopped there by something the grid missed, per voxel length of the ray. A ray is clear up to
+a distance with probability exp(-optical depth), the hazard summed along it; the voxels beyond
+the point where that falls below ``min_clear`` are not seen. Without a hazard (a checkpoint
+with no calibration) or with ``min_clear`` 0 only the predicted surfaces hide anything.
 
 Computed on the device with static shapes and no host read, as part of the online step:
 
@@ -16,16 +24,16 @@ Computed on the device with static shapes and no host read, as part of the onlin
    dense near the horizon, where the far voxels are): the rays of one azimuth lie in one
    vertical plane, so the grid is read once per column of voxels along it and each ray
    only picks its layer; every ray is sampled about once a voxel, and its first occluder
-   gives the cell's depth and, for a mid-plane, that plane;
+   gives the cell's depth and, for a mid-plane, that plane; the optical depth along the ray
+   gives the cell's second depth, where the ray stops being clear enough;
 3. each voxel column is given the camera it projects nearest the image centre of; a voxel
    is observed when its centre is inside that camera's image and not behind the occluder
    of the cell it falls in: for a plane, the voxel's own ray must not cross that plane
    before it (the tangent-plane test of the synthetic ground truth: without it a ray
    grazing the road would hide the road behind the first metre of it), else it must not
-   lie beyond the cell's depth.
+   lie beyond the cell's depth; and never beyond the cell's second depth.
 
-On odg_cpu's grid it takes about a sixth of the CPU step (one thread; the measurement:
-tools/visibility_agreement.py --step-share).
+Its share of the node's CPU step: ``python -m tools.visibility_agreement --step-share``.
 """
 from __future__ import annotations
 
@@ -42,26 +50,59 @@ from ..preprocess import image_bounds  # noqa: F401  (the bounds the step reads)
 LINE, BALL, FREE = 3, 6, 7
 # Chosen on the synthetic val split against its mask_camera (tools/visibility_agreement.py):
 # depth map cells per camera (rows of elevation, columns of azimuth), the rows uniform in
-# asinh(tan(elevation) / HORIZON), so most of them lie near the horizon, where the far
-# voxels are; in voxels: the radius of a ball occluder, how far behind a sample a plane's
+# log1p(|tan(elevation)| / HORIZON) (signed), so most of them lie near the horizon, where the
+# far voxels are; in voxels: the radius of a ball occluder, how far behind a sample a plane's
 # crossing may lie, and the horizontal distance between samples; the occluder tests run on
 # WINDOW samples from the first occupied one, up to CANDIDATES times along a ray.
-CELLS = (32, 64)
+CELLS = (24, 64)
 HORIZON = 0.03
-BALL_RADIUS, PLANE_REACH, STEP = 0.35, 0.75, 0.9
-CANDIDATES, WINDOW = 3, 8
-MAX_TAN = 100.0               # steeper rays (straight up or down) count as this steep
+BALL_RADIUS, PLANE_REACH, STEP = 0.35, 0.75, 1.0
+CANDIDATES, WINDOW = 3, 6
+# one ray of the optical depth for every CLEAR_SUBSAMPLE x CLEAR_SUBSAMPLE cells
+CLEAR_SUBSAMPLE = 2
+# the node's visibility_min_clear: precision first, the lowest whose "observed" precision on
+# the calibration's training worlds reaches 0.95 (odg export --calibrate reports it; held-out
+# figures per scene class in docs/results/planner.md)
+DEFAULT_MIN_CLEAR = 0.85
+
+
+def _kind_table() -> list[int]:
+    """Occluder kind by a 4-bit code: bit a (a = 0, 1, 2) set when both neighbours along
+    axis a are not occupied, bit 3 set when the voxel itself is not occupied."""
+    table = []
+    for code in range(16):
+        open_axes = [a for a in range(3) if code >> a & 1]
+        if code & 8:
+            table.append(FREE)
+        elif len(open_axes) == 1:                    # a plane across the one open axis
+            table.append(open_axes[0])
+        elif len(open_axes) == 2:                    # a line along the closed axis
+            table.append(LINE + 3 - sum(open_axes))
+        else:
+            table.append(BALL)
+    return table
 
 
 class Visibility(nn.Module):
-    """observed uint8 [X*Y*Z] (1 = a camera sees the voxel) from the predicted labels."""
+    """observed uint8 [X*Y*Z] (1 = a camera sees the voxel) from the predicted labels and,
+    optionally, a missed-occupancy hazard per voxel.
+
+    min_clear: the least probability that a voxel's ray is clear for it to count as seen
+    (in [0, 1); 0: the predicted surfaces alone decide); higher trades recall for
+    precision."""
 
     def __init__(self, grid_shape, pc_range, voxel_size: float, free_label: int,
-                 cells=CELLS, horizon: float = HORIZON, device="cpu"):
+                 min_clear: float = DEFAULT_MIN_CLEAR, cells=CELLS, horizon: float = HORIZON,
+                 device="cpu"):
         super().__init__()
+        if not 0.0 <= float(min_clear) < 1.0:
+            raise ValueError(f"min_clear {min_clear}: expected a probability in [0, 1)")
         self.grid_shape = tuple(int(s) for s in grid_shape)
         self.voxel = float(voxel_size)
         self.free_label = int(free_label)
+        self.min_clear = float(min_clear)
+        # the optical depth (in voxel lengths x hazard) past which a ray is not clear enough
+        self.max_optical_depth = -math.log(self.min_clear) if self.min_clear > 0 else math.inf
         self.cells = tuple(int(v) for v in cells)
         self.horizon = float(horizon)
         self.tolerance = self.voxel * math.sqrt(3.0) / 2.0      # half a voxel diagonal
@@ -72,9 +113,21 @@ class Visibility(nn.Module):
         farthest = torch.maximum(low.abs(), high.abs())[:2]
         reach = (float(torch.linalg.vector_norm(farthest)) + 4.0) / self.voxel
         samples = int(math.ceil(reach / STEP))
+        if self.grid_shape[2] + 2 > 31:       # a column's occupied layers: bits of an int32
+            raise ValueError(f"{self.grid_shape[2]} layers: at most 29 are supported")
         self.register_buffer("low", low.to(device), persistent=False)
         self.register_buffer("ranges", ((torch.arange(samples, dtype=torch.float32) + 0.5)
                                         * STEP).to(device), persistent=False)
+        self.register_buffer("layer_bits", 2 ** torch.arange(self.grid_shape[2] + 2,
+                                                             dtype=torch.int32, device=device),
+                             persistent=False)
+        self.register_buffer("layers", torch.arange(self.grid_shape[2], dtype=torch.float32,
+                                                     device=device), persistent=False)
+        # which image edges hold strictly (u < u1 w, v < v1 w)
+        self.register_buffer("strict_edges", torch.tensor([0.0, 1.0, 0.0, 1.0], device=device),
+                             persistent=False)
+        self.register_buffer("kind_table", torch.tensor(_kind_table(), dtype=torch.uint8,
+                                                        device=device), persistent=False)
         for axis, name in enumerate("xyz"):
             centres = (torch.arange(self.grid_shape[axis], dtype=torch.float32) + 0.5) \
                 * self.voxel + float(pc_range[axis])
@@ -86,27 +139,24 @@ class Visibility(nn.Module):
         """uint8 [X, Y, Z] of occluder kinds: a voxel whose neighbours on both sides are
         not occupied along exactly one axis is a plane across it (the road, a wall), along
         exactly two a line along the third (a pole), else a ball."""
-        occupied = (labels != self.free_label).view(self.grid_shape)
-        padded = nn.functional.pad(occupied.to(torch.uint8), (1, 1, 1, 1, 1, 1))
+        free = (labels == self.free_label).view(self.grid_shape).to(torch.uint8)
+        padded = nn.functional.pad(free, (1, 1, 1, 1, 1, 1), value=1)
         inner = (slice(1, -1),) * 3
-        open_sides = []
+        code = free * 8
         for axis in range(3):
             before, after = list(inner), list(inner)
             before[axis], after[axis] = slice(None, -2), slice(2, None)
-            open_sides.append(((padded[tuple(before)] + padded[tuple(after)]) == 0)
-                              .to(torch.uint8))
-        count = open_sides[0] + open_sides[1] + open_sides[2]
-        plane = open_sides[1] + 2 * open_sides[2]
-        line = LINE + (1 - open_sides[1]) + 2 * (1 - open_sides[2])
-        kind = torch.where(count == 1, plane, torch.where(count == 2, line,
-                                                           torch.full_like(plane, BALL)))
-        return torch.where(occupied, kind, torch.full_like(plane, FREE))
+            # both neighbours free: their product is 1
+            code += padded[tuple(before)] * padded[tuple(after)] * (1 << axis)
+        return self.kind_table.index_select(0, code.view(-1).int()).view(self.grid_shape)
 
     # ------------------------------------------------------------------ camera cells
     def camera_cells(self, img2ego: torch.Tensor, bounds: torch.Tensor):
         """Per camera [N]: its centre [N, 3], the azimuth (rad) of its image centre, and the
-        first azimuth offset, the first tan(elevation) and the cell sizes of its depth map
-        (the image's corners, edge midpoints and centre, with half a cell to spare)."""
+        first azimuth offset, the first warped tan(elevation) and the cell sizes of its
+        depth map (the image's corners, edge midpoints and centre, with half a cell to
+        spare). A camera whose geometry is not finite gets finite stand-ins (its image then
+        holds no voxel: visibility.in_image compares against NaN)."""
         u0, v0, u1, v1 = bounds.unbind(-1)
         um, vm = 0.5 * (u0 + u1), 0.5 * (v0 + v1)
         us = torch.stack([u0, um, u1, u0, um, u1, u0, um, u1], -1)             # [N, 9]
@@ -119,23 +169,63 @@ class Visibility(nn.Module):
         azimuth = torch.atan2(direction[..., 1], direction[..., 0]) - centre[:, None]
         azimuth = torch.remainder(azimuth + math.pi, 2 * math.pi) - math.pi
         horizontal = torch.linalg.vector_norm(direction[..., :2], dim=-1).clamp(min=1e-6)
-        tangent = self.warp((direction[..., 2] / horizontal).clamp(-MAX_TAN, MAX_TAN))
+        tangent = self.warp(direction[..., 2] / horizontal)
         rows, columns = self.cells
         first_az, last_az = azimuth.amin(-1), azimuth.amax(-1)
         first_tan, last_tan = tangent.amin(-1), tangent.amax(-1)
         az_size = ((last_az - first_az) / (columns - 1)).clamp(min=1e-6)
         tan_size = ((last_tan - first_tan) / (rows - 1)).clamp(min=1e-6)
-        return origin, centre, first_az - 0.5 * az_size, az_size, \
-            first_tan - 0.5 * tan_size, tan_size
+        cells = (origin, centre, first_az - 0.5 * az_size, az_size,
+                 first_tan - 0.5 * tan_size, tan_size)
+        return tuple(torch.nan_to_num(c, nan=1.0, posinf=1.0, neginf=1.0) for c in cells)
 
     def warp(self, tangent: torch.Tensor) -> torch.Tensor:
-        """tan(elevation) -> the coordinate the depth map's rows are uniform in."""
-        return torch.asinh(tangent / self.horizon)
+        """tan(elevation) -> the coordinate the depth map's rows are uniform in: dense near
+        the horizon, logarithmic away from it."""
+        return torch.sign(tangent) * torch.log1p(tangent.abs() * (1.0 / self.horizon))
 
     def unwarp(self, row: torch.Tensor) -> torch.Tensor:
-        return torch.sinh(row) * self.horizon
+        return torch.sign(row) * torch.expm1(row.abs()) * self.horizon
 
     # -------------------------------------------------------------------- depth maps
+    def rays(self, origin, centre, first_az, az_size, first_tan, tan_size, subsample=1):
+        """The rays of the depth maps' cells, sampled about once a voxel: per camera
+        [N], the horizontal direction of each azimuth [N, A] (x, y), the tan(elevation) of each
+        row [N, E], the column of voxels (flat index into the grid padded by one voxel) under
+        each sample of each azimuth [N, A, S] and the layer each row's ray is in there
+        [N, E, S] (padding: outside the grid), and the sample's place in its voxel (from the
+        voxel's centre, in voxels: [N, A, S] x 2, [N, E, S]). ``subsample`` k: one ray for
+        every k x k cells, through their common corner."""
+        X, Y, Z = self.grid_shape
+        rows, columns = self.cells
+        device = origin.device
+        first = 0.5 * (subsample - 1)
+        azimuth = centre[:, None] + first_az[:, None] + az_size[:, None] * (
+            torch.arange(columns // subsample, device=device) * subsample + first + 0.5)
+        hx, hy = torch.cos(azimuth), torch.sin(azimuth)                            # [N, A]
+        tan = self.unwarp(first_tan[:, None] + tan_size[:, None] * (
+            torch.arange(rows // subsample, device=device) * subsample + first + 0.5))
+        r = self.ranges                                                        # [S] voxels
+        start = (origin - self.low) / self.voxel
+        px = start[:, 0, None, None] + hx[..., None] * r
+        py = start[:, 1, None, None] + hy[..., None] * r
+        pz = start[:, 2, None, None] + tan[..., None] * r
+        ix, iy, iz = (p.floor() for p in (px, py, pz))
+        column = ((ix.clamp(-1, X) + 1) * (Y + 2) + (iy.clamp(-1, Y) + 1)).long()
+        layer = (iz.clamp(-1, Z) + 1).long()
+        return hx, hy, tan, column, layer, (px - ix - 0.5, py - iy - 0.5, pz - iz - 0.5)
+
+    @staticmethod
+    def along_rays(per_voxel, column, layer):
+        """[(X+2)*(Y+2), Z+2] values of the padded grid -> the value at every sample of every
+        ray [N, A, E, S]: the column under each sample once per azimuth, then each ray's
+        layer in it (broadcast views: no index tensor written)."""
+        N, A, S = column.shape
+        E, Z2 = layer.shape[1], per_voxel.shape[1]
+        under = per_voxel.index_select(0, column.view(-1)).view(N, A, S, Z2)
+        return under[:, :, None].expand(N, A, E, S, Z2).gather(
+            -1, layer[:, None, :, :, None].expand(N, A, E, S, 1))[..., 0]
+
     def depth_maps(self, kind, origin, centre, first_az, az_size, first_tan, tan_size):
         """Per camera and cell [N, rows, columns]: the depth along the ray (m, inf: no
         occluder), the occluder's kind (FREE: none) and the plane's coordinate minus the
@@ -145,62 +235,74 @@ class Visibility(nn.Module):
         occupied voxel (a bit of its column's mask); the occluder tests run on WINDOW
         samples from the first occupied one, then from the first after that window if none
         hit, CANDIDATES times."""
-        X, Y, Z = self.grid_shape
-        rows, columns = self.cells
-        device = kind.device
-        azimuth = centre[:, None] + first_az[:, None] + az_size[:, None] * (
-            torch.arange(columns, device=device) + 0.5)                          # [N, A]
-        hx, hy = torch.cos(azimuth), torch.sin(azimuth)
-        tan = self.unwarp(first_tan[:, None] + tan_size[:, None] * (
-            torch.arange(rows, device=device) + 0.5))                             # [N, E]
-        r = self.ranges                                                        # [S] voxels
-        start = (origin - self.low) / self.voxel
-        # the column of voxels under each sample of each azimuth [N, A, S], and the layer
-        # each ray of each elevation is in there [N, E, S]
-        px = start[:, 0, None, None] + hx[..., None] * r
-        py = start[:, 1, None, None] + hy[..., None] * r
-        pz = start[:, 2, None, None] + tan[..., None] * r
-        # (nan_to_num: geometry that is no rigid transform reads no voxel, never garbage)
-        ix, iy, iz = (torch.nan_to_num(p.floor(), nan=-1.0) for p in (px, py, pz))
-        column = ((ix.clamp(-1, X) + 1) * (Y + 2) + (iy.clamp(-1, Y) + 1)).long()
-        layer = (iz.clamp(-1, Z) + 1).long()
+        Z = self.grid_shape[2]
+        hx, hy, tan, column, layer, place = self.rays(origin, centre, first_az, az_size,
+                                                      first_tan, tan_size)
         padded = nn.functional.pad(kind, (1, 1, 1, 1, 1, 1), value=FREE)
         stacks = padded.view(-1, Z + 2)
-        # whether each ray's sample is in an occupied voxel: its layer of the column under
-        # it, read through broadcast views (one uint8 gather, no index tensor written)
-        N, A, E, S = len(origin), columns, rows, r.shape[0]
-        columns_under = (stacks != FREE).to(torch.uint8)[column]             # [N, A, S, Z+2]
-        occupied = columns_under[:, :, None].expand(N, A, E, S, Z + 2).gather(
-            -1, layer[:, None, :, :, None].expand(N, A, E, S, 1))[..., 0]  # [N, A, E, S]
-        count = occupied.cumsum(-1, dtype=torch.int32)   # occupied samples up to each
-        window = torch.arange(WINDOW, device=device)
-        depth = torch.full((len(origin), columns, rows), float("inf"), device=device)
-        hit_kind = torch.full_like(depth, FREE, dtype=kind.dtype)
-        plane = torch.zeros_like(depth)
-        pending = torch.ones_like(depth, dtype=torch.bool)
-        seen = torch.zeros_like(depth, dtype=torch.int32)    # occupied samples passed
+        N, A, E, S = len(origin), hx.shape[1], tan.shape[1], self.ranges.shape[0]
+        # whether each sample is in an occupied voxel: a bit (its layer) of its column's mask,
+        # read once per azimuth; then the occupied samples up to each
+        # (multiplications and a bitwise and: ONNX has no shift of int32)
+        masks = ((stacks != FREE).int() * self.layer_bits).sum(-1, dtype=torch.int32)
+        under = masks.index_select(0, column.view(-1)).view(N, A, 1, S)
+        bit = self.layer_bits.index_select(0, layer.view(-1)).view(N, 1, E, S)
+        occupied = ((under & bit) != 0).to(torch.uint8)                         # [N, A, E, S]
+        count = occupied.cumsum(-1, dtype=torch.int32)           # (ONNX sums no uint8)
+        window = torch.arange(WINDOW, device=kind.device)
+        norm = torch.sqrt(1 + tan * tan)                     # ray length per horizontal unit
+        geometry = (stacks, column, layer, place, hx, hy, tan, norm)
+        # the windows of every ray: from its next occupied sample (S: none) after the end of
+        # the window before; they depend on the occupied samples only, so all are tested at
+        # once (one pass of the tests over CANDIDATES x WINDOW samples)
+        seen = torch.zeros((N, A, E, 1), dtype=torch.int32, device=kind.device)
+        windows, exists = [], []
         for _ in range(CANDIDATES):
-            # the next occupied sample of every ray (S: none), and a window from it
-            entry = torch.searchsorted(count, seen[..., None] + 1)[..., 0]   # [N, A, E]
-            exists = entry < S
-            at = (entry[..., None] + window).clamp(max=S - 1)                 # [N, A, E, W]
-            hit, along, k, offset = self._candidate(at, stacks, column, layer, px, py, pz,
-                                                    ix, iy, iz, hx, hy, tan, r, start)
-            first = hit.to(torch.uint8).argmax(-1, keepdim=True)
-            take = pending & exists & hit.any(-1)
-            depth = torch.where(take, along.gather(-1, first)[..., 0] * self.voxel, depth)
-            hit_kind = torch.where(take, k.gather(-1, first)[..., 0], hit_kind)
-            plane = torch.where(take, offset.gather(-1, first)[..., 0] * self.voxel, plane)
-            pending = pending & ~take
-            seen = count.gather(-1, at[..., -1:])[..., 0]
+            entry = torch.searchsorted(count, seen + 1)                       # [N, A, E, 1]
+            at = (entry + window).clamp(max=S - 1)                            # [N, A, E, W]
+            windows.append(at)
+            exists.append((entry < S).expand(N, A, E, WINDOW))
+            seen = count.gather(-1, at[..., -1:])
+        at = torch.cat(windows, -1)
+        hit = self._occluder_tests(at, *geometry)[0] & torch.cat(exists, -1)
+        pending = ~hit.any(-1)
+        at_hit = at.gather(-1, hit.to(torch.uint8).argmax(-1, keepdim=True))
+        # the first hit of every ray again, with its distance, kind and plane
+        _, along, k, plane = self._occluder_tests(at_hit, *geometry, full=True)
+        hit = ~pending
+        depth = torch.where(hit, along[..., 0] * self.voxel,
+                            torch.full_like(along[..., 0], float("inf")))
+        hit_kind = torch.where(hit, k[..., 0], torch.full_like(k[..., 0], FREE))
+        plane = plane[..., 0] * self.voxel
         # [N, A, E] -> [N, E, A]: rows of elevation
         return depth.transpose(1, 2), hit_kind.transpose(1, 2), plane.transpose(1, 2)
 
-    def _candidate(self, at, stacks, column, layer, px, py, pz, ix, iy, iz, hx, hy, tan, r,
-                   start):
-        """The occluder test of samples ``at`` [N, A, E, W] of every ray -> (hit, the
-        distance along the ray to it, its kind, the plane's coordinate minus the camera's;
-        voxels)."""
+    def clear_depths(self, hazard, cells):
+        """[N, rows, columns]: per cell, the depth along its ray (m) past which the ray is
+        clear with a probability below ``min_clear`` (inf: never), from the hazard [X, Y, Z]
+        (per voxel length); one ray for every 2 x 2 cells (the hazard varies slowly)."""
+        Z = self.grid_shape[2]
+        _, _, tan, column, layer, _ = self.rays(*cells, subsample=CLEAR_SUBSAMPLE)
+        rates = nn.functional.pad(hazard.view(self.grid_shape), (1, 1, 1, 1, 1, 1))
+        optical = self.along_rays(rates.view(-1, Z + 2), column, layer).cumsum(-1)
+        # a sample stands for STEP x norm voxel lengths of its ray
+        norm = torch.sqrt(1 + tan * tan)                                            # [N, E]
+        limit = (self.max_optical_depth / (STEP * norm))[:, None, :, None]      # [N, 1, E, 1]
+        S = self.ranges.shape[0]
+        clear = (optical <= limit).sum(-1, dtype=torch.int32)     # samples still clear
+        last = self.ranges[clear.clamp(max=S - 1).long()]
+        depth = torch.where(clear < S, last * norm[:, None] * self.voxel,
+                            torch.full_like(optical[..., 0], float("inf")))
+        k = CLEAR_SUBSAMPLE
+        N, A, E = depth.shape                                  # -> every cell of the map
+        return depth.transpose(1, 2)[:, :, None, :, None].expand(N, E, k, A, k).reshape(
+            N, E * k, A * k)
+
+    def _occluder_tests(self, at, stacks, column, layer, place, hx, hy, tan, norm,
+                        full=False):
+        """The occluder test of samples ``at`` [N, A, E, W] of every ray -> (hit, and with
+        ``full``: the distance along the ray to it, its kind, the plane's coordinate minus
+        the camera's; voxels)."""
         N, A, E, W = at.shape
         along_a = at.reshape(N, A, E * W)
         along_e = at.transpose(1, 2).reshape(N, E, A * W)
@@ -211,116 +313,188 @@ class Visibility(nn.Module):
         def per_elevation(values):                # [N, E, S] -> [N, A, E, W]
             return values.gather(-1, along_e).view(N, E, A, W).transpose(1, 2)
 
-        x, y, z = per_azimuth(px), per_azimuth(py), per_elevation(pz)
-        vx, vy, vz = per_azimuth(ix), per_azimuth(iy), per_elevation(iz)
-        k = stacks[per_azimuth(column), per_elevation(layer)]
-        fx, fy, fz = x - vx - 0.5, y - vy - 0.5, z - vz - 0.5
-        t = r[at]                                                         # horizontal
-        h_x, h_y, tn = hx[..., None, None], hy[..., None, None], tan[:, None, :, None]
-        norm = torch.sqrt(1 + tn * tn)
+        x, y, z = per_azimuth(place[0]), per_azimuth(place[1]), per_elevation(place[2])
+        voxel = per_azimuth(column) * stacks.shape[1] + per_elevation(layer)
+        k = stacks.view(-1).index_select(0, voxel.view(-1)).view(N, A, E, W)
+        h_x, h_y = hx[..., None, None], hy[..., None, None]
+        tn, n = tan[:, None, :, None], norm[:, None, :, None]
         # mid-plane: the horizontal distance back to where the ray crosses it
-        direction = torch.where(k == 0, h_x, torch.where(k == 1, h_y, tn))
+        plane_of = [(k == a) for a in range(3)]
+        direction = torch.where(plane_of[0], h_x, torch.where(plane_of[1], h_y, tn))
         direction = torch.where(direction.abs() > 1e-6, direction,
                                 torch.full_like(direction, 1e-6))
-        offset = torch.where(k == 0, fx, torch.where(k == 1, fy, fz))
+        offset = torch.where(plane_of[0], x, torch.where(plane_of[1], y, z))
         back = offset / direction
-        on_plane = (k < LINE) & (back * norm <= PLANE_REACH)
-        # ball: the closest approach of the ray to the voxel centre
-        ahead = -(fx * h_x + fy * h_y + fz * tn) / norm
-        miss = fx * fx + fy * fy + fz * fz - ahead * ahead
-        # line: the distance between the ray and the line through the centre along its axis
-        d = (h_x / norm, h_y / norm, tn / norm)
-        f = (fx, fy, fz)
-        line_miss = []
+        on_plane = (k < LINE) & (back * n <= PLANE_REACH)
+        # ball: the distance of the voxel centre from the ray, |place x direction|; line:
+        # from the line through the centre along axis a, (place x direction)_a / |e_a x d|
+        d = (h_x / n, h_y / n, tn / n)
+        cross = (y * d[2] - z * d[1], z * d[0] - x * d[2], x * d[1] - y * d[0])
+        is_ball = (k == BALL)
+        miss = 0.0
         for a in range(3):
-            b, c = (a + 1) % 3, (a + 2) % 3
-            across = f[b] * d[c] - f[c] * d[b]
-            line_miss.append(across * across / (d[b] * d[b] + d[c] * d[c]).clamp(min=1e-12))
-        miss = torch.where(k == LINE, line_miss[0], torch.where(
-            k == LINE + 1, line_miss[1], torch.where(k == LINE + 2, line_miss[2], miss)))
+            weight = torch.where(k == LINE + a, 1.0 / (1.0 - d[a] * d[a]).clamp(min=1e-12),
+                                 is_ball.float())
+            miss = miss + weight * cross[a] * cross[a]
         on_ball = (k >= LINE) & (k < FREE) & (miss <= BALL_RADIUS ** 2)
-        along = torch.where(on_plane, (t - back) * norm, t * norm + ahead)
-        s = start[:, :, None, None, None]
-        plane = torch.where(k == 0, vx - s[:, 0], torch.where(k == 1, vy - s[:, 1],
-                                                               vz - s[:, 2])) + 0.5
-        return on_plane | on_ball, along, k, plane
+        hit = on_plane | on_ball
+        if not full:
+            return hit, None, None, None
+        t = self.ranges[at]                                               # horizontal
+        ahead = -(x * h_x + y * h_y + z * tn) / n
+        along = torch.where(on_plane, (t - back) * n, t * n + ahead)
+        plane = torch.where(plane_of[0], h_x * t - x,
+                            torch.where(plane_of[1], h_y * t - y, tn * t - z))
+        return hit, along, k, plane
 
     # ---------------------------------------------------------------------- voxel test
     def column_cameras(self, ego2img: torch.Tensor, bounds: torch.Tensor) -> torch.Tensor:
         """long [X, Y]: per voxel column, the camera its centre (at the grid's middle
         height) projects nearest the image centre of (horizontally)."""
-        cx, cy = self.centre_x[None, :, None], self.centre_y[None, None, :]
-        e = ego2img[:, :, :, None, None]                                    # [N, 4, 4, 1, 1]
-        u = e[:, 0, 0] * cx + e[:, 0, 1] * cy + (e[:, 0, 2] * self.middle_z + e[:, 0, 3])
-        z = e[:, 2, 0] * cx + e[:, 2, 1] * cy + (e[:, 2, 2] * self.middle_z + e[:, 2, 3])
-        middle = (0.5 * (bounds[:, 0] + bounds[:, 2]))[:, None, None]
-        half = (0.5 * (bounds[:, 2] - bounds[:, 0]))[:, None, None]
+        cx, cy = self.centre_x[:, None, None], self.centre_y[None, :, None]
+        e = ego2img[None, None]                                             # [1, 1, N, 4, 4]
+        u = e[..., 0, 0] * cx + e[..., 0, 1] * cy + (e[..., 0, 2] * self.middle_z
+                                                     + e[..., 0, 3])        # [X, Y, N]
+        z = e[..., 2, 0] * cx + e[..., 2, 1] * cy + (e[..., 2, 2] * self.middle_z
+                                                     + e[..., 2, 3])
+        middle = 0.5 * (bounds[:, 0] + bounds[:, 2])
+        half = 0.5 * (bounds[:, 2] - bounds[:, 0])
         off_centre = (u - middle * z).abs() / (half * z.clamp(min=1e-3))
         off_centre = torch.where(z > 1e-3, off_centre, torch.full_like(off_centre, 1e9))
-        return off_centre.argmin(0)
+        return torch.nan_to_num(off_centre, nan=1e9).argmin(-1)
 
     def forward(self, labels: torch.Tensor, ego2img: torch.Tensor, img2ego: torch.Tensor,
-                bounds: torch.Tensor) -> torch.Tensor:
+                bounds: torch.Tensor, hazard: torch.Tensor | None = None) -> torch.Tensor:
         """labels [X*Y*Z] (free_label = free); ego2img, img2ego [N, 4, 4] of the current set
         (ego frame -> image pixels x depth, and back); bounds [N, 4] (u0, v0, u1, v1) of each
-        image in those pixels -> observed uint8 [X*Y*Z]."""
-        rows, columns = self.cells
+        image in those pixels; hazard [X*Y*Z] float or None (network/calibration.py) ->
+        observed uint8 [X*Y*Z]."""
+        X, Y, Z = self.grid_shape
         kind = self.occluders(labels)
         cells = self.camera_cells(img2ego, bounds)
+        beyond, normal = self.bordered_maps(kind, hazard, cells)      # [M], [3, M]
+        inside, cell, distance, (dx, dy, dz) = self.voxel_cells(ego2img, bounds, cells)
+        # behind the cell's mid-plane: the voxel's own ray crosses it (at this fraction of
+        # its length) more than the tolerance before the voxel; with the plane's normal
+        # scaled by 1 / (its offset from the camera), normal . ray = 1 / fraction, and a
+        # ray running away from the plane or along it does not cross it (<= 0). Behind
+        # its ball or line, or where the ray is not clear enough: beyond the cell's depth.
+        n = normal.index_select(1, cell).view(3, X, Y, Z)
+        # (in place where a result is fresh: every [X, Y, Z] tensor allocated costs)
+        inverse = (n[0] * dx).addcmul_(n[1], dy).addcmul_(n[2], dz).view(-1)
+        behind = (distance - self.tolerance).mul_(inverse) > distance
+        behind &= inverse > 0
+        behind |= distance > beyond.index_select(0, cell)
+        return (inside & ~behind).to(torch.uint8)
+
+    def voxel_cells(self, ego2img, bounds, cells):
+        """Per voxel, flat [X*Y*Z]: inside its column's camera image (bool), its cell of the
+        bordered depth maps (int, [N, rows + 2, columns + 2] flat), its distance from that
+        camera (m); and its offset from the camera (m): dx, dy [X, Y, 1], dz [X, Y, Z]."""
+        rows, columns = self.cells
         origin, centre, first_az, az_size, first_tan, tan_size = cells
-        depth, plane_axis, plane = (m.reshape(-1) for m in self.bordered_maps(kind, cells))
         camera = self.column_cameras(ego2img, bounds)                       # [X, Y]
-        inside = self.in_image(ego2img[camera], bounds[camera])
+        inside = self.in_image(ego2img, bounds, camera).view(-1)
         # per column [X, Y, 1]: its camera's centre, the horizontal distance and the
         # azimuth cell (a column of the bordered map: 0 and columns + 1 are outside)
         o = origin[camera][..., None]
         dx = self.centre_x[:, None, None] - o[:, :, 0]
         dy = self.centre_y[None, :, None] - o[:, :, 1]
-        horizontal = torch.sqrt(dx * dx + dy * dy)
+        squared = dx * dx + dy * dy
+        horizontal = torch.sqrt(squared).clamp(min=1e-3)
         offset = torch.remainder(torch.atan2(dy, dx) - centre[camera][..., None] + math.pi,
                                  2 * math.pi) - math.pi
-        a = torch.nan_to_num(((offset - first_az[camera][..., None])
-                              / az_size[camera][..., None]).floor(), nan=-1.0)
-        base = camera[..., None] * ((rows + 2) * (columns + 2)) + a.clamp(-1, columns) + 1
-        # per voxel [X, Y, Z]: its cell, the distance, the test against the cell's occluder
-        dz = self.centre_z[None, None, :] - o[:, :, 2]
-        tangent = (dz / horizontal.clamp(min=1e-3)).clamp(-MAX_TAN, MAX_TAN)
-        row = torch.nan_to_num((self.warp(tangent) - first_tan[camera][..., None])
-                               / tan_size[camera][..., None], nan=-1.0).floor()
-        cell = (base + (row.clamp(-1, rows) + 1) * (columns + 2)).long()
-        distance = torch.sqrt(horizontal * horizontal + dz * dz)
-        # behind the cell's mid-plane: the voxel's own ray crosses it (at this fraction of
-        # its length, along the plane's axis) more than the tolerance before the voxel; a
-        # ray running away from the plane or along it does not (the fraction is negative,
-        # infinite or NaN). Behind its ball or line: farther than its depth.
-        axis = plane_axis[cell]
-        towards = torch.where(axis == 0, dx, torch.where(axis == 1, dy, dz))
-        fraction = plane[cell] / towards
-        behind = ((fraction > 0) & (fraction < 1 - self.tolerance / distance)) | \
-            (distance > depth[cell] + self.tolerance)
-        return (inside & ~behind).view(-1).to(torch.uint8)
+        a = ((offset - first_az[camera][..., None]) / az_size[camera][..., None]).floor()
+        # the map's first row (the border above is row 0) of this column
+        base = camera[..., None] * ((rows + 2) * (columns + 2)) + a.clamp(-1, columns) + 1 \
+            + (columns + 2)
+        per_row = 1.0 / tan_size[camera][..., None]
+        # per voxel [X, Y, Z] (in place where a result is fresh): its row (warped elevation,
+        # as ``warp`` with the divisions done per column), cell and distance
+        dz = self.centre_z - o[:, :, 2]
+        row = dz.abs().mul_(1.0 / (self.horizon * horizontal)).log1p_().mul_(torch.sign(dz))
+        row = row.mul_(per_row).sub_(first_tan[camera][..., None] * per_row).floor_()
+        cell = row.clamp_(-1, rows).mul_(columns + 2).add_(base).int().view(-1)
+        distance = (dz * dz).add_(squared).sqrt_().view(-1)
+        return inside, cell, distance, (dx, dy, dz)
 
-    def in_image(self, ego2img, bounds) -> torch.Tensor:
+    def optical_paths(self, rates, ego2img, img2ego, bounds, voxels, chunk: int = 8):
+        """What ``min_clear`` is tested against, per hazard: rates [K, X, Y, Z] (K hazards,
+        per voxel length), voxels long [V] -> [V, K], the optical depth of each hazard along
+        each voxel's ray up to it (the voxel is hidden when the sum over the hazards exceeds
+        -log(min_clear)). For fitting a hazard (train/calibrate.py); the voxels must lie in a
+        cell of a map (not on its border)."""
+        rows, columns = self.cells
+        k, S, Z = CLEAR_SUBSAMPLE, self.ranges.shape[0], self.grid_shape[2]
+        cells = self.camera_cells(img2ego, bounds)
+        _, _, tan, column, layer, _ = self.rays(*cells, subsample=k)
+        _, cell, distance, _ = self.voxel_cells(ego2img, bounds, cells)
+        cell, distance = cell.long()[voxels], distance[voxels]
+        camera, rest = cell // ((rows + 2) * (columns + 2)), cell % ((rows + 2) * (columns + 2))
+        row, col = rest // (columns + 2) - 1, rest % (columns + 2) - 1
+        if bool(((row < 0) | (row >= rows) | (col < 0) | (col >= columns)).any()):
+            raise ValueError("optical_paths: a voxel outside every depth map")
+        norm = torch.sqrt(1 + tan * tan)[camera, row // k]                           # [V]
+        length = STEP * norm * self.voxel          # metres of ray a sample stands for
+        # the samples wholly before the voxel (as clear_depths: r norm voxel + tolerance)
+        before = torch.ceil((distance - self.tolerance) / length - 0.5).clamp(0, S).long()
+        where = ((camera * (columns // k) + col // k) * (rows // k) + row // k) * (S + 1) \
+            + before
+        out = []
+        for start in range(0, len(rates), chunk):
+            part = nn.functional.pad(rates[start:start + chunk], (1, 1, 1, 1, 1, 1))
+            sums = torch.stack([self.along_rays(p.reshape(-1, Z + 2), column, layer)
+                                for p in part], -1).cumsum(-2)          # [N, A, E, S, k]
+            sums = nn.functional.pad(sums, (0, 0, 1, 0))               # nothing passed: 0
+            out.append(sums.reshape(-1, sums.shape[-1])[where] * (STEP * norm)[:, None])
+        return torch.cat(out, -1)
+
+    def in_image(self, ego2img, bounds, camera) -> torch.Tensor:
         """bool [X, Y, Z]: the voxel centres inside the image of their column's camera
-        (``ego2img`` [X, Y, 4, 4] and ``bounds`` [X, Y, 4] per column)."""
-        e, b = ego2img[..., None], bounds[..., None]
-        cz = self.centre_z[None, None, :]
-        # u, v, depth: the column's part (x, y) once, then the height's
-        u, v, w = (torch.addcmul(e[:, :, r, 0] * self.centre_x[:, None, None]
-                                 + e[:, :, r, 1] * self.centre_y[None, :, None]
-                                 + e[:, :, r, 3], e[:, :, r, 2], cz) for r in range(3))
-        return (w > 1e-3) & (u >= b[:, :, 0] * w) & (u < b[:, :, 2] * w) & \
-            (v >= b[:, :, 1] * w) & (v < b[:, :, 3] * w)
+        (``ego2img`` [N, 4, 4], ``bounds`` [N, 4], ``camera`` long [X, Y]); NaN geometry
+        sees nothing."""
+        e = ego2img[:, :3]                                                    # [N, 3, 4]
+        # each image edge as a plane through the camera, its normal pointing inwards:
+        # u >= u0 w, u < u1 w, v >= v0 w, v < v1 w (the first two also put it in front:
+        # they add up to (u1 - u0) w > 0)
+        b = bounds[:, :, None]
+        edges = torch.stack([e[:, 0] - b[:, 0] * e[:, 2], b[:, 2] * e[:, 2] - e[:, 0],
+                             e[:, 1] - b[:, 1] * e[:, 2], b[:, 3] * e[:, 2] - e[:, 1]], -1)
+        x, y, slope, constant = edges[camera].unbind(-2)                  # [X, Y, 4] each
+        # along a column, each is linear in the height: inside on one side of the layer
+        # where it crosses 0, so the image holds a range of layers [lowest, highest]
+        at_column = x * self.centre_x[:, None, None] + y * self.centre_y[:, None] + constant
+        big = 1e6
+        crossing = torch.nan_to_num((-at_column / slope - self.centre_z[0]) / self.voxel,
+                                    nan=0.0, posinf=big, neginf=-big)          # in layers
+        # rising (slope > 0): the layers k >= crossing (k > crossing for the strict edges u1,
+        # v1); falling: k <= crossing (k <); level (or NaN): all of them or none (masks and
+        # sums, not selects: cheaper)
+        strict = self.strict_edges
+        up = strict * (torch.floor(crossing) + 1) + (1 - strict) * torch.ceil(crossing)
+        down = strict * (torch.ceil(crossing) - 1) + (1 - strict) * torch.floor(crossing)
+        rising, falling = (slope > 0).float(), (slope < 0).float()
+        level = 1 - rising - falling
+        none = big * (1 - 2 * (at_column > 0).float())           # level: none unless inside
+        lowest = (rising * up - falling * big + level * none).amax(-1, keepdim=True)
+        highest = (falling * down + rising * big - level * none).amin(-1, keepdim=True)
+        return (self.layers >= lowest) & (self.layers <= highest)
 
-    def bordered_maps(self, kind, cells):
-        """The depth maps [N, rows + 2, columns + 2] as the voxel test reads them: the depth
-        of a plane cell infinite and the plane's offset NaN elsewhere (each test reads one of
-        them only); the border of cells around the map, where everything outside it falls,
-        at depth -inf (never observed)."""
+    def bordered_maps(self, kind, hazard, cells):
+        """The depth maps as the voxel test reads them, flat over [N, rows + 2, columns + 2]
+        (a border of cells around each map, where everything outside it falls): the depth
+        beyond which a voxel is hidden (m, the tolerance added; a plane cell's only from a
+        ray not clear enough; -inf on the border: never observed) [M], and the normal of a
+        plane cell's plane over its offset from the camera (1 / m; 0 elsewhere) [3, M]."""
         depth, hit_kind, plane = self.depth_maps(kind, *cells)
         is_plane = hit_kind < LINE
         depth = torch.where(is_plane, torch.full_like(depth, float("inf")), depth)
-        plane = torch.where(is_plane, plane, torch.full_like(plane, float("nan")))
-        depth = nn.functional.pad(depth, (1, 1, 1, 1), value=-float("inf"))
-        return depth, nn.functional.pad(hit_kind, (1, 1, 1, 1), value=FREE), \
-            nn.functional.pad(plane, (1, 1, 1, 1), value=float("nan"))
+        if hazard is not None and math.isfinite(self.max_optical_depth):
+            depth = torch.minimum(depth, self.clear_depths(hazard, cells))
+        beyond = nn.functional.pad(depth + self.tolerance, (1, 1, 1, 1), value=-float("inf"))
+        inverse = torch.where(is_plane & (plane.abs() > 1e-6), 1.0 / plane,
+                              torch.zeros_like(plane))
+        normal = torch.stack([torch.where(hit_kind == a, inverse, torch.zeros_like(inverse))
+                              for a in range(3)])                             # [3, N, E, A]
+        normal = nn.functional.pad(normal, (1, 1, 1, 1))
+        return beyond.reshape(-1), normal.reshape(3, -1)

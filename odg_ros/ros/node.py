@@ -388,7 +388,12 @@ def load_predictor(p: dict, logger) -> OnlinePredictor:
                                 precision=p["precision"], compile=p["compile"],
                                 compiled_step=p["compiled_step"].strip() or None,
                                 visibility=bool(p["visibility"]),
+                                min_clear=float(p["visibility_min_clear"]),
                                 query_budget=p["query_budget"])
+    if p["visibility"] and cfg.calibration is None and float(p["visibility_min_clear"]) > 0:
+        logger.warning(f"visibility_min_clear {p['visibility_min_clear']} has no effect: the "
+                       "checkpoint has no calibration (odg export --calibrate), so only the "
+                       "predicted surfaces hide space and 'observed' is less precise")
     logger.info(f"online step: {predictor.mode} mode, start-up (compile, capture) "
                 f"{predictor.startup_seconds:.1f} s")
     return predictor

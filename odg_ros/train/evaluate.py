@@ -13,11 +13,14 @@ from ..data.batch import collate, to_device
 from ..data.dataset import OccDataset
 from ..geometry import inside_bev_range
 from ..metrics.detection import DetectionScore
+from ..metrics.planner import ConfidenceScore, FlipScore, VisibilityScore, bev_cells
 from ..metrics.rayiou import LidarOrigins
 from ..metrics.score import OccScore
 from ..network.budget import QueryBudget, output_needs
+from ..network.calibration import Calibration
 from ..network.padding import pad_occupancy
 from ..network.postprocess import box_list, occupancy_grid
+from ..online.visibility import DEFAULT_MIN_CLEAR, Visibility, image_bounds
 
 
 def dynamic_class_miou(result: dict, dynamic=DYNAMIC_OCC_CLASSES) -> float | None:
@@ -48,12 +51,58 @@ def add_box_list(score: DetectionScore, boxes: list[dict], gt_boxes, gt_labels, 
               gt_labels.cpu().numpy())
 
 
-def predicted_grid(output, cfg) -> np.ndarray:
-    """The first sample's label grid uint8 [X, Y, Z], padded when cfg.occupancy_padding."""
+def padded_grid(output, cfg):
+    """The first sample's labels and raw confidence (score x 255), uint8 [X, Y, Z] tensors,
+    padded when cfg.occupancy_padding: the grid the online step publishes."""
     labels, confidence = occupancy_grid(output, cfg)
     if cfg.occupancy_padding:
-        labels, _ = pad_occupancy(labels, confidence, cfg.num_classes, cfg.score_threshold)
-    return labels[0].cpu().numpy()
+        labels, confidence = pad_occupancy(labels, confidence, cfg.num_classes,
+                                           cfg.score_threshold)
+    return labels[0], confidence[0]
+
+
+def predicted_grid(output, cfg) -> np.ndarray:
+    """The first sample's label grid uint8 [X, Y, Z], padded when cfg.occupancy_padding."""
+    return padded_grid(output, cfg)[0].cpu().numpy()
+
+
+class PublishedGrid:
+    """What the online step publishes for a model output (step.OnlineStep): the padded labels,
+    the confidence (calibrated where the checkpoint has a calibration) and the voxels the
+    cameras observe; and the observed voxels of the ground-truth grid (the method's ceiling:
+    the predicted surfaces alone, no hazard)."""
+
+    def __init__(self, cfg, device="cpu", min_clear: float = DEFAULT_MIN_CLEAR):
+        self.cfg = cfg
+        self.calibration = Calibration(cfg, device)
+        grid = (cfg.grid_shape, cfg.pc_range, cfg.voxel_size, cfg.num_classes)
+        self.visibility = Visibility(*grid, min_clear, device=device)
+        self.truth_visibility = Visibility(*grid, 0.0, device=device)
+
+    @staticmethod
+    def geometry(ego2img, image_hws, input_hw, device):
+        """The current set's ego2img [N, 4, 4] (array) -> (ego2img, img2ego, bounds) tensors
+        on ``device`` as the node packs them."""
+        ego2img = np.asarray(ego2img, np.float64)
+        return (torch.tensor(ego2img, dtype=torch.float32, device=device),
+                torch.tensor(np.linalg.inv(ego2img), dtype=torch.float32, device=device),
+                torch.tensor(image_bounds(image_hws, input_hw), device=device))
+
+    def __call__(self, output, geometry) -> dict:
+        """-> {"grid", "raw", "confidence", "observed"} numpy [X, Y, Z] (uint8, bool)."""
+        labels, raw = (t.reshape(-1) for t in padded_grid(output, self.cfg))
+        confidence, hazard = self.calibration(labels, raw)
+        observed = self.visibility(labels, *geometry, hazard=hazard)
+        shape = self.cfg.grid_shape
+        return {"grid": labels.view(shape).cpu().numpy(), "raw": raw.view(shape).cpu().numpy(),
+                "confidence": confidence.view(shape).cpu().numpy(),
+                "observed": observed.view(shape).cpu().numpy().astype(bool)}
+
+    def truth_observed(self, truth: np.ndarray, geometry) -> np.ndarray:
+        labels = torch.as_tensor(np.ascontiguousarray(truth).reshape(-1),
+                                 device=geometry[0].device)
+        return self.truth_visibility(labels, *geometry).view(self.cfg.grid_shape) \
+            .cpu().numpy().astype(bool)
 
 
 @torch.no_grad()
@@ -116,44 +165,128 @@ class BudgetUse:
                 "keyframes_per_budget": counts}
 
 
+# the node's default BEV height band (bev_min_z, bev_max_z), metres in the grid frame
+BEV_BAND = (-1.0, 2.0)
+
+
+class SetScore:
+    """Everything ``evaluate`` scores over a set of keyframes."""
+
+    def __init__(self, dataset: str, cfg, rayiou: bool, miou_convention: str):
+        labels = occ_labels(dataset)
+        self.dataset = dataset
+        self.occ = OccScore(dataset, rayiou=rayiou, miou_convention=miou_convention)
+        self.boxes = DetectionScore() if cfg.dynamic_queries else None
+        self.visibility, self.truth_visibility = VisibilityScore(), VisibilityScore()
+        self.confidence = ConfidenceScore(labels.names[:-1])
+        self.flips = FlipScore(labels)
+
+    def result(self, cfg, min_clear: float, calibrated: bool) -> dict:
+        result = self.occ.result()
+        result["mIoU_dynamic"] = dynamic_class_miou(result, occ_labels(self.dataset).dynamic)
+        result["occupancy_padding"] = bool(cfg.occupancy_padding)
+        if self.boxes is not None:
+            result["boxes"] = self.boxes.result()
+        result["visibility"] = {"min_clear": min_clear, "model": self.visibility.result(),
+                                "ground_truth_grid": self.truth_visibility.result()}
+        result["confidence"] = {"calibrated": calibrated, **self.confidence.result()}
+        result["stability"] = self.flips.result()
+        return result
+
+
 @torch.no_grad()
 def evaluate(model, cfg, infos, occ_root=None, save_pred: str | None = None, device="cpu",
              rayiou: bool = True, limit: int | None = None, progress: bool = True,
              workers: int = 0, frames: int | None = None, miou_convention: str = "sparseocc",
-             budget=None, **decode_options) -> dict:
-    """frames: history length fed to the model (<= cfg.num_frames; the model repeats the
+             budget=None, min_clear: float = DEFAULT_MIN_CLEAR, bev_band=BEV_BAND,
+             **decode_options) -> dict:
+    """infos: one split (a path or the loaded dict), or {name: split} of several (scene
+    classes), scored each and together (``sets``: the result of each by name; the rest of
+    the result is over all of them). limit: the first N keyframes of each split.
+    frames: history length fed to the model (<= cfg.num_frames; the model repeats the
     oldest frame for the rest). miou_convention: see metrics/miou.py. budget: a
     ``network.budget.QueryBudget`` for every keyframe, or an ``online.budget_policy.
     BudgetPolicy`` (query_budget auto), or None (every query); the result then says which
     budgets ran (``query_budget``). decode_options go to ``ODG.decode``. The result also
-    says whether the grid was padded."""
+    says whether the grid was padded.
+
+    What a planner reads (metrics/planner.py), with the grid published as the node
+    publishes it (``PublishedGrid``: visibility with ``min_clear``, the calibrated
+    confidence): ``visibility`` (against mask_camera, voxels and the BEV of height
+    ``bev_band``; beside it the same from the ground-truth grid, the method's ceiling),
+    ``confidence`` (expected calibration error, reliability) and ``stability`` (label flips
+    between consecutive keyframes at voxels static in the ground truth)."""
+    named = isinstance(infos, dict) and "infos" not in infos
+    sets = dict(infos) if named else {None: infos}
     data_cfg = cfg if frames is None else cfg.replace(num_frames=frames)
-    dataset = OccDataset(infos, data_cfg, occ_root=occ_root, train=False)
-    score = OccScore(dataset.dataset, rayiou=rayiou, miou_convention=miou_convention)
-    boxes = DetectionScore() if cfg.dynamic_queries else None
-    origins = LidarOrigins(dataset.infos) if rayiou else None
+    publish = PublishedGrid(cfg, device, min_clear)
     if save_pred:
         Path(save_pred).mkdir(parents=True, exist_ok=True)
-    use = BudgetUse(budget, dataset.infos, cfg) if budget is not None else None
-    for index, batch, output in predict_split(model, dataset, limit, device, workers, progress,
-                                              budget_for=use, **decode_options):
-        if use is not None:
-            use.record(output, model)
-        grid = predicted_grid(output, cfg)
-        if save_pred:
-            np.savez_compressed(Path(save_pred) / f"{batch['token'][0]}.npz", semantics=grid)
-        if boxes is not None:
-            add_box_sample(boxes, output, batch, cfg)
-        if not batch["has_occ"][0]:
-            continue
-        score.add(grid, batch["occ_semantics"][0].cpu().numpy(),
-                  batch["occ_mask_camera"][0].cpu().numpy().astype(bool),
-                  origins(index) if origins is not None else None)
-    result = score.result()
-    result["mIoU_dynamic"] = dynamic_class_miou(result, occ_labels(dataset.dataset).dynamic)
-    result["occupancy_padding"] = bool(cfg.occupancy_padding)
-    if boxes is not None:
-        result["boxes"] = boxes.result()
+    use, overall, per_set = None, None, {}
+    for name, split in sets.items():
+        dataset = OccDataset(split, data_cfg, occ_root=occ_root, train=False)
+        score = SetScore(dataset.dataset, cfg, rayiou, miou_convention)
+        if overall is None:
+            overall = SetScore(dataset.dataset, cfg, rayiou, miou_convention)
+        scores = [score, overall]
+        origins = LidarOrigins(dataset.infos) if rayiou else None
+        if budget is not None:
+            if use is None:
+                use = BudgetUse(budget, dataset.infos, cfg)
+            use.infos = dataset.infos
+        before = None
+        description = "eval" if name is None else f"eval {name}"
+        for index, batch, output in predict_split(model, dataset, limit, device, workers,
+                                                  progress, desc=description, budget_for=use,
+                                                  **decode_options):
+            if use is not None:
+                use.record(output, model)
+            info = dataset.infos[index]
+            geometry = publish.geometry(
+                batch["ego2img"][0, 0].cpu().numpy(),
+                [info["cams"][c]["image_hw"] for c in dataset.camera_names], cfg.image_size,
+                device)
+            published = publish(output, geometry)
+            grid = published["grid"]
+            if save_pred:
+                np.savez_compressed(Path(save_pred) / f"{batch['token'][0]}.npz",
+                                    semantics=grid)
+            boxes = box_list(output, cfg)[0]
+            for box, calibrated in zip(boxes, publish.calibration.box_score(
+                    torch.tensor([b["score"] for b in boxes], dtype=torch.float32)).tolist()):
+                box["score"] = calibrated
+            for s in scores:
+                if s.boxes is not None:
+                    add_box_sample(s.boxes, output, batch, cfg)
+            if not batch["has_occ"][0]:
+                before = None
+                continue
+            truth = batch["occ_semantics"][0].cpu().numpy()
+            mask = batch["occ_mask_camera"][0].cpu().numpy().astype(bool)
+            score.occ.add(grid, truth, mask, origins(index) if origins is not None else None)
+            truth_observed = publish.truth_observed(truth, geometry)
+            band = (cfg.pc_range, cfg.voxel_size, bev_band, cfg.labels)
+            truth_bev = bev_cells(truth, mask, *band)
+            now = {"scene": info["scene_token"], "grid": grid, "truth": truth, "mask": mask,
+                   "pose": np.asarray(info["ego_pose"], np.float64)}
+            for s in scores:
+                s.visibility.add(grid, published["observed"], truth, mask, cfg.num_classes,
+                                 bev_cells(grid, published["observed"], *band), truth_bev)
+                s.truth_visibility.add(truth, truth_observed, truth, mask, cfg.num_classes,
+                                       bev_cells(truth, truth_observed, *band), truth_bev)
+                s.confidence.add(grid, published["confidence"], truth, mask, cfg.num_classes)
+                s.confidence.add_boxes(boxes, batch["gt_boxes"][0].cpu().numpy(),
+                                       batch["gt_labels"][0].cpu().numpy())
+                if before is not None and before["scene"] == now["scene"]:
+                    s.flips.add(before, now, cfg.grid_shape, cfg.pc_range, cfg.voxel_size)
+            before = now
+        overall.occ.merge(score.occ)
+        per_set[name] = score
+    calibrated = publish.calibration.calibrated
+    result = overall.result(cfg, min_clear, calibrated)
+    if named:
+        result["sets"] = {name: s.result(cfg, min_clear, calibrated)
+                          for name, s in per_set.items()}
     if use is not None:
         result["query_budget"] = use.result()
     return result

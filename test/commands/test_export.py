@@ -9,6 +9,7 @@ import torch
 
 from odg_ros.commands import main
 from odg_ros.network.checkpoint import load_model, save_checkpoint
+from odg_ros.online.visibility import DEFAULT_MIN_CLEAR
 from odg_ros.train.calibrate import calibrate_thresholds
 from odg_ros.train.evaluate import evaluate
 
@@ -131,6 +132,42 @@ def test_eval_command_reports_grid_and_boxes(tiny_split, capsys):
     assert "MEAN" in table and "boxes: mAP" in table
 
 
+def test_eval_reports_what_a_planner_reads_per_split_and_together(tiny_split, capsys):
+    """Two named splits: each scored alone and both together; the visibility beside the
+    ground-truth grid's ceiling, calibration error and flips; in JSON and in the table. (The
+    tiny world's mask_camera is a block, not what cameras see: the figures' values are
+    checked in test/metrics/test_planner.py.)"""
+    data, checkpoint = tiny_split
+    assert main(["eval", "--checkpoint", str(checkpoint), "--data", f"one={data}",
+                 f"two={data}", "--no-rayiou", "--json"]) == 0
+    result = json.loads(capsys.readouterr().out)
+    assert set(result["sets"]) == {"one", "two"} and result["samples"] == 6
+    assert result["sets"]["one"]["mIoU"] == result["sets"]["two"]["mIoU"] == result["mIoU"]
+    for scored in [result] + list(result["sets"].values()):
+        visibility = scored["visibility"]
+        assert visibility["min_clear"] == DEFAULT_MIN_CLEAR
+        for grid in ("model", "ground_truth_grid"):
+            assert set(visibility[grid]["voxels"]) == {
+                "observed_precision", "observed_recall", "free_observed_precision",
+                "free_observed_recall"}
+            assert set(visibility[grid]["bev"]) == {"known_precision", "known_recall",
+                                                    "free_precision", "free_recall"}
+        truth = visibility["ground_truth_grid"]["voxels"]
+        assert 0 < truth["observed_precision"] <= 1 and 0 < truth["observed_recall"] <= 1
+        assert scored["confidence"]["calibrated"] is False      # the tiny model has none
+        assert scored["confidence"]["free"]["samples"] > 0
+        assert scored["stability"]["pairs"] == (4 if scored is result else 2)
+    assert result["visibility"]["model"] == result["sets"]["one"]["visibility"]["model"]
+    assert main(["eval", "--checkpoint", str(checkpoint), "--data", str(data), "--no-rayiou",
+                 "--visibility-min-clear", "0.5"]) == 0
+    table = capsys.readouterr().out
+    assert "what a planner reads" in table and "truth grid" in table
+    assert "visibility_min_clear 0.5" in table and "expected calibration error" in table
+    assert main(["eval", "--checkpoint", str(checkpoint), "--data", f"a={data}", f"a={data}",
+                 "--no-rayiou"]) == 2
+    assert "NAME" in capsys.readouterr().err
+
+
 def test_eval_overrides_reach_the_model(tiny_split, capsys, tmp_path):
     data, checkpoint = tiny_split
     args = ["eval", "--checkpoint", str(checkpoint), "--data", str(data), "--no-rayiou", "--json"]
@@ -212,3 +249,49 @@ def test_export_writes_the_calibrated_threshold_and_the_int8_weights(tiny_split,
     for key, value in model.state_dict().items():
         torch.testing.assert_close(value, reference[key], rtol=0, atol=1e-6, msg=key)
     assert out.stat().st_size < checkpoint.stat().st_size / 2
+
+
+def test_export_calibrates_the_probabilities_and_keeps_the_shipped_grid(tiny_split, tmp_path,
+                                                                        capsys):
+    """--keep-thresholds on a shipped (int8) checkpoint: the same stored weights, bit for bit,
+    the same thresholds and so the same grid; a calibration added, what else the file
+    recorded kept."""
+    data, checkpoint = tiny_split
+    shipped = tmp_path / "shipped.pt"
+    save_checkpoint(shipped, load_model(checkpoint)[0], compress="int8",
+                    extra={"budget_heads": {"steps": 7}})
+    out = tmp_path / "calibrated.pt"
+    assert main(["export", "--checkpoint", str(shipped), "--out", str(out), "--compress", "int8",
+                 "--calibrate", str(data), str(data), "--keep-thresholds"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["fitted"]["keyframes"] == 6 and "mIoU_by_threshold" not in report
+    before, after = (torch.load(p, weights_only=False) for p in (shipped, out))
+    assert before["model"].keys() == after["model"].keys()
+    for key, value in before["model"].items():
+        stored = after["model"][key]
+        if isinstance(value, dict):                                # int8: q and scale
+            assert all(torch.equal(value[k], stored[k]) for k in value), key
+        else:
+            assert torch.equal(value, stored), key
+    assert after["budget_heads"] == {"steps": 7}
+    cfg_before, cfg_after = load_model(shipped)[1], load_model(out)[1]
+    assert cfg_after.calibration is not None and cfg_before.calibration is None
+    assert cfg_after.replace(calibration=None) == cfg_before
+    # the grid: the same labels from both files
+    from odg_ros.data.dataset import OccDataset
+    from odg_ros.train.evaluate import padded_grid, predict_split
+    grids = []
+    for path in (shipped, out):
+        model, cfg = load_model(path)
+        dataset = OccDataset(str(data), cfg)
+        grids.append([padded_grid(o, cfg)[0].numpy() for _, _, o in
+                      predict_split(model, dataset, progress=False)])
+    for a, b in zip(*grids):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_keep_thresholds_needs_calibrate(tiny_split, tmp_path, capsys):
+    _, checkpoint = tiny_split
+    assert main(["export", "--checkpoint", str(checkpoint), "--out", str(tmp_path / "a.pt"),
+                 "--keep-thresholds"]) == 2
+    assert "--calibrate" in capsys.readouterr().err

@@ -35,6 +35,11 @@ def test_schema_enums_match_the_code():
     assert schema["extrinsics_source"].enum == EXTRINSICS_SOURCES
     for preset in schema["preset"].enum:
         load_preset(preset)           # every listed preset exists
+    # the node's default visibility is the step's (precision first), and a value the step
+    # refuses (a ray clear with probability 1) never passes the schema
+    from odg_ros.online.visibility import DEFAULT_MIN_CLEAR
+    assert schema["visibility_min_clear"].default == DEFAULT_MIN_CLEAR
+    assert schema["visibility_min_clear"].maximum < 1.0
 
 
 @pytest.mark.parametrize("name, value, expected", [
@@ -52,6 +57,7 @@ def test_schema_enums_match_the_code():
     ("query_budget", "1.5", "query_budget='1.5': expected"),
     ("query_budget", math.nan, "query_budget=nan: expected"),
     ("query_budget", True, "query_budget=True: expected"),
+    ("visibility_min_clear", 1.0, "visibility_min_clear=1.0: expected 0 to 0.99"),
 ])
 def test_bad_values_are_named(name, value, expected):
     with pytest.raises(ValueError, match=None) as info:

@@ -1,8 +1,11 @@
-"""Visibility (online/visibility.py): which voxels the cameras observe, from a label grid.
+"""Visibility (online/visibility.py): which voxels the cameras observe, from a label grid and
+a missed-occupancy hazard.
 
 Hard cases with known answers (the road to the horizon, what lies under it, a wall, a pole,
-the image bounds, broken geometry), no host read inside it, and agreement with a synthetic
-world's own mask_camera (ray-cast against the true geometry, data/synth/occupancy.py)."""
+the image bounds, broken geometry, a band of uncertain space), no host read inside it, the
+step's test against the optical depths the hazard is fitted on, and agreement with a
+synthetic world's own mask_camera (ray-cast against the true geometry,
+data/synth/occupancy.py)."""
 import numpy as np
 import pytest
 import torch
@@ -41,16 +44,22 @@ def forward_camera(yaw=0.0):
     return K4 @ invert_transform(T)
 
 
-def observe(labels, ego2img, bounds=None):
+def geometry(ego2img, bounds=None):
     ego2img = np.asarray(ego2img, np.float64).reshape(-1, 4, 4)
     if bounds is None:
         bounds = image_bounds([(900, 1600)] * len(ego2img), INPUT_HW)
-    visibility = Visibility(SHAPE, PC_RANGE, 0.4, FREE)
+    return (torch.tensor(ego2img, dtype=torch.float32),
+            torch.tensor(np.linalg.inv(ego2img), dtype=torch.float32),
+            torch.tensor(np.asarray(bounds), dtype=torch.float32))
+
+
+def observe(labels, ego2img, bounds=None, hazard=None, min_clear=0.0):
+    visibility = Visibility(SHAPE, PC_RANGE, 0.4, FREE, min_clear)
+    if hazard is not None:
+        hazard = torch.as_tensor(np.asarray(hazard, np.float32).reshape(-1))
     with torch.inference_mode():
         observed = visibility(torch.from_numpy(np.ascontiguousarray(labels).reshape(-1)),
-                              torch.tensor(ego2img, dtype=torch.float32),
-                              torch.tensor(np.linalg.inv(ego2img), dtype=torch.float32),
-                              torch.tensor(np.asarray(bounds), dtype=torch.float32))
+                              *geometry(ego2img, bounds), hazard=hazard)
     return observed.numpy().reshape(SHAPE).astype(bool)
 
 
@@ -156,19 +165,106 @@ def test_broken_geometry_observes_nothing_and_raises_nothing():
     assert not observed.any()
 
 
+def band(rate, x0=10.0, x1=12.0):
+    """A hazard of ``rate`` per voxel length over the free voxels above the road with
+    x0 <= x < x1 (m), 0 elsewhere."""
+    hazard = np.zeros(SHAPE, np.float32)
+    hazard[index_of(x0, 0):index_of(x1, 0), :, index_of(0.0, 2) + 1:] = rate
+    return hazard
+
+
+def test_an_uncertain_band_hides_what_lies_beyond_it_when_a_clear_ray_is_too_unlikely():
+    """Rays to 1-2.6 m high cross a 2 m (5 voxels) band of rate 0.14 almost level: clear with
+    probability ~exp(-0.7) = 0.5. Seen beyond it at min_clear 0.3, hidden at 0.8; in front
+    of it and without a hazard, seen either way."""
+    ego2img = forward_camera()
+    beyond, front = np.zeros(SHAPE, bool), np.zeros(SHAPE, bool)
+    rows = slice(index_of(1.0, 2), index_of(2.6, 2))
+    beyond[index_of(16.0, 0):index_of(30.0, 0), index_of(-1.0, 1):index_of(1.0, 1), rows] = True
+    front[index_of(4.0, 0):index_of(9.0, 0), index_of(-1.0, 1):index_of(1.0, 1), rows] = True
+    hazard = band(0.14)
+    for min_clear, seen_beyond in ((0.3, True), (0.8, False)):
+        observed = observe(ground(), ego2img, hazard=hazard, min_clear=min_clear)
+        assert observed[front].all()
+        assert observed[beyond].all() == seen_beyond and observed[beyond].any() == seen_beyond
+    hard = observe(ground(), ego2img)
+    assert hard[beyond].all()
+    np.testing.assert_array_equal(observe(ground(), ego2img, hazard=band(0.0), min_clear=0.8),
+                                  hard)
+    np.testing.assert_array_equal(observe(ground(), ego2img, hazard=hazard, min_clear=0.0),
+                                  hard)
+    # the road beyond the band: its rays pass lower, through the band too
+    road = np.zeros(SHAPE, bool)
+    road[index_of(20.0, 0):index_of(30.0, 0), index_of(-1.0, 1):index_of(1.0, 1),
+         index_of(0.0, 2)] = True
+    assert hard[road].all()
+    assert not observe(ground(), ego2img, hazard=band(0.3), min_clear=0.8)[road].any()
+
+
+def test_the_step_hides_exactly_where_the_fitted_optical_depth_passes_the_limit():
+    """The hazard is fitted on Visibility.optical_paths (train/calibrate.py); the step hides a
+    voxel the predicted surfaces leave seen exactly when that optical depth passes
+    -log(min_clear) (up to float ties)."""
+    from testing.helpers import driving_scene
+    rng = np.random.default_rng(1)
+    labels = driving_scene(rng)
+    hazard = (rng.random(SHAPE) ** 4 * 0.02).astype(np.float32)
+    hazard[labels != FREE] = 0
+    rig = np.stack([forward_camera(yaw) for yaw in np.radians([0, -55, 55, 180, 110, -110])])
+    bounds = image_bounds([(900, 1600)] * 6, INPUT_HW)
+    min_clear = 0.7
+    hard = observe(labels, rig, bounds)
+    soft = observe(labels, rig, bounds, hazard=hazard, min_clear=min_clear)
+    assert not (soft & ~hard).any()
+    voxels = np.flatnonzero(hard)
+    visibility = Visibility(SHAPE, PC_RANGE, 0.4, FREE, min_clear)
+    with torch.inference_mode():
+        depth = visibility.optical_paths(torch.from_numpy(hazard)[None], *geometry(rig, bounds),
+                                         torch.from_numpy(voxels))[:, 0].numpy()
+    limit = -np.log(min_clear)
+    clear = depth <= limit
+    assert 0.1 < clear.mean() < 0.9                              # a real comparison
+    ties = np.abs(depth - limit) < 1e-4
+    assert (soft.ravel()[voxels] == clear)[~ties].all()
+
+
+def test_optical_paths_add_up_per_hazard():
+    """K hazards at once give the sum of each alone: the fit's features are linear."""
+    from testing.helpers import driving_scene
+    rng = np.random.default_rng(2)
+    labels = driving_scene(rng)
+    rates = torch.from_numpy((rng.random((3, *SHAPE)) * 0.1).astype(np.float32))
+    visibility = Visibility(SHAPE, PC_RANGE, 0.4, FREE, 0.5)
+    geo = geometry(forward_camera())
+    with torch.inference_mode():
+        voxels = torch.from_numpy(np.flatnonzero(visibility(
+            torch.from_numpy(labels.reshape(-1)), *geo).numpy()))
+        each = visibility.optical_paths(rates, *geo, voxels, chunk=2)
+        summed = visibility.optical_paths(rates.sum(0, keepdim=True), *geo, voxels)
+    torch.testing.assert_close(each.sum(-1), summed[:, 0], rtol=1e-4, atol=1e-4)
+    assert (each > 0).all(-1).float().mean() > 0.5
+
+
+def test_min_clear_is_a_probability():
+    for bad in (-0.1, 1.0, 2.0):
+        with pytest.raises(ValueError, match="min_clear"):
+            Visibility(SHAPE, PC_RANGE, 0.4, FREE, bad)
+
+
 def test_no_host_read_inside_it():
     from odg_ros.train.census import Census, CensusMode
     ego2img = forward_camera()[None]
-    visibility = Visibility(SHAPE, PC_RANGE, 0.4, FREE)
+    visibility = Visibility(SHAPE, PC_RANGE, 0.4, FREE, 0.8)
     args = (torch.from_numpy(ground().reshape(-1)), torch.tensor(ego2img, dtype=torch.float32),
             torch.tensor(np.linalg.inv(ego2img), dtype=torch.float32),
             torch.tensor(image_bounds([(900, 1600)], INPUT_HW)))
-    census = Census()
-    # (no_grad, not inference_mode: an inference tensor's .item() bypasses the mode)
-    with torch.no_grad(), CensusMode(census, device_type=None):
-        visibility(*args)
-    assert census.per_step(census.ops) > 100
-    assert census.per_step(census.syncs) == 0, census.report()
+    for hazard in (None, torch.from_numpy(band(0.1).reshape(-1))):
+        census = Census()
+        # (no_grad, not inference_mode: an inference tensor's .item() bypasses the mode)
+        with torch.no_grad(), CensusMode(census, device_type=None):
+            visibility(*args, hazard=hazard)
+        assert census.per_step(census.ops) > 100
+        assert census.per_step(census.syncs) == 0, census.report()
 
 
 @pytest.mark.timeout(300)

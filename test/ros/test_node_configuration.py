@@ -103,3 +103,26 @@ def test_unknown_parameters_warn_only_warns(rclpy_module, tmp_path):
     finally:
         child.send_signal(signal.SIGINT)
         assert child.wait(timeout=30) == 0
+
+
+def test_the_node_runs_the_visibility_min_clear_it_is_given(rclpy_module):
+    """visibility_min_clear reaches the step; a checkpoint without a calibration (no hazard)
+    says at start that it has no effect."""
+    from odg_ros.online import parameters
+    from odg_ros.ros.node import load_predictor
+
+    class Logger:
+        def __init__(self):
+            self.lines = []
+
+        def __getattr__(self, level):
+            return lambda message: self.lines.append((level, message))
+
+    p = {name: rule.default for name, rule in parameters.load_schema().items()}
+    p.update(checkpoint="random", preset="odg_cpu", device="cpu", visibility_min_clear=0.5)
+    logger = Logger()
+    predictor = load_predictor(p, logger)
+    assert predictor.min_clear == 0.5
+    assert predictor.online_step.visibility.min_clear == 0.5
+    assert any(level == "warning" and "visibility_min_clear 0.5 has no effect" in message
+               for level, message in logger.lines)
