@@ -359,6 +359,18 @@ mv model/odg_cpu.pt runs/odg_cpu_stage37.pt
 OMP_NUM_THREADS=1 python -m tools.train_budget_heads --checkpoint runs/odg_cpu_stage37.pt \
     --data data/synth8s2/infos_train.pkl data/budget/*/infos_all.pkl \
     --cache runs/budget/cache --out model/odg_cpu.pt --skip-epochs 12
-# the shipped file, (38) (its full-budget outputs are (37)'s):
+# (39), shipped: (38) with its calibration, fitted on small worlds of training seeds
+odg synth --out data/calib/open-road-31 --scenes 3 --seconds 4 --seed 31 --roads open-road
+odg synth --out data/calib/city-quiet-32 --scenes 3 --seconds 4 --seed 32 --traffic quiet
+odg synth --out data/calib/city-dense-33 --scenes 3 --seconds 4 --seed 33 --traffic dense
+odg synth --out data/calib/city-normal-41 --scenes 4 --seconds 4 --seed 41
+for world in data/calib/*; do
+    odg prepare --dataroot "$world" --out "$world/infos_all.pkl" --split all
+done
+mv model/odg_cpu.pt runs/odg_cpu_stage38.pt
+odg export --checkpoint runs/odg_cpu_stage38.pt --out model/odg_cpu.pt --keep-thresholds \
+    --calibrate data/calib/open-road-31/infos_all.pkl data/calib/city-quiet-32/infos_all.pkl \
+    data/calib/city-dense-33/infos_all.pkl data/calib/city-normal-41/infos_all.pkl
+# the shipped file, (39) (its labels are (37)'s):
 odg eval --checkpoint model/odg_cpu.pt --data data/synth24/infos_val.pkl
 odg eval --checkpoint model/odg_cpu.pt --data data/synth8s18/infos_all.pkl
