@@ -1,7 +1,7 @@
 """The package's layout as docs/architecture.md states it: imports go down the layers, the
 tools (bench, demo) are imported only by the commands and the demo session, no two public
-functions or classes share a name, no function runs past ~80 lines without saying why, and
-every benchmark times the one step the node runs (``OnlinePredictor``), never an assembly of
+functions or classes share a name, no two functions share a body (a copy with other names is
+still a copy), no function runs past ~80 lines without saying why, and every benchmark times the one step the node runs (``OnlinePredictor``), never an assembly of
 its parts.
 
 Each rule is checked by a function that takes the parsed package, so the tests below also
@@ -9,6 +9,7 @@ plant a violation and see each rule catch it."""
 from __future__ import annotations
 
 import ast
+import copy
 from pathlib import Path
 
 import pytest
@@ -33,6 +34,9 @@ TOOL_IMPORTERS = ("odg_ros.commands", "odg_ros.ros.demo_session")
 # the interface every command module has, and the two entry points (odg, odg_node)
 SHARED_NAMES = {"add_arguments", "run", "main"}
 LONGEST_FUNCTION = 80
+# Functions of at least this many statements (nested ones counted, the docstring not) may not
+# share a body; shorter ones (a lock and a flag, a property) repeat without being copies.
+SHORTEST_COPY = 4
 # The benchmarks of the online step (odg bench, its sweep, the maintainer scripts that time
 # or profile it) run the node's own step: an OnlinePredictor. They import none of the step's
 # parts and call none of the model's own forward paths, so no second assembly of the step can
@@ -131,6 +135,49 @@ def long_functions(modules: dict[str, ast.Module]) -> list[tuple[int, str]]:
     return sorted(found, reverse=True)
 
 
+class _Renamed(ast.NodeTransformer):
+    """Every variable and argument renamed by its first appearance (v0, v1, ...), annotations
+    dropped: two bodies that differ only in their names come out the same."""
+
+    def __init__(self):
+        self.names: dict[str, str] = {}
+
+    def _rename(self, name: str) -> str:
+        return self.names.setdefault(name, f"v{len(self.names)}")
+
+    def visit_Name(self, node):
+        node.id = self._rename(node.id)
+        return node
+
+    def visit_arg(self, node):
+        node.arg, node.annotation = self._rename(node.arg), None
+        return node
+
+
+def normalised_body(function) -> tuple[str, int]:
+    """(the function's body without its docstring, names renamed, as an AST dump; how many
+    statements it has)."""
+    function = copy.deepcopy(function)
+    body = function.body[1:] if ast.get_docstring(function) is not None else function.body
+    renamed = _Renamed()
+    renamed.visit(function.args)
+    body = [renamed.visit(statement) for statement in body]
+    count = sum(isinstance(node, ast.stmt) for statement in body for node in ast.walk(statement))
+    return ast.dump(ast.Module(body=body, type_ignores=[])), count
+
+
+def copied_bodies(modules: dict[str, ast.Module]) -> list[list[str]]:
+    """Groups of functions (SHORTEST_COPY statements or more) with one normalised body."""
+    where: dict[str, list[str]] = {}
+    for name, tree in modules.items():
+        for node in ast.walk(tree):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                body, statements = normalised_body(node)
+                if statements >= SHORTEST_COPY:
+                    where.setdefault(body, []).append(f"{name}.{node.name} (line {node.lineno})")
+    return [places for places in where.values() if len(places) > 1]
+
+
 def _last_name(node) -> str:
     """``x`` of ``x``, ``a.x``, ``a.b.x`` (else '')."""
     return node.id if isinstance(node, ast.Name) else \
@@ -194,6 +241,21 @@ def test_no_function_is_long_without_saying_why(modules):
     assert len(long_functions(planted)) == 1
     planted = {"odg_ros.extra": ast.parse(f'def long():\n    """Long because."""\n{body}\n')}
     assert long_functions(planted) == []
+
+
+def test_no_two_functions_share_a_body(modules):
+    assert copied_bodies({**modules, **parse_tools()}) == []
+    original = ast.get_source_segment(
+        (PACKAGE / "rotation.py").read_text(),
+        next(node for node in modules["odg_ros.rotation"].body
+             if getattr(node, "name", "") == "normalise_quaternions"))
+    copied = original.replace("rotations", "q").replace("def normalise_quaternions", "def unit").replace("largest", "biggest").replace(": torch.Tensor", "")
+    copied = copied.replace('"""[..., 4]', '"""A copy with other names: [..., 4]')
+    planted = {**modules, "odg_ros.render.extra": ast.parse(copied)}
+    assert [[place.split(" ")[0] for place in group] for group in copied_bodies(planted)] == [
+        ["odg_ros.rotation.normalise_quaternions", "odg_ros.render.extra.unit"]]
+    short = "def close(self):\n    with self._lock:\n        self._closed = True\n"
+    assert copied_bodies({"odg_ros.a": ast.parse(short), "odg_ros.b": ast.parse(short)}) == []
 
 
 def parse_tools() -> dict[str, ast.Module]:
