@@ -1,7 +1,8 @@
 """The package's layout as docs/architecture.md states it: imports go down the layers, the
 tools (bench, demo) are imported only by the commands and the demo session, no two public
 functions or classes share a name, no two functions share a body (a copy with other names is
-still a copy), no function runs past ~80 lines without saying why, and every benchmark times the one step the node runs (``OnlinePredictor``), never an assembly of
+still a copy), no function runs past ~80 lines without saying why, the package never imports
+the maintainer scripts (``tools/``) or the test helpers (``testing/``), and every benchmark times the one step the node runs (``OnlinePredictor``), never an assembly of
 its parts.
 
 Each rule is checked by a function that takes the parsed package, so the tests below also
@@ -30,6 +31,8 @@ LAYERS = (
     ("commands",),
 )
 TOOLS = ("bench", "demo")
+# Above the package: maintainer scripts and test helpers import it, it never imports them.
+OUTSIDE_PACKAGE = ("tools", "testing")
 TOOL_IMPORTERS = ("odg_ros.commands", "odg_ros.ros.demo_session")
 # the interface every command module has, and the two entry points (odg, odg_node)
 SHARED_NAMES = {"add_arguments", "run", "main"}
@@ -44,6 +47,8 @@ SHORTEST_COPY = 4
 BENCHMARKS = ("odg_ros.bench", "tools.bench_", "tools.profile_")
 COMPONENT_BENCHMARKS = {
     "tools.bench_backbone": "the step's backbone alone, against plain ResNets",
+    "odg_ros.bench.budget_accuracy": "accuracy, not speed: one backbone pass a keyframe, "
+                                     "decoded under every budget, ranking and bound",
 }
 STEP_PARTS = {"OnlineStep", "FeatureRing", "folded_for_inference", "voxelise", "pad_occupancy",
               "ranked_boxes", "occupancy_grid", "box_list", "Visibility", "online_inputs"}
@@ -108,6 +113,24 @@ def layering_violations(edges) -> list[str]:
         elif group(imported) in TOOLS and not importer.startswith(TOOL_IMPORTERS):
             problems.append(f"{importer} imports the tool {imported}")
     return problems
+
+
+def imports_from_outside(modules: dict[str, ast.Module]) -> list[str]:
+    """Where a module of the package imports tools/ or testing/ (at its top or in a function)."""
+    found = []
+    for name, tree in modules.items():
+        if not name.startswith("odg_ros"):
+            continue
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Import):
+                targets = [alias.name for alias in node.names]
+            elif isinstance(node, ast.ImportFrom) and not node.level:
+                targets = [node.module or ""]
+            else:
+                continue
+            found += [f"{name}:{node.lineno} imports {target}" for target in targets
+                      if target.split(".")[0] in OUTSIDE_PACKAGE]
+    return found
 
 
 def shared_public_names(modules: dict[str, ast.Module]) -> dict[str, list[str]]:
@@ -227,6 +250,17 @@ def test_an_upward_import_or_a_library_import_of_a_tool_is_caught():
     assert len(problems) == 4 and not any("train.trainer" in p for p in problems), problems
 
 
+def test_the_package_never_imports_the_scripts_or_the_test_helpers(modules):
+    assert imports_from_outside({**modules, **parse_tools()}) == []
+    planted = {"odg_ros.train.extra": ast.parse(
+        "import tools.revision\nfrom testing.helpers import tiny_config\n"
+        "def f():\n    from tools import eval_budget\n"),
+        "tools.extra": ast.parse("from odg_ros.bench.budget_cost import summary\n"
+                                 "from tools.revision import module_at\n")}   # fine
+    assert [p.split(" ", 1)[1] for p in imports_from_outside(planted)] == [
+        "imports tools.revision", "imports testing.helpers", "imports tools"]
+
+
 def test_no_two_public_functions_or_classes_share_a_name(modules):
     assert shared_public_names(modules) == {}
     planted = dict(modules, **{"odg_ros.extra": ast.parse("def build_world():\n    pass\n"),
@@ -267,7 +301,7 @@ def parse_tools() -> dict[str, ast.Module]:
 def test_every_benchmark_times_the_nodes_own_step(modules):
     benchmarks = {**modules, **parse_tools()}
     assert {n for n in benchmarks if n.startswith(BENCHMARKS)} >= {
-        "odg_ros.bench.step", "odg_ros.bench.sweep", "tools.profile_budget"}
+        "odg_ros.bench.step", "odg_ros.bench.sweep", "odg_ros.bench.budget_cost"}
     assert step_assemblies(benchmarks) == []
     assert set(COMPONENT_BENCHMARKS) <= set(benchmarks)
     planted = {"odg_ros.bench.fast": ast.parse(

@@ -80,6 +80,10 @@ def add_arguments(parser):
                              "each read waits for the GPU, so rarely is faster; every step "
                              "still gets its log row, and checkpoints read first)")
     parser.add_argument("--resume", action="store_true", help="continue OUT/latest.pt")
+    _add_budget_head_arguments(parser)
+
+
+def _add_budget_head_arguments(parser):
     heads = parser.add_argument_group(
         "budget heads", "--budget-heads trains the query-budget heads of the --init checkpoint "
         "(docs/query_budget.md), every other weight frozen, and writes OUT/budget_heads.pt "
