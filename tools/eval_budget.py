@@ -2,7 +2,7 @@
 (odg_ros/bench/budget_accuracy.py): the full model, each rung of the ladder, ``auto``, and
 with ``--baselines`` / ``--oracles`` / ``--margins`` the rankings and bounds to compare with.
 
-    OMP_NUM_THREADS=1 python -m tools.eval_budget --checkpoint runs/budget/odg_cpu.pt \
+    OMP_NUM_THREADS=1 python -m tools.eval_budget --checkpoint runs/budget/budget_heads.pt \
         --data quiet=data/quiet/infos_val.pkl dense=data/dense/infos_val.pkl --out eval.json
 """
 from __future__ import annotations
