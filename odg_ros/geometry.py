@@ -164,12 +164,6 @@ def ego_warp(T_global_from_ego_current, T_global_from_ego_past) -> np.ndarray:
     return invert_transform(T_global_from_ego_past) @ np.asarray(T_global_from_ego_current)
 
 
-def yaw_of(T) -> float:
-    """Heading (rotation about z) of a 4x4 transform or 3x3 rotation."""
-    R = np.asarray(T)[:3, :3]
-    return float(np.arctan2(R[1, 0], R[0, 0]))
-
-
 def inside_bev_range(points, pc_range) -> np.ndarray:
     """[N, >=2] x, y (ego frame) -> [N] bool: inside the grid's bird's-eye range
     [x_min, x_max) x [y_min, y_max) of ``pc_range`` (x_min, y_min, z_min, x_max, y_max, z_max)."""

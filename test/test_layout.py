@@ -1,7 +1,8 @@
 """The package's layout as docs/architecture.md states it: imports go down the layers, the
 tools (bench, demo) are imported only by the commands and the demo session, no two public
-functions or classes share a name, no function runs past ~80 lines without saying why, and
-every benchmark times the one step the node runs (``OnlinePredictor``), never an assembly of
+functions or classes share a name, no two functions share a body (a copy with other names is
+still a copy), no function runs past ~80 lines without saying why, the package never imports
+the maintainer scripts (``tools/``) or the test helpers (``testing/``), and every benchmark times the one step the node runs (``OnlinePredictor``), never an assembly of
 its parts.
 
 Each rule is checked by a function that takes the parsed package, so the tests below also
@@ -9,6 +10,7 @@ plant a violation and see each rule catch it."""
 from __future__ import annotations
 
 import ast
+import copy
 from pathlib import Path
 
 import pytest
@@ -29,10 +31,15 @@ LAYERS = (
     ("commands",),
 )
 TOOLS = ("bench", "demo")
+# Above the package: maintainer scripts and test helpers import it, it never imports them.
+OUTSIDE_PACKAGE = ("tools", "testing")
 TOOL_IMPORTERS = ("odg_ros.commands", "odg_ros.ros.demo_session")
 # the interface every command module has, and the two entry points (odg, odg_node)
 SHARED_NAMES = {"add_arguments", "run", "main"}
 LONGEST_FUNCTION = 80
+# Functions of at least this many statements (nested ones counted, the docstring not) may not
+# share a body; shorter ones (a lock and a flag, a property) repeat without being copies.
+SHORTEST_COPY = 4
 # The benchmarks of the online step (odg bench, its sweep, the maintainer scripts that time
 # or profile it) run the node's own step: an OnlinePredictor. They import none of the step's
 # parts and call none of the model's own forward paths, so no second assembly of the step can
@@ -40,6 +47,8 @@ LONGEST_FUNCTION = 80
 BENCHMARKS = ("odg_ros.bench", "tools.bench_", "tools.profile_")
 COMPONENT_BENCHMARKS = {
     "tools.bench_backbone": "the step's backbone alone, against plain ResNets",
+    "odg_ros.bench.budget_accuracy": "accuracy, not speed: one backbone pass a keyframe, "
+                                     "decoded under every budget, ranking and bound",
 }
 STEP_PARTS = {"OnlineStep", "FeatureRing", "folded_for_inference", "voxelise", "pad_occupancy",
               "ranked_boxes", "occupancy_grid", "box_list", "Visibility", "online_inputs"}
@@ -106,6 +115,24 @@ def layering_violations(edges) -> list[str]:
     return problems
 
 
+def imports_from_outside(modules: dict[str, ast.Module]) -> list[str]:
+    """Where a module of the package imports tools/ or testing/ (at its top or in a function)."""
+    found = []
+    for name, tree in modules.items():
+        if not name.startswith("odg_ros"):
+            continue
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Import):
+                targets = [alias.name for alias in node.names]
+            elif isinstance(node, ast.ImportFrom) and not node.level:
+                targets = [node.module or ""]
+            else:
+                continue
+            found += [f"{name}:{node.lineno} imports {target}" for target in targets
+                      if target.split(".")[0] in OUTSIDE_PACKAGE]
+    return found
+
+
 def shared_public_names(modules: dict[str, ast.Module]) -> dict[str, list[str]]:
     where: dict[str, list[str]] = {}
     for name, tree in modules.items():
@@ -129,6 +156,49 @@ def long_functions(modules: dict[str, ast.Module]) -> list[tuple[int, str]]:
                 if length > LONGEST_FUNCTION and not reason:
                     found.append((length, f"{name}.{node.name} (line {node.lineno})"))
     return sorted(found, reverse=True)
+
+
+class _Renamed(ast.NodeTransformer):
+    """Every variable and argument renamed by its first appearance (v0, v1, ...), annotations
+    dropped: two bodies that differ only in their names come out the same."""
+
+    def __init__(self):
+        self.names: dict[str, str] = {}
+
+    def _rename(self, name: str) -> str:
+        return self.names.setdefault(name, f"v{len(self.names)}")
+
+    def visit_Name(self, node):
+        node.id = self._rename(node.id)
+        return node
+
+    def visit_arg(self, node):
+        node.arg, node.annotation = self._rename(node.arg), None
+        return node
+
+
+def normalised_body(function) -> tuple[str, int]:
+    """(the function's body without its docstring, names renamed, as an AST dump; how many
+    statements it has)."""
+    function = copy.deepcopy(function)
+    body = function.body[1:] if ast.get_docstring(function) is not None else function.body
+    renamed = _Renamed()
+    renamed.visit(function.args)
+    body = [renamed.visit(statement) for statement in body]
+    count = sum(isinstance(node, ast.stmt) for statement in body for node in ast.walk(statement))
+    return ast.dump(ast.Module(body=body, type_ignores=[])), count
+
+
+def copied_bodies(modules: dict[str, ast.Module]) -> list[list[str]]:
+    """Groups of functions (SHORTEST_COPY statements or more) with one normalised body."""
+    where: dict[str, list[str]] = {}
+    for name, tree in modules.items():
+        for node in ast.walk(tree):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                body, statements = normalised_body(node)
+                if statements >= SHORTEST_COPY:
+                    where.setdefault(body, []).append(f"{name}.{node.name} (line {node.lineno})")
+    return [places for places in where.values() if len(places) > 1]
 
 
 def _last_name(node) -> str:
@@ -180,6 +250,17 @@ def test_an_upward_import_or_a_library_import_of_a_tool_is_caught():
     assert len(problems) == 4 and not any("train.trainer" in p for p in problems), problems
 
 
+def test_the_package_never_imports_the_scripts_or_the_test_helpers(modules):
+    assert imports_from_outside({**modules, **parse_tools()}) == []
+    planted = {"odg_ros.train.extra": ast.parse(
+        "import tools.revision\nfrom testing.helpers import tiny_config\n"
+        "def f():\n    from tools import eval_budget\n"),
+        "tools.extra": ast.parse("from odg_ros.bench.budget_cost import summary\n"
+                                 "from tools.revision import module_at\n")}   # fine
+    assert [p.split(" ", 1)[1] for p in imports_from_outside(planted)] == [
+        "imports tools.revision", "imports testing.helpers", "imports tools"]
+
+
 def test_no_two_public_functions_or_classes_share_a_name(modules):
     assert shared_public_names(modules) == {}
     planted = dict(modules, **{"odg_ros.extra": ast.parse("def build_world():\n    pass\n"),
@@ -196,6 +277,21 @@ def test_no_function_is_long_without_saying_why(modules):
     assert long_functions(planted) == []
 
 
+def test_no_two_functions_share_a_body(modules):
+    assert copied_bodies({**modules, **parse_tools()}) == []
+    original = ast.get_source_segment(
+        (PACKAGE / "rotation.py").read_text(),
+        next(node for node in modules["odg_ros.rotation"].body
+             if getattr(node, "name", "") == "normalise_quaternions"))
+    copied = original.replace("rotations", "q").replace("def normalise_quaternions", "def unit").replace("largest", "biggest").replace(": torch.Tensor", "")
+    copied = copied.replace('"""[..., 4]', '"""A copy with other names: [..., 4]')
+    planted = {**modules, "odg_ros.render.extra": ast.parse(copied)}
+    assert [[place.split(" ")[0] for place in group] for group in copied_bodies(planted)] == [
+        ["odg_ros.rotation.normalise_quaternions", "odg_ros.render.extra.unit"]]
+    short = "def close(self):\n    with self._lock:\n        self._closed = True\n"
+    assert copied_bodies({"odg_ros.a": ast.parse(short), "odg_ros.b": ast.parse(short)}) == []
+
+
 def parse_tools() -> dict[str, ast.Module]:
     """tools.NAME -> its syntax tree, for the maintainer scripts."""
     return {f"tools.{path.stem}": ast.parse(path.read_text(), filename=str(path))
@@ -205,7 +301,7 @@ def parse_tools() -> dict[str, ast.Module]:
 def test_every_benchmark_times_the_nodes_own_step(modules):
     benchmarks = {**modules, **parse_tools()}
     assert {n for n in benchmarks if n.startswith(BENCHMARKS)} >= {
-        "odg_ros.bench.step", "odg_ros.bench.sweep", "tools.profile_budget"}
+        "odg_ros.bench.step", "odg_ros.bench.sweep", "odg_ros.bench.budget_cost"}
     assert step_assemblies(benchmarks) == []
     assert set(COMPONENT_BENCHMARKS) <= set(benchmarks)
     planted = {"odg_ros.bench.fast": ast.parse(

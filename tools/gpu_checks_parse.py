@@ -169,8 +169,12 @@ def check_bounds(lines: list[list[str]]) -> tuple[list[str], list[str]]:
 
 def main(argv=None) -> int:
     args = sys.argv[1:] if argv is None else argv
+    usage = "usage: python -m tools.gpu_checks_parse COMMANDS.jsonl"
+    if args in (["-h"], ["--help"]):
+        print(f"{usage}\n\n{__doc__.strip()}")
+        return 0
     if len(args) != 1:
-        print("usage: python -m tools.gpu_checks_parse COMMANDS.jsonl", file=sys.stderr)
+        print(usage, file=sys.stderr)
         return 2
     lines = [json.loads(line) for line in Path(args[0]).read_text().splitlines() if line]
     reports, problems = check_bounds(lines)

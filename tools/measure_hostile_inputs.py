@@ -15,6 +15,7 @@ process (peak RSS is per process), with and without the protections:
 """
 from __future__ import annotations
 
+import argparse
 import io
 import json
 import resource
@@ -118,8 +119,15 @@ CASES = {"bomb": bomb, "names": names, "busy_tree": busy_tree}
 
 
 def main() -> None:
-    if len(sys.argv) == 3:                          # one case in this process
-        print(json.dumps(CASES[sys.argv[1]](sys.argv[2] == "protected")))
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("case", nargs="?", choices=CASES,
+                        help="run only this case, in this process (default: every case, each "
+                             "in a fresh process)")
+    parser.add_argument("mode", nargs="?", choices=("unprotected", "protected"),
+                        default="protected", help="with CASE: with or without the protections")
+    args = parser.parse_args()
+    if args.case is not None:
+        print(json.dumps(CASES[args.case](args.mode == "protected")))
         return
     for case in CASES:
         for mode in ("unprotected", "protected"):

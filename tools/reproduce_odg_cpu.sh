@@ -356,9 +356,10 @@ for spec in "open-road 31 normal 3" "city-quiet 32 quiet 3" "city-dense 33 dense
     odg prepare --dataroot "data/budget/$1-$2" --out "data/budget/$1-$2/infos_all.pkl" --split all
 done
 mv model/odg_cpu.pt runs/odg_cpu_stage37.pt
-OMP_NUM_THREADS=1 python -m tools.train_budget_heads --checkpoint runs/odg_cpu_stage37.pt \
+OMP_NUM_THREADS=1 odg train --budget-heads --init runs/odg_cpu_stage37.pt \
     --data data/synth8s2/infos_train.pkl data/budget/*/infos_all.pkl \
-    --cache runs/budget/cache --out model/odg_cpu.pt --skip-epochs 12
+    --out runs/budget --skip-epochs 12
+cp runs/budget/budget_heads.pt model/odg_cpu.pt
 # (39), shipped: (38) with its calibration, fitted on small worlds of training seeds
 odg synth --out data/calib/open-road-31 --scenes 3 --seconds 4 --seed 31 --roads open-road
 odg synth --out data/calib/city-quiet-32 --scenes 3 --seconds 4 --seed 32 --traffic quiet

@@ -1,11 +1,16 @@
-"""``odg train --preset NAME --data INFOS --out DIR [...]`` (also under torchrun for DDP)."""
+"""``odg train --preset NAME --data INFOS --out DIR [...]`` (also under torchrun for DDP), and
+``odg train --budget-heads --init CHECKPOINT --data INFOS --out DIR``: the query-budget heads
+of a trained checkpoint, every other weight frozen."""
 from __future__ import annotations
 
+import argparse
 import json
 import logging
 import traceback
+from pathlib import Path
 
 from ..config import PRESET_NAMES, load_preset
+from ..train.budget_heads import BudgetHeadTraining, train_budget_heads
 from ..train.trainer import Trainer, TrainOptions, end_distributed
 from .common import (config_overrides, device, existing_file, infos_file, nonnegative_int,
                      positive_float, positive_int, preset)
@@ -75,10 +80,83 @@ def add_arguments(parser):
                              "each read waits for the GPU, so rarely is faster; every step "
                              "still gets its log row, and checkpoints read first)")
     parser.add_argument("--resume", action="store_true", help="continue OUT/latest.pt")
+    _add_budget_head_arguments(parser)
+
+
+def _add_budget_head_arguments(parser):
+    heads = parser.add_argument_group(
+        "budget heads", "--budget-heads trains the query-budget heads of the --init checkpoint "
+        "(docs/query_budget.md), every other weight frozen, and writes OUT/budget_heads.pt "
+        "(model and heads), OUT/budget_heads.pt.log and the cached model pass in OUT/cache/ "
+        "(a stopped pass resumes); the options above other than --data, --out and --init do "
+        "not apply")
+    defaults = BudgetHeadTraining()
+    heads.add_argument("--budget-heads", action="store_true",
+                       help="train the budget heads instead of the model")
+    heads.add_argument("--keyframes", type=positive_int, default=None,
+                       help="keyframes per infos file (default: all)")
+    heads.add_argument("--skip-epochs", type=positive_int, default=defaults.skip_epochs,
+                       help="passes distilling the skip layer")
+    heads.add_argument("--skip-lr", type=positive_float, default=defaults.skip_lr,
+                       help="the skip layer's learning rate")
+    heads.add_argument("--keep-epochs", type=positive_int, default=defaults.keep_epochs,
+                       help="passes fitting the keep-scores")
+    heads.add_argument("--calibration-keyframes", type=positive_int,
+                       default=defaults.calibration_keyframes,
+                       help="cached keyframes (evenly spaced) the skip layer's logit offset is "
+                            "chosen on")
+    heads.add_argument("--need-change", type=positive_float, default=defaults.need_change,
+                       help="a query whose refinement is predicted to change its part of the "
+                            "grid by more than this counts as needed by query_budget auto")
+
+
+HEAD_OPTIONS = ("keyframes", "skip_epochs", "skip_lr", "keep_epochs", "calibration_keyframes",
+                "need_change")
+COMMON_OPTIONS = ("data", "out", "init", "budget_heads")
+
+
+def _explicit_options(args) -> set[str]:
+    """The options of ``args`` given other values than their defaults."""
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    return {name for name, value in vars(args).items()
+            if name in {action.dest for action in parser._actions}
+            and name not in ("data", "out") and value != parser.get_default(name)}
+
+
+def _flags(names) -> str:
+    return ", ".join("--" + name.replace("_", "-") for name in sorted(names))
+
+
+def _train_budget_heads(args) -> int:
+    misplaced = _explicit_options(args) - set(HEAD_OPTIONS) - set(COMMON_OPTIONS)
+    if misplaced:
+        raise ValueError(f"with --budget-heads, {_flags(misplaced)} do not apply (they train "
+                         "the model)")
+    if args.init is None:
+        raise ValueError("--budget-heads needs --init CHECKPOINT (the trained model "
+                         "whose heads to train)")
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    options = BudgetHeadTraining(
+        skip_epochs=args.skip_epochs, skip_lr=args.skip_lr, keep_epochs=args.keep_epochs,
+        calibration_keyframes=args.calibration_keyframes, need_change=args.need_change,
+        keyframes_per_file=args.keyframes)
+    report = train_budget_heads(args.init, args.data, out / "budget_heads.pt", out / "cache",
+                                options)
+    print(json.dumps(report, indent=2))
+    print(f"wrote {out / 'budget_heads.pt'} (log: {out / 'budget_heads.pt.log'})")
+    return 0
 
 
 def run(args) -> int:
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    if args.budget_heads:
+        return _train_budget_heads(args)
+    misplaced = _explicit_options(args) & set(HEAD_OPTIONS)
+    if misplaced:
+        raise ValueError(f"{_flags(misplaced)} train the budget heads: they need "
+                         "--budget-heads")
     cfg = load_preset(args.preset, **config_overrides(args.set))
     opts = TrainOptions(out_dir=args.out, epochs=args.epochs, max_steps=args.steps,
                         batch_size=args.batch_size, lr=args.lr, warmup_steps=args.warmup,

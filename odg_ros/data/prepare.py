@@ -24,6 +24,7 @@ from odg_ros.classes import BOX_CLASSES
 from odg_ros.rig import CAMERA_NAMES
 from odg_ros.data.nuscenes_tables import CATEGORY_TO_BOX_CLASS, NuScenesTables, pose_matrix
 from odg_ros.geometry import invert_transform, quaternion_to_matrix
+from odg_ros.rotation import yaw_of
 
 MAX_SWEEP_SETS = 12        # safety cap; nuScenes has 5 camera sets between keyframes
 SET_TOLERANCE_US = 60_000  # cameras of one set lie within ~42 ms of CAM_FRONT (docs/architecture.md sec. 2)
@@ -104,7 +105,7 @@ def _boxes(tables: NuScenesTables, sample, T_global_from_ego):
             continue
         centre = T_ego_global[:3, :3] @ np.asarray(ann["translation"], float) + T_ego_global[:3, 3]
         R = R_ego_global @ quaternion_to_matrix(ann["rotation"])
-        yaw = np.arctan2(R[1, 0], R[0, 0])
+        yaw = yaw_of(R)
         v = R_ego_global @ np.nan_to_num(tables.annotation_velocity(ann), nan=0.0)
         w, l, h = ann["size"]
         boxes.append([*centre, w, l, h, yaw, v[0], v[1]])

@@ -13,6 +13,7 @@ import math
 import torch
 from torch import nn
 
+from ..rotation import normalise_quaternions
 from .grid_range import GridRange
 
 CLASS_PRIOR = 0.01  # initial sigmoid score, focal-loss convention
@@ -51,22 +52,6 @@ class PointHead(nn.Module):
         return means, logits
 
 
-def safe_normalize_quaternion(q: torch.Tensor, eps: float = 1e-12) -> torch.Tensor:
-    """Unit quaternions (w, x, y, z); a zero / denormal quaternion becomes the identity.
-
-    Divided by its largest component first, so that the norm of a huge quaternion cannot
-    overflow (float32 squares overflow from ~1.8e19: q / inf would be a zero "unit" one)."""
-    with torch.no_grad():    # the output does not depend on the scale: no gradient through it
-        largest = q.abs().amax(dim=-1, keepdim=True)
-        scale = torch.where(largest > 0, largest, torch.ones_like(largest))
-        tiny = largest * (q / scale).norm(dim=-1, keepdim=True) < eps
-        scale = torch.where(tiny, torch.ones_like(scale), scale)   # no 1 / denormal
-    identity = torch.zeros_like(q)
-    identity[..., 0] = 1.0
-    safe = torch.where(tiny, identity, q / scale)           # norm in [1, 2]
-    return safe / safe.norm(dim=-1, keepdim=True)
-
-
 class GaussianAttributeMLP(nn.Module):
     """Phi(means, query feature) -> one Gaussian attribute per mean."""
 
@@ -98,6 +83,6 @@ class GaussianAttributes(nn.Module):
 
     def forward(self, means: torch.Tensor, query: torch.Tensor):
         scales = MIN_SCALE + (MAX_SCALE - MIN_SCALE) * torch.sigmoid(self.phi_scale(means, query))
-        rotations = safe_normalize_quaternion(self.phi_rotation(means, query))
+        rotations = normalise_quaternions(self.phi_rotation(means, query))
         opacities = torch.sigmoid(self.phi_opacity(means, query)).squeeze(-1)
         return scales, rotations, opacities

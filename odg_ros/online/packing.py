@@ -7,11 +7,10 @@ sensor_msgs / nav_msgs messages.
 """
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
 from ..classes import BOX_CLASSES, LABEL_SETS, OCC_CLASSES, OCC_COLORS, OccLabels
+from ..rotation import yaw_to_quaternion
 
 NUSCENES_LABELS = LABEL_SETS["nuscenes"]
 
@@ -141,11 +140,6 @@ def bev_fields(grid: np.ndarray, pc_range, voxel_size: float, min_z: float,
     }
 
 
-def yaw_quaternion(yaw: float) -> tuple[float, float, float, float]:
-    """(w, x, y, z) of a rotation by ``yaw`` about z."""
-    return (math.cos(yaw / 2.0), 0.0, 0.0, math.sin(yaw / 2.0))
-
-
 def object_fields(box: dict) -> dict:
     """odg_ros_msgs/DynamicObject fields from one network.postprocess.box_list entry.
 
@@ -157,7 +151,7 @@ def object_fields(box: dict) -> dict:
         "class_id": int(box["label"]), "class_name": str(box["class_name"]),
         "score": float(box["score"]),
         "position": tuple(float(v) for v in box["center"]),
-        "orientation": yaw_quaternion(float(box["yaw"])),
+        "orientation": yaw_to_quaternion(float(box["yaw"])),
         "size": (l, w, h),
         "velocity": (float(box["velocity"][0]), float(box["velocity"][1]), 0.0),
     }

@@ -30,25 +30,8 @@ import bisect
 import numpy as np
 
 from ..geometry import is_rigid, make_transform, matrix_to_quaternion
+from ..rotation import slerp
 from .errors import BadInput
-
-
-def slerp(q0, q1, alpha: float) -> np.ndarray:
-    """Spherical interpolation of unit quaternions (w, x, y, z) along the shorter arc.
-
-    ``alpha`` outside [0, 1] continues the rotation at the same angular rate (extrapolation).
-    """
-    q0 = np.asarray(q0, dtype=np.float64)
-    q1 = np.asarray(q1, dtype=np.float64)
-    dot = float(q0 @ q1)
-    if dot < 0.0:           # q and -q are the same rotation; take the short way round
-        q1, dot = -q1, -dot
-    if dot > 0.9995:        # nearly parallel: sin(theta) ~ 0, normalised lerp is exact enough
-        q = q0 + alpha * (q1 - q0)
-    else:
-        theta = np.arccos(min(dot, 1.0))
-        q = (np.sin((1.0 - alpha) * theta) * q0 + np.sin(alpha * theta) * q1) / np.sin(theta)
-    return q / np.linalg.norm(q)
 
 
 def interpolate_pose(t0: float, T0, t1: float, T1, t: float) -> np.ndarray:

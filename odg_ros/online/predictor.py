@@ -101,7 +101,7 @@ class CudaGraphStep:
 
 def resolve_budget(query_budget, model, cfg):
     """query_budget "full" | "auto" | a fraction in (0, 1] | one ``QueryBudget`` (a rung of
-    the ladder, tools/profile_budget.py) -> (the budgets the step runs, None standing for the
+    the ladder, bench/budget_cost.py) -> (the budgets the step runs, None standing for the
     full one; the ``BudgetPolicy`` of "auto" or None)."""
     if query_budget in ("full", None):
         return [None], None

@@ -22,32 +22,13 @@ from dataclasses import dataclass
 
 import torch
 
+from ..rotation import normalise_quaternions
+
 BLUR_PX2 = 0.3            # added to the 2D covariance diagonal (px^2)
 FOV_CLAMP_MARGIN = 0.3    # x/z clamped to the image extent + 0.3 * tan(fov / 2) (~1.3x fov)
 ALPHA_MIN = 1.0 / 255.0   # contributions below this alpha are skipped
 ALPHA_MAX = 0.99          # alpha is capped here (Inria); keeps log(1 - alpha) finite
 DET_MIN = 1e-10
-QUAT_NORM_MIN = 1e-12     # shorter quaternions have no usable direction -> identity
-
-
-def normalise_quaternions(rotations: torch.Tensor) -> torch.Tensor:
-    """[G, 4] (w, x, y, z), any length -> unit quaternions [G, 4].
-
-    A quaternion shorter than 1e-12 (zero, denormal) becomes the identity and gets a zero
-    gradient, instead of a NaN or a gradient of ~1/|q|. Each quaternion is divided by its
-    largest component first, so a huge one cannot overflow the norm (float32 squares
-    overflow from ~1.8e19, and q / inf would be the zero quaternion, i.e. the identity).
-    """
-    with torch.no_grad():
-        largest = rotations.abs().amax(dim=-1, keepdim=True)
-        scale = torch.where(largest > 0, largest, torch.ones_like(largest))
-        tiny = largest * torch.linalg.vector_norm(rotations / scale, dim=-1,
-                                                  keepdim=True) <= QUAT_NORM_MIN
-        scale = torch.where(tiny, torch.ones_like(scale), scale)   # no 1 / denormal
-    identity = torch.zeros_like(rotations)
-    identity[..., 0] = 1.0
-    safe = torch.where(tiny, identity, rotations / scale)
-    return safe / torch.linalg.vector_norm(safe, dim=-1, keepdim=True)
 
 
 def quaternion_to_rotation(unit_quaternions: torch.Tensor) -> torch.Tensor:

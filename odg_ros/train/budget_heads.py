@@ -19,7 +19,8 @@
    which the budgets' grids agree best with the full model's (voxels and rays, no ground
    truth). Distilled without image sampling, the skip layer is surer than the last layer
    where it should not be: its extra points are floaters that cut rays short (RayIoU).
-Everything after ``collect`` runs on the cached keyframes.
+Everything after ``collect`` runs on the cached keyframes. ``train_budget_heads`` runs the
+five steps and writes the checkpoint with the heads (``odg train --budget-heads``).
 
 A ground-truth gain (correct voxels won by refining) ranks worse than this change: it is
 noisy per query, and with weights fixed per class over a training set it spends a budget on
@@ -28,7 +29,9 @@ classes that fill an open road's view (terrain) and loses the small ones (docs/q
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -37,10 +40,12 @@ import torch
 import torch.nn.functional as F
 from tqdm import tqdm
 
+from ..data.dataset import OccDataset
 from ..metrics.miou import MIoU
 from ..metrics.rayiou import RayIoU
-from ..network.budget import (AFTER_LAYER, QueryBudget, best_logits, gather_queries,
-                              keep_inputs, ranked_queries)
+from ..network.budget import (AFTER_LAYER, QueryBudget, best_logits, budget_ladder,
+                              gather_queries, keep_inputs, ranked_queries)
+from ..network.checkpoint import load_model, read_checkpoint, save_checkpoint
 from ..network.decoder import merged_layer
 from ..network.outputs import LayerOutput
 from ..network.postprocess import point_voxels, voxelise
@@ -422,3 +427,65 @@ def calibrate_skip_layer(model, files: list[Path], budgets: list[QueryBudget],
         log("skip layer offset " + ", ".join(f"{v:g}: {a:.2f}" for v, a in agreement.items())
             + f" -> {best:g}")
     return {"agreement": agreement, "offset": best}
+
+
+@dataclass(frozen=True)
+class BudgetHeadTraining:
+    """How the heads of ``train_budget_heads`` are fitted (the defaults trained the shipped
+    checkpoint's)."""
+    skip_epochs: int = 20
+    skip_lr: float = 1e-3
+    keep_epochs: int = 40
+    calibration_keyframes: int = 96    # cached keyframes (evenly spaced) the offset is chosen on
+    need_change: float = NEED_CHANGE   # a query predicted to change more is needed by ``auto``
+    keyframes_per_file: int | None = None   # None: every keyframe of each infos file
+
+
+def train_budget_heads(checkpoint, data: list[str], out, cache_dir,
+                       options: BudgetHeadTraining = BudgetHeadTraining(),
+                       progress: bool = True) -> dict:
+    """Train the budget heads of ``checkpoint`` (every other weight frozen) on the keyframes
+    of the infos files ``data`` and write the checkpoint with them to ``out``; -> the report
+    stored in it under "budget_heads". The model's pass over the keyframes is the slow part
+    (about 1.5 s a keyframe on one core for odg_cpu); it is cached in ``cache_dir`` (one file a
+    keyframe, a stopped pass resumes), so the heads can be refitted in minutes. Progress is
+    appended to OUT.log."""
+    out = Path(out)
+    with open(f"{out}.log", "a") as log_file:
+        def log(text):
+            print(f"{time.strftime('%H:%M:%S')} {text}", file=log_file, flush=True)
+        model, cfg = load_model(checkpoint)
+        payload = read_checkpoint(checkpoint)
+        files = []
+        for infos in data:
+            dataset = OccDataset(infos, cfg, train=False)
+            indices = list(range(len(dataset)))[:options.keyframes_per_file]
+            start = time.time()
+            name = Path(infos).parent.name + "-" + Path(infos).stem
+            files += collect(model, dataset, indices, cache_dir, progress, desc=name)
+            log(f"model pass over {len(indices)} keyframes of {infos}: "
+                f"{time.time() - start:.0f} s")
+        init_skip_layer(model)
+        skip = fit_skip_layer(model, files, epochs=options.skip_epochs, lr=options.skip_lr,
+                              progress=progress, log=log)
+        changes, states = refinement_change(model, files, progress)
+        keep = fit_keep_scores(model, states, changes, epochs=options.keep_epochs,
+                               progress=progress, log=log)
+        step = max(1, len(files) // options.calibration_keyframes)
+        calibration = calibrate_skip_layer(model, files[::step], budget_ladder(cfg)[1:],
+                                           progress=progress, log=log)
+        model.decoder.budget_heads.set_trained(
+            True, float(squashed(torch.tensor(options.need_change))))
+        report = {"source": str(checkpoint), "data": [str(infos) for infos in data],
+                  "keyframes": len(files), "need_change": options.need_change,
+                  "skip_epochs": options.skip_epochs, "skip_lr": options.skip_lr,
+                  "keep_epochs": options.keep_epochs,
+                  "skip_layer_loss": skip, "keep_score_loss": keep,
+                  "skip_logit_offset": calibration["offset"],
+                  "skip_offset_agreement": calibration["agreement"]}
+        save_checkpoint(out, model, extra={"budget_heads": report,
+                                           **({"export": payload["export"]}
+                                              if "export" in payload else {})},
+                        compress=payload.get("compression"))
+        log(json.dumps(report))
+    return report

@@ -9,7 +9,7 @@ from odg_ros.classes import FREE_LABEL
 from odg_ros.config import PRESET_NAMES, load_preset
 from odg_ros.network import ODG
 from odg_ros.network.das_attention import DaSAttention
-from odg_ros.network.gaussian_heads import safe_normalize_quaternion
+from odg_ros.rotation import normalise_quaternions
 from odg_ros.network.outputs import LayerOutput, ODGOutput
 from odg_ros.network.postprocess import box_list, decode_box_code, occupancy_grid
 from odg_ros.rig import ring_ego2img
@@ -163,7 +163,7 @@ def test_no_nan_or_inf_on_random_inputs_and_gradients_flow():
 def test_zero_and_denormal_quaternions_normalise_safely():
     q = torch.tensor([[0.0, 0, 0, 0], [1e-40, 0, 0, 0], [0, 3.0, 0, 4.0], [-2.0, 0, 0, 0]],
                      requires_grad=True)
-    unit = safe_normalize_quaternion(q)
+    unit = normalise_quaternions(q)
     torch.testing.assert_close(unit.detach(), torch.tensor(
         [[1.0, 0, 0, 0], [1.0, 0, 0, 0], [0, 0.6, 0, 0.8], [-1.0, 0, 0, 0]]))
     unit.sum().backward()

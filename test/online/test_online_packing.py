@@ -8,7 +8,8 @@ from odg_ros.classes import FREE_LABEL, OCC_CLASSES, WAYMO_OCC_CLASSES
 from odg_ros.config import load_preset
 from odg_ros.online import diagnostics
 from odg_ros.online.packing import CLOUD_DTYPE, bev_fields, cloud_fields, object_fields, \
-    voxel_grid_fields, yaw_quaternion
+    voxel_grid_fields
+from odg_ros.rotation import yaw_to_quaternion
 
 RANGE = (-40.0, -40.0, -1.0, 40.0, 40.0, 5.4)
 
@@ -95,7 +96,7 @@ def test_object_fields_follow_the_message_conventions():
     w, x, y, z = fields["orientation"]
     assert (w, z) == pytest.approx((math.cos(math.pi / 4), math.sin(math.pi / 4)))
     assert fields["velocity"] == (3.0, -1.0, 0.0)
-    assert yaw_quaternion(0.0) == (1.0, 0.0, 0.0, 0.0)
+    assert yaw_to_quaternion(0.0) == (1.0, 0.0, 0.0, 0.0)
 
 
 def test_diagnostics_rates_latency_and_levels():

@@ -7,36 +7,15 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation, Slerp
 
-from odg_ros.geometry import invert_transform, make_transform, yaw_of
+from odg_ros.geometry import invert_transform, make_transform
 from odg_ros.online.errors import BadInput
-from odg_ros.online.poses import PoseBuffer, interpolate_pose, pose_from_xyz_xyzw, slerp
+from odg_ros.online.poses import PoseBuffer, interpolate_pose, pose_from_xyz_xyzw
 from odg_ros.online.transforms import TransformBuffer
+from odg_ros.rotation import yaw_of
 
 
 def yaw_pose(yaw, xyz=(0, 0, 0)):
     return make_transform(Rotation.from_euler("z", yaw).as_matrix(), xyz)
-
-
-def wxyz(rotation):
-    x, y, z, w = rotation.as_quat()
-    return np.array([w, x, y, z])
-
-
-def test_slerp_hand_cases():
-    q0 = np.array([1.0, 0, 0, 0])
-    q90 = wxyz(Rotation.from_euler("z", 90, degrees=True))
-    half = slerp(q0, q90, 0.5)
-    assert np.allclose(half, wxyz(Rotation.from_euler("z", 45, degrees=True)))
-    assert np.allclose(slerp(q0, q90, 0.0), q0) and np.allclose(slerp(q0, q90, 1.0), q90)
-    # extrapolation continues at the same rate
-    assert np.allclose(slerp(q0, q90, 1.5), wxyz(Rotation.from_euler("z", 135, degrees=True)))
-    # -q is the same rotation: still the short way (to 45 deg, not 45 - 180)
-    assert np.allclose(Rotation.from_quat(np.roll(slerp(q0, -q90, 0.5), -1)).as_euler("zyx")[0],
-                       np.pi / 4)
-    # nearly identical quaternions (the lerp branch) stay unit and exact
-    q_small = wxyz(Rotation.from_euler("x", 1e-4))
-    assert np.isclose(np.linalg.norm(slerp(q0, q_small, 0.3)), 1.0)
-    assert np.allclose(slerp(q0, q_small, 0.3), wxyz(Rotation.from_euler("x", 3e-5)), atol=1e-9)
 
 
 def test_interpolation_matches_scipy_reference_on_random_poses():

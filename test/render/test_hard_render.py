@@ -21,7 +21,7 @@ from hypothesis import strategies as st
 
 from odg_ros.network.gaussian_heads import MAX_SCALE, MIN_SCALE, GaussianAttributes
 from odg_ros.render import render_gaussians
-from odg_ros.render.projection import normalise_quaternions
+from odg_ros.rotation import normalise_quaternions
 
 from testing.hard_cases import FEW, HARD, all_finite, log_uniform
 from testing.render import HW, K, reference_render

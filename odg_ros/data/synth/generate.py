@@ -26,9 +26,10 @@ from tqdm import tqdm
 from odg_ros.rig import CAMERA_NAMES
 from odg_ros.data.synth import occupancy, pictures, rig, sensors, shading
 from odg_ros.data.synth.city import SceneKind, build_world
-from odg_ros.data.synth.tables import Tables, link_chain, quaternion_yaw, save_npz, token, visibility_token
+from odg_ros.data.synth.tables import Tables, link_chain, save_npz, token, visibility_token
 from odg_ros.data.synth.world import World
 from odg_ros.geometry import invert_transform, matrix_to_quaternion
+from odg_ros.rotation import yaw_to_quaternion
 
 DEFAULT_IMAGE_HW = (198, 352)
 MASK_RAY_STEP = 0.006          # rad between the depth-map rays of mask_camera (~0.24 m at 40 m)
@@ -243,7 +244,7 @@ class _SceneWriter:
                    "visibility_token": visibility_token(visible[i] / covered[i] if covered[i] else 0.0),
                    "attribute_tokens": [self.tables.attribute_token(a) for a in self._attributes(i, speeds[i])],
                    "translation": [float(v) for v in centre[i]], "size": [float(v) for v in wlh[i]],
-                   "rotation": quaternion_yaw(yaw[i]), "prev": "", "next": "",
+                   "rotation": list(yaw_to_quaternion(yaw[i])), "prev": "", "next": "",
                    "num_lidar_pts": int(lidar_pts[i]), "num_radar_pts": 0}
             self.ann_by_thing.setdefault(i, []).append(rec)
             self.tables.add("sample_annotation", rec)

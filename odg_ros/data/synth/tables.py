@@ -32,11 +32,6 @@ def visibility_token(fraction: float) -> str:
     return "1" if fraction < 0.4 else "2" if fraction < 0.6 else "3" if fraction < 0.8 else "4"
 
 
-def quaternion_yaw(yaw: float) -> list:
-    """(w, x, y, z) of a rotation about z."""
-    return [float(np.cos(yaw / 2)), 0.0, 0.0, float(np.sin(yaw / 2))]
-
-
 class Tables:
     """Accumulates the records of every table; ``write`` dumps them as <root>/<version>/*.json."""
 

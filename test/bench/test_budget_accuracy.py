@@ -1,6 +1,6 @@
-"""The bounds of tools/eval_budget.py: a perfect keep-score ranks the queries by the
-keep-scores' own target on the keyframe itself, a ground-truth oracle by the correct voxels
-refining wins."""
+"""The bounds of the budget accuracy study (odg_ros/bench/budget_accuracy.py): a perfect
+keep-score ranks the queries by the keep-scores' own target on the keyframe itself, a
+ground-truth oracle by the correct voxels refining wins."""
 import pytest
 import torch
 
@@ -9,7 +9,8 @@ from odg_ros.train import budget_heads as heads
 from odg_ros.network.postprocess import occupancy_grid
 from testing.helpers import model_inputs, tiny_config
 from odg_ros.network import decoder as decoder_module
-from tools.eval_budget import Config, configurations, main, oracle_scores
+from odg_ros.bench.budget_accuracy import Config, configurations, oracle_scores
+from tools.eval_budget import main
 
 
 @pytest.fixture(scope="module")
@@ -24,7 +25,7 @@ def model_and_cfg():
 
 
 def keyframe(model, cfg, seed):
-    """(frames' features, batch) as tools.eval_budget.evaluate_class hands them over."""
+    """(frames' features, batch) as budget_accuracy.evaluate_class hands them over."""
     images, ego2img, ego_warp, time_delta = model_inputs(cfg, seed=seed)
     B, T = images.shape[:2]
     with torch.no_grad():
