@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -22,6 +23,44 @@ def preset_names(dataset: str | None = None) -> tuple[str, ...]:
 
 
 PRESET_NAMES = preset_names()
+
+
+# what a calibration holds (network/calibration.py applies it; odg export --calibrate fits
+# it): the rates of the hazard, by name: (how many: per class "C" or "C+1" with free, what for)
+HAZARD_RATES = {
+    "hazard_inside": ("C+1", "class in the column, voxel between its lowest and highest"),
+    "hazard_above_low": ("C+1", "class in the column, voxel up to 1.6 m above its highest"),
+    "hazard_above_high": ("C+1", "class in the column, voxel higher"),
+    "hazard_near_body": ("C", "class in the 3 x 3 columns around, voxel at body height"),
+    "hazard_near_other": ("C", "class in the 3 x 3 columns around, voxel at another height"),
+    "hazard_ring_body": ("C", "class in the ring of 16 columns around those, body height"),
+}
+
+
+def rate_lengths(num_classes: int) -> dict[str, int]:
+    return {key: num_classes + (size == "C+1") for key, (size, _) in HAZARD_RATES.items()}
+
+
+def check_calibration(values: dict, num_classes: int) -> None:
+    """A clear error for a calibration dict that does not fit a model of ``num_classes``."""
+    lengths = {"label_scale": num_classes, "label_bias": num_classes,
+               **rate_lengths(num_classes)}
+    for key, length in lengths.items():
+        if len(values.get(key, ())) != length:
+            raise ValueError(f"calibration {key}: expected {length} values, got "
+                             f"{len(values.get(key, ()))}")
+    for key in ("free_scale", "free_bias"):
+        if not isinstance(values.get(key), (int, float)):
+            raise ValueError(f"calibration {key}: expected a number")
+    box = values.get("box")
+    if box is not None and (len(box) != 2 or box[0] <= 0):
+        raise ValueError("calibration box: expected [scale > 0, bias] or null")
+    numbers = [v for key in lengths for v in values[key]] + \
+        [values["free_scale"], values["free_bias"]] + list(box or ())
+    if not all(math.isfinite(v) for v in numbers):
+        raise ValueError("calibration: a value is not finite")
+    if min(v for key in HAZARD_RATES for v in values[key]) < 0:
+        raise ValueError("calibration: a hazard rate is negative")
 
 
 @dataclass
@@ -86,7 +125,6 @@ class ModelConfig:
         if self.backbone not in ("resnet18", "resnet34", "resnet50"):
             raise ValueError(f"unknown backbone {self.backbone!r}")
         if self.calibration is not None:
-            from .network.calibration import check_calibration
             check_calibration(self.calibration, self.num_classes)
 
     @property

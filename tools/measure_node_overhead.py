@@ -32,6 +32,7 @@ import numpy as np
 from PIL import Image
 
 
+from odg_ros.bev import bev_fields
 from odg_ros.geometry import make_transform                        
 from odg_ros.online.images import EncodedImage                     
 from odg_ros.online.pipeline import OnlinePipeline, PipelineSettings
@@ -135,7 +136,7 @@ def packing_only(cfg):
             packing.object_fields(box)
         if optional:
             packing.cloud_fields(result.grid, cfg.pc_range, cfg.voxel_size, cfg.labels)
-            packing.bev_fields(result.grid, cfg.pc_range, cfg.voxel_size, 0.0, 2.0,
+            bev_fields(result.grid, cfg.pc_range, cfg.voxel_size, 0.0, 2.0,
                                cfg.labels)
     return publish
 

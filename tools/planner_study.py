@@ -41,7 +41,7 @@ from odg_ros.metrics.score import OccScore
 from odg_ros.network.calibration import Calibration
 from odg_ros.network.checkpoint import load_model
 from odg_ros.network.postprocess import box_list
-from odg_ros.online.visibility import DEFAULT_MIN_CLEAR, Visibility
+from odg_ros.network.visibility import DEFAULT_MIN_CLEAR, Visibility
 from odg_ros.train.evaluate import BEV_BAND, PublishedGrid, padded_grid, predict_split
 
 MIN_CLEARS = (0.0, 0.3, 0.5, 0.6, 0.7, 0.75, 0.8, 0.85, 0.9, 0.95)

@@ -34,7 +34,7 @@ from tqdm import tqdm
 
 from odg_ros.config import load_preset
 from odg_ros.data.dataset import OccDataset
-from odg_ros.online.visibility import DEFAULT_MIN_CLEAR, Visibility, image_bounds
+from odg_ros.network.visibility import DEFAULT_MIN_CLEAR, Visibility, image_bounds
 
 
 def keyframe_inputs(dataset: OccDataset, index: int):

@@ -18,7 +18,7 @@ from ..metrics.score import format_table
 from ..network.checkpoint import load_model
 from ..network.precision import resolve_device
 from ..online.predictor import resolve_budget
-from ..online.visibility import DEFAULT_MIN_CLEAR
+from ..network.visibility import DEFAULT_MIN_CLEAR
 from ..train.evaluate import BEV_BAND, evaluate
 from .common import (UserError, config_overrides, device, existing_dir, existing_file,
                      infos_file, positive_int, probability)

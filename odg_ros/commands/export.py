@@ -17,7 +17,7 @@ from ..network.checkpoint import (compress_state, load_model, load_weights, read
                                   save_checkpoint)
 from ..train.calibrate import DEFAULT_THRESHOLDS, calibrate_thresholds, fit_probabilities
 from ..network.precision import PRECISIONS, resolve_device
-from ..online.visibility import DEFAULT_MIN_CLEAR
+from ..network.visibility import DEFAULT_MIN_CLEAR
 from .common import UserError, device, existing_file, infos_file, positive_int, probability
 
 

@@ -51,7 +51,7 @@ def unknown_columns(labels: np.ndarray, observed: np.ndarray) -> np.ndarray:
     """bool [X, Y]: the columns the node's ~/occupancy/bev marks unknown (-1) for this grid
     and observed mask, with its default height band."""
     from odg_ros.config import load_preset
-    from odg_ros.online.packing import bev_fields
+    from odg_ros.bev import bev_fields
     from odg_ros.online.parameters import load_schema
     cfg, schema = load_preset("odg_cpu"), load_schema()
     fields = bev_fields(np.asarray(labels), cfg.pc_range, cfg.voxel_size,

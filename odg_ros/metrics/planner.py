@@ -4,7 +4,7 @@
   of "observed", and the precision (and recall) of "free and observed": a voxel published free
   and seen that is free in truth and seen by a camera (``mask_camera``). The same for the BEV
   (nav_msgs/OccupancyGrid) the node publishes: its cells 0 (free and seen), 100 (obstacle), -1
-  (unknown), against the BEV built the same way (packing.bev_fields) from the ground-truth
+  (unknown), against the BEV built the same way (bev.bev_fields) from the ground-truth
   grid with ``mask_camera`` as its observed voxels: precision and recall of the known cells
   (not -1) and of the free cells (0).
 * **confidence**: expected calibration error (ECE, 10 equal-width bins: the mean gap between
@@ -26,7 +26,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..classes import OccLabels
-from ..online.packing import bev_fields
+from ..bev import bev_fields
 from .detection import greedy_match
 
 BINS = 10

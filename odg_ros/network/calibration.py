@@ -15,7 +15,7 @@ host read).
   columns around it, or in the ring of 16 around those, and whether the voxel is at the
   height of a car's or a person's body (``BODY``, 0-2 m). The free class's rates are the
   baseline of every column. 0 under a column's lowest occupied voxel (under the surface:
-  the depth test handles it). The visibility (online/visibility.py) sums it along each
+  the depth test handles it). The visibility (network/visibility.py) sums it along each
   camera ray: the ray is clear up to a voxel with probability exp(-sum).
 * **Box score**: the probability that a published box is right (its class, centre within
   2 m): one logistic map of its score's logit, monotone, so the ranking and the boxes that
@@ -32,6 +32,8 @@ import math
 import torch
 from torch import nn
 
+from ..config import HAZARD_RATES, check_calibration, rate_lengths  # noqa: F401
+
 # the hazard's floor inside the free voxels' logistic map: log(0) would be -inf
 HAZARD_FLOOR = 1e-4
 # the raw score's range inside its logit: a score byte of 0 or 255 stays finite
@@ -43,46 +45,9 @@ UNDER, INSIDE, ABOVE_LOW, ABOVE_HIGH, OCCUPIED = 0, 1, 2, 3, 8
 ABOVE_LOW_LAYERS = 4
 # heights of a car's or a person's body (m, grid frame: the ground at 0)
 BODY = (0.0, 2.0)
-# the rates of the hazard, by name: (how many: per class "C" or "C+1" with free, what for)
-HAZARD_RATES = {
-    "hazard_inside": ("C+1", "class in the column, voxel between its lowest and highest"),
-    "hazard_above_low": ("C+1", "class in the column, voxel up to 1.6 m above its highest"),
-    "hazard_above_high": ("C+1", "class in the column, voxel higher"),
-    "hazard_near_body": ("C", "class in the 3 x 3 columns around, voxel at body height"),
-    "hazard_near_other": ("C", "class in the 3 x 3 columns around, voxel at another height"),
-    "hazard_ring_body": ("C", "class in the ring of 16 columns around those, body height"),
-}
-
-
 def logit(p: torch.Tensor) -> torch.Tensor:
     p = p.clamp(SCORE_FLOOR, 1.0 - SCORE_FLOOR)
     return torch.log(p) - torch.log1p(-p)
-
-
-def rate_lengths(num_classes: int) -> dict[str, int]:
-    return {key: num_classes + (size == "C+1") for key, (size, _) in HAZARD_RATES.items()}
-
-
-def check_calibration(values: dict, num_classes: int) -> None:
-    """A clear error for a calibration dict that does not fit a model of ``num_classes``."""
-    lengths = {"label_scale": num_classes, "label_bias": num_classes,
-               **rate_lengths(num_classes)}
-    for key, length in lengths.items():
-        if len(values.get(key, ())) != length:
-            raise ValueError(f"calibration {key}: expected {length} values, got "
-                             f"{len(values.get(key, ()))}")
-    for key in ("free_scale", "free_bias"):
-        if not isinstance(values.get(key), (int, float)):
-            raise ValueError(f"calibration {key}: expected a number")
-    box = values.get("box")
-    if box is not None and (len(box) != 2 or box[0] <= 0):
-        raise ValueError("calibration box: expected [scale > 0, bias] or null")
-    numbers = [v for key in lengths for v in values[key]] + \
-        [values["free_scale"], values["free_bias"]] + list(box or ())
-    if not all(math.isfinite(v) for v in numbers):
-        raise ValueError("calibration: a value is not finite")
-    if min(v for key in HAZARD_RATES for v in values[key]) < 0:
-        raise ValueError("calibration: a hazard rate is negative")
 
 
 class Calibration(nn.Module):

@@ -27,7 +27,7 @@ from torch import nn
 from torch.export.pt2_archive.constants import AOTINDUCTOR_DIR
 
 from .step import OnlineStep
-from .visibility import DEFAULT_MIN_CLEAR
+from ..network.visibility import DEFAULT_MIN_CLEAR
 
 FORMAT = "odg-online-step-2"    # 2: the observed output and the visibility geometry
 SIGNATURE_FILE = "odg_step.json"

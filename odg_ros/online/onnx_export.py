@@ -36,7 +36,7 @@ from torch import nn
 
 from ..classes import BOX_CLASSES
 from .step import OnlineStep
-from .visibility import DEFAULT_MIN_CLEAR
+from ..network.visibility import DEFAULT_MIN_CLEAR
 
 # name -> what it is (the docs' table and the export report say the same)
 INPUTS = {

@@ -41,7 +41,7 @@ from .poses import PoseBuffer
 from .predictor import OnlinePredictor
 from .rig import CameraCalibration, IntrinsicsRange, check_intrinsics, set_ego2img
 from .sync import CameraSet, CameraSetSync
-from .visibility import image_bounds
+from ..network.visibility import image_bounds
 from .waiting import FAILED, PENDING, READY, WaitingSets
 
 

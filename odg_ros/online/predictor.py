@@ -28,7 +28,7 @@ from ..network.budget import QueryBudget, budget_ladder, budget_of
 from .budget_policy import BudgetPolicy
 from .history import Frame, FrameHistory, history_geometry
 from .step import MODES, OnlineStep
-from .visibility import DEFAULT_MIN_CLEAR
+from ..network.visibility import DEFAULT_MIN_CLEAR
 
 LOG = logging.getLogger(__name__)
 # compile="auto": graphs on CUDA; on the CPU the mode measured fastest for odg_cpu
@@ -149,7 +149,7 @@ class OnlinePredictor:
         of ``odg export --aoti`` run instead of compiling (artifact.py; refused with a
         StaleArtifact if built for another model, configuration, precision, history length,
         device or torch). The grid's free label is the model's class count (cfg.num_classes).
-        visibility: also compute which voxels the cameras observe (online/visibility.py);
+        visibility: also compute which voxels the cameras observe (network/visibility.py);
         min_clear: the least probability that the ray to a voxel is clear for it to count as
         observed (the node's visibility_min_clear; needs a calibrated checkpoint).
         query_budget: full, auto (each step's budget chosen from the one before,

@@ -35,7 +35,7 @@ from ..network.postprocess import ranked_boxes, voxelise
 from ..network.precision import half_dtype, precision_context, with_half_matrix_weights
 from ..preprocess import IMAGENET_MEAN, IMAGENET_STD
 from .marks import mark
-from .visibility import DEFAULT_MIN_CLEAR, Visibility
+from ..network.visibility import DEFAULT_MIN_CLEAR, Visibility
 
 MODES = ("eager", "compiled", "graphs")
 
@@ -86,7 +86,7 @@ class GeometryLayout:
 
 class OnlineStep(nn.Module):
     """One online step over device tensors; holds the feature ring (written in place).
-    visibility: compute which voxels the cameras observe (online/visibility.py); without it
+    visibility: compute which voxels the cameras observe (network/visibility.py); without it
     the ``observed`` output is empty; min_clear: its least probability of a clear ray. The
     confidence and box scores are the checkpoint's calibrated probabilities where it has a
     calibration (network/calibration.py)."""

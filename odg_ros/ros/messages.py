@@ -20,6 +20,7 @@ from visualization_msgs.msg import Marker, MarkerArray
 
 from odg_ros_msgs.msg import DynamicObject, DynamicObjectArray, SemanticVoxelGrid
 
+from ..bev import bev_fields
 from ..online import packing
 
 OUTPUT_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
@@ -101,7 +102,7 @@ def cloud_message(header: Header, c: dict) -> PointCloud2:
 
 
 def bev_message(header: Header, b: dict) -> OccupancyGrid:
-    """OccupancyGrid from packing.bev_fields."""
+    """OccupancyGrid from bev.bev_fields."""
     bev = OccupancyGrid(header=header)
     bev.info.map_load_time = header.stamp
     bev.info.resolution = b["resolution"]
@@ -168,7 +169,7 @@ class Outputs:
             self.cloud.publish(cloud_message(header, packing.cloud_fields(
                 result.grid, cfg.pc_range, cfg.voxel_size, cfg.labels, observed)))
         if self.bev.get_subscription_count():
-            self.bev.publish(bev_message(header, packing.bev_fields(
+            self.bev.publish(bev_message(header, bev_fields(
                 result.grid, cfg.pc_range, cfg.voxel_size, *self.bev_band, cfg.labels,
                 observed)))
         objects = self.reused.object_array(header, result.boxes)

@@ -13,7 +13,7 @@ buffer (online/transforms.py), so the node does not need tf2_ros. A set whose po
 transforms have not arrived yet waits for them up to ``pose_wait`` (online/waiting.py).
 
 Outputs (reliable, keep-last 1): ~/occupancy (odg_ros_msgs/SemanticVoxelGrid, with the
-observed mask of online/visibility.py), ~/occupancy/cloud (PointCloud2: occupied voxel
+observed mask of network/visibility.py), ~/occupancy/cloud (PointCloud2: occupied voxel
 centres, x y z float32 + label uint8 + observed uint8), ~/occupancy/bev (OccupancyGrid: 100
 where a column holds anything but free or driveable_surface between bev_min_z and
 bev_max_z, -1 where it is not seen, else 0), ~/objects (odg_ros_msgs/DynamicObjectArray),

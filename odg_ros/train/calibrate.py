@@ -110,6 +110,53 @@ def fit_hazard(paths: np.ndarray, seen: np.ndarray, weight: np.ndarray | None = 
     return torch.nn.functional.softplus(raw).detach().numpy()
 
 
+def visibility_curve(depth: np.ndarray, seen: np.ndarray, weights: np.ndarray,
+                     visible_voxels: float) -> dict:
+    """Precision and recall of "observed" per ``visibility_min_clear`` from the sampled
+    voxels' optical depths (``seen``: truly visible; ``weights``: voxels each stands for)."""
+    curve = {}
+    for min_clear in (0.0, 0.3, 0.5, 0.6, 0.7, 0.8, 0.85, 0.9, 0.95):
+        clear = depth <= (-np.log(min_clear) if min_clear > 0 else np.inf)
+        true_seen, said = (weights * (clear & seen)).sum(), (weights * clear).sum()
+        curve[str(min_clear)] = {"precision": round(true_seen / said, 4) if said else None,
+                                 "recall": round(true_seen / visible_voxels, 4)}
+    return curve
+
+
+def fit_free_voxels(cfg, values: dict, kept: list, device) -> tuple[float, float]:
+    """(scale, bias) of a free voxel's P(occupied) from log(hazard), with the hazard of the
+    calibration ``values`` fitted so far, on the kept (grid, truth, mask) keyframes."""
+    from ..network.calibration import HAZARD_FLOOR, Calibration
+    free_label = cfg.num_classes
+    calibration = Calibration(cfg.replace(calibration=values), device)
+    edges = np.linspace(np.log(HAZARD_FLOOR), np.log(10.0), 201)
+    counts = np.zeros((len(edges) + 1, 2))
+    for grid, truth, mask in kept:
+        _, hazard = calibration(torch.as_tensor(grid, device=device),
+                                torch.zeros(len(grid), dtype=torch.uint8, device=device))
+        free = mask & (grid == free_label)
+        h = np.log(hazard.cpu().numpy()[free] + HAZARD_FLOOR)
+        np.add.at(counts, (np.digitize(h, edges), (truth[free] != free_label).astype(int)), 1)
+    centres = np.concatenate([[edges[0]], 0.5 * (edges[1:] + edges[:-1]), [edges[-1]]])
+    return _fit_counts(centres, counts)
+
+
+def fit_classes(label_counts: np.ndarray) -> tuple[list, list]:
+    """(scale, bias) per class of an occupied voxel's P(label right) from its raw score byte,
+    ``label_counts`` [C, 256, 2] (class, byte, wrong/right); a rare class takes the pooled
+    fit."""
+    raw_logit = logit_of_bytes()
+    pooled_fit = _fit_counts(raw_logit, label_counts.sum(0))
+    scale, bias = [], []
+    for counts in label_counts:
+        fit = _fit_counts(raw_logit, counts) \
+            if counts.sum() >= MIN_CLASS_VOXELS and counts[:, 0].sum() > 0 \
+            and counts[:, 1].sum() > 0 else pooled_fit
+        scale.append(fit[0])
+        bias.append(fit[1])
+    return scale, bias
+
+
 @torch.no_grad()
 def fit_probabilities(model, cfg, infos_list, limit: int | None = None, device="cpu",
                       progress: bool = True, seed: int = 0) -> dict:
@@ -119,9 +166,8 @@ def fit_probabilities(model, cfg, infos_list, limit: int | None = None, device="
     scores against the GT boxes. -> {"calibration": the dict, "report": what it was fitted
     on, with the visibility's precision and recall per min_clear on those keyframes}."""
     from ..metrics.planner import ConfidenceScore
-    from ..network.calibration import (HAZARD_FLOOR, HAZARD_RATES, Calibration,
-                                       hazard_indicators, rate_lengths)
-    from ..online.visibility import Visibility
+    from ..network.calibration import HAZARD_RATES, hazard_indicators, rate_lengths
+    from ..network.visibility import Visibility
     from .evaluate import PublishedGrid, padded_grid
     C, free_label = cfg.num_classes, cfg.num_classes
     rng = np.random.default_rng(seed)
@@ -166,16 +212,7 @@ def fit_probabilities(model, cfg, infos_list, limit: int | None = None, device="
     if keyframes == 0:
         raise ValueError("no calibration keyframe has occupancy ground truth")
     # occupied voxels: a temperature and shift per class (pooled for the rare ones)
-    raw_logit = logit_of_bytes()
-    pooled = label_counts.sum(0)
-    pooled_fit = _fit_counts(raw_logit, pooled)
-    scale, bias = [], []
-    for c in range(C):
-        fit = _fit_counts(raw_logit, label_counts[c]) \
-            if label_counts[c].sum() >= MIN_CLASS_VOXELS and label_counts[c, :, 0].sum() > 0 \
-            and label_counts[c, :, 1].sum() > 0 else pooled_fit
-        scale.append(fit[0])
-        bias.append(fit[1])
+    scale, bias = fit_classes(label_counts)
     # the hazard
     paths, seen, weights = np.concatenate(paths), np.concatenate(seen), np.concatenate(weights)
     rates = fit_hazard(paths, seen, weights)
@@ -186,27 +223,11 @@ def fit_probabilities(model, cfg, infos_list, limit: int | None = None, device="
         values[name] = rates[start:start + length].tolist()
         start += length
     # free voxels: P(occupied) from log(hazard), on the same keyframes
-    calibration = Calibration(cfg.replace(calibration=values), device)
-    edges = np.linspace(np.log(HAZARD_FLOOR), np.log(10.0), 201)
-    counts = np.zeros((len(edges) + 1, 2))
-    for grid, truth, mask in kept:
-        _, hazard = calibration(torch.as_tensor(grid, device=device),
-                                torch.zeros(len(grid), dtype=torch.uint8, device=device))
-        free = mask & (grid == free_label)
-        h = np.log(hazard.cpu().numpy()[free] + HAZARD_FLOOR)
-        np.add.at(counts, (np.digitize(h, edges), (truth[free] != free_label).astype(int)), 1)
-    centres = np.concatenate([[edges[0]], 0.5 * (edges[1:] + edges[:-1]), [edges[-1]]])
-    values["free_scale"], values["free_bias"] = _fit_counts(centres, counts)
+    values["free_scale"], values["free_bias"] = fit_free_voxels(cfg, values, kept, device)
     box_pairs = boxes.box_pairs()
     if box_pairs is not None and 0 < box_pairs[1].sum() < len(box_pairs[1]):
         values["box"] = list(fit_logistic(logit_np(box_pairs[0]), box_pairs[1]))
-    depth = paths @ rates
-    curve = {}
-    for min_clear in (0.0, 0.3, 0.5, 0.6, 0.7, 0.8, 0.85, 0.9, 0.95):
-        clear = depth <= (-np.log(min_clear) if min_clear > 0 else np.inf)
-        true_seen, said = (weights * (clear & seen)).sum(), (weights * clear).sum()
-        curve[str(min_clear)] = {"precision": round(true_seen / said, 4) if said else None,
-                                 "recall": round(true_seen / totals[0], 4)}
+    curve = visibility_curve(paths @ rates, seen, weights, totals[0])
     return {"calibration": values,
             "report": {"keyframes": keyframes, "hazard_voxels": int(len(seen)),
                        "boxes": 0 if box_pairs is None else int(len(box_pairs[1])),

@@ -20,7 +20,7 @@ from ..network.budget import QueryBudget, output_needs
 from ..network.calibration import Calibration
 from ..network.padding import pad_occupancy
 from ..network.postprocess import box_list, occupancy_grid
-from ..online.visibility import DEFAULT_MIN_CLEAR, Visibility, image_bounds
+from ..network.visibility import DEFAULT_MIN_CLEAR, Visibility, image_bounds
 
 
 def dynamic_class_miou(result: dict, dynamic=DYNAMIC_OCC_CLASSES) -> float | None:
@@ -103,6 +103,15 @@ class PublishedGrid:
                                  device=geometry[0].device)
         return self.truth_visibility(labels, *geometry).view(self.cfg.grid_shape) \
             .cpu().numpy().astype(bool)
+
+    def boxes(self, output) -> list[dict]:
+        """The boxes of one output as the node publishes them: calibrated scores."""
+        boxes = box_list(output, self.cfg)[0]
+        scores = self.calibration.box_score(
+            torch.tensor([b["score"] for b in boxes], dtype=torch.float32))
+        for box, calibrated in zip(boxes, scores.tolist()):
+            box["score"] = calibrated
+        return boxes
 
 
 @torch.no_grad()
@@ -194,6 +203,26 @@ class SetScore:
         return result
 
 
+def add_planner_scores(scores, cfg, publish, published: dict, geometry, now: dict,
+                       before: dict | None, boxes: list, batch, bev_band) -> None:
+    """What a planner reads of one keyframe (``now``: its grid, truth, mask, pose and scene;
+    ``before``: the previous keyframe's) into each SetScore of ``scores``."""
+    grid, truth, mask = now["grid"], now["truth"], now["mask"]
+    truth_observed = publish.truth_observed(truth, geometry)
+    band = (cfg.pc_range, cfg.voxel_size, bev_band, cfg.labels)
+    truth_bev = bev_cells(truth, mask, *band)
+    for s in scores:
+        s.visibility.add(grid, published["observed"], truth, mask, cfg.num_classes,
+                         bev_cells(grid, published["observed"], *band), truth_bev)
+        s.truth_visibility.add(truth, truth_observed, truth, mask, cfg.num_classes,
+                               bev_cells(truth, truth_observed, *band), truth_bev)
+        s.confidence.add(grid, published["confidence"], truth, mask, cfg.num_classes)
+        s.confidence.add_boxes(boxes, batch["gt_boxes"][0].cpu().numpy(),
+                               batch["gt_labels"][0].cpu().numpy())
+        if before is not None and before["scene"] == now["scene"]:
+            s.flips.add(before, now, cfg.grid_shape, cfg.pc_range, cfg.voxel_size)
+
+
 @torch.no_grad()
 def evaluate(model, cfg, infos, occ_root=None, save_pred: str | None = None, device="cpu",
              rayiou: bool = True, limit: int | None = None, progress: bool = True,
@@ -231,8 +260,7 @@ def evaluate(model, cfg, infos, occ_root=None, save_pred: str | None = None, dev
         scores = [score, overall]
         origins = LidarOrigins(dataset.infos) if rayiou else None
         if budget is not None:
-            if use is None:
-                use = BudgetUse(budget, dataset.infos, cfg)
+            use = use or BudgetUse(budget, dataset.infos, cfg)
             use.infos = dataset.infos
         before = None
         description = "eval" if name is None else f"eval {name}"
@@ -251,10 +279,7 @@ def evaluate(model, cfg, infos, occ_root=None, save_pred: str | None = None, dev
             if save_pred:
                 np.savez_compressed(Path(save_pred) / f"{batch['token'][0]}.npz",
                                     semantics=grid)
-            boxes = box_list(output, cfg)[0]
-            for box, calibrated in zip(boxes, publish.calibration.box_score(
-                    torch.tensor([b["score"] for b in boxes], dtype=torch.float32)).tolist()):
-                box["score"] = calibrated
+            boxes = publish.boxes(output)
             for s in scores:
                 if s.boxes is not None:
                     add_box_sample(s.boxes, output, batch, cfg)
@@ -264,21 +289,10 @@ def evaluate(model, cfg, infos, occ_root=None, save_pred: str | None = None, dev
             truth = batch["occ_semantics"][0].cpu().numpy()
             mask = batch["occ_mask_camera"][0].cpu().numpy().astype(bool)
             score.occ.add(grid, truth, mask, origins(index) if origins is not None else None)
-            truth_observed = publish.truth_observed(truth, geometry)
-            band = (cfg.pc_range, cfg.voxel_size, bev_band, cfg.labels)
-            truth_bev = bev_cells(truth, mask, *band)
             now = {"scene": info["scene_token"], "grid": grid, "truth": truth, "mask": mask,
                    "pose": np.asarray(info["ego_pose"], np.float64)}
-            for s in scores:
-                s.visibility.add(grid, published["observed"], truth, mask, cfg.num_classes,
-                                 bev_cells(grid, published["observed"], *band), truth_bev)
-                s.truth_visibility.add(truth, truth_observed, truth, mask, cfg.num_classes,
-                                       bev_cells(truth, truth_observed, *band), truth_bev)
-                s.confidence.add(grid, published["confidence"], truth, mask, cfg.num_classes)
-                s.confidence.add_boxes(boxes, batch["gt_boxes"][0].cpu().numpy(),
-                                       batch["gt_labels"][0].cpu().numpy())
-                if before is not None and before["scene"] == now["scene"]:
-                    s.flips.add(before, now, cfg.grid_shape, cfg.pc_range, cfg.voxel_size)
+            add_planner_scores(scores, cfg, publish, published, geometry, now, before, boxes,
+                               batch, bev_band)
             before = now
         overall.occ.merge(score.occ)
         per_set[name] = score

@@ -9,7 +9,7 @@ import torch
 
 from odg_ros.commands import main
 from odg_ros.network.checkpoint import load_model, save_checkpoint
-from odg_ros.online.visibility import DEFAULT_MIN_CLEAR
+from odg_ros.network.visibility import DEFAULT_MIN_CLEAR
 from odg_ros.train.calibrate import calibrate_thresholds
 from odg_ros.train.evaluate import evaluate
 

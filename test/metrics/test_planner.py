@@ -7,7 +7,7 @@ import pytest
 from odg_ros.classes import occ_labels
 from odg_ros.metrics.planner import (ConfidenceScore, FlipScore, Reliability, VisibilityScore,
                                      bev_cells, carried_indices)
-from odg_ros.online.packing import bev_fields
+from odg_ros.bev import bev_fields
 
 LABELS = occ_labels("nuscenes")
 FREE = LABELS.free_label

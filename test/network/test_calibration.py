@@ -208,7 +208,7 @@ def test_the_calibration_and_the_hazard_visibility_export_to_onnx(tmp_path):
     ort = pytest.importorskip("onnxruntime", reason="onnxruntime is not installed")
     pytest.importorskip("onnxscript", reason="onnxscript (torch.onnx's exporter) is missing")
     from odg_ros.online.onnx_export import _searchsorted
-    from odg_ros.online.visibility import Visibility, image_bounds
+    from odg_ros.network.visibility import Visibility, image_bounds
     from testing.helpers import driving_scene
     from odg_ros.rig import ring_ego2img
     rates = {name: [0.002] * n for name, n in rate_lengths(C).items()}

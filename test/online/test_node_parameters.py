@@ -37,7 +37,7 @@ def test_schema_enums_match_the_code():
         load_preset(preset)           # every listed preset exists
     # the node's default visibility is the step's (precision first), and a value the step
     # refuses (a ray clear with probability 1) never passes the schema
-    from odg_ros.online.visibility import DEFAULT_MIN_CLEAR
+    from odg_ros.network.visibility import DEFAULT_MIN_CLEAR
     assert schema["visibility_min_clear"].default == DEFAULT_MIN_CLEAR
     assert schema["visibility_min_clear"].maximum < 1.0
 

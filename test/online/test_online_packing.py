@@ -7,7 +7,8 @@ import pytest
 from odg_ros.classes import FREE_LABEL, OCC_CLASSES, WAYMO_OCC_CLASSES
 from odg_ros.config import load_preset
 from odg_ros.online import diagnostics
-from odg_ros.online.packing import CLOUD_DTYPE, bev_fields, cloud_fields, object_fields, \
+from odg_ros.bev import bev_fields
+from odg_ros.online.packing import CLOUD_DTYPE, cloud_fields, object_fields, \
     voxel_grid_fields
 from odg_ros.rotation import yaw_to_quaternion
 

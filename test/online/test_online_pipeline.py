@@ -303,7 +303,7 @@ def test_decoding_ahead_keeps_the_newest_set_in_order_and_skips_bad_sets(model_a
 def test_the_result_carries_what_the_whole_camera_images_see(model_and_cfg):
     """The pipeline passes each camera's whole image (CameraInfo's size) to the visibility:
     its result equals the predictor's given those bounds, not the network input's crop."""
-    from odg_ros.online.visibility import image_bounds
+    from odg_ros.network.visibility import image_bounds
     model, cfg = model_and_cfg
     pipeline = make_pipeline(model_and_cfg)
     feed_calibration_and_poses(pipeline)

@@ -3,7 +3,8 @@ cloud's observed byte (online/packing.py)."""
 import numpy as np
 
 from odg_ros.classes import FREE_LABEL, OCC_CLASSES
-from odg_ros.online.packing import CLOUD_DTYPE, bev_fields, cloud_fields, voxel_grid_fields
+from odg_ros.bev import bev_fields
+from odg_ros.online.packing import CLOUD_DTYPE, cloud_fields, voxel_grid_fields
 
 RANGE = (-40.0, -40.0, -1.0, 40.0, 40.0, 5.4)
 ROAD = OCC_CLASSES.index("driveable_surface")

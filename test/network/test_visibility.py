@@ -1,4 +1,4 @@
-"""Visibility (online/visibility.py): which voxels the cameras observe, from a label grid and
+"""Visibility (network/visibility.py): which voxels the cameras observe, from a label grid and
 a missed-occupancy hazard.
 
 Hard cases with known answers (the road to the horizon, what lies under it, a wall, a pole,
@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from odg_ros.geometry import invert_transform
-from odg_ros.online.visibility import Visibility, image_bounds
+from odg_ros.network.visibility import Visibility, image_bounds
 from odg_ros.preprocess import adjust_intrinsics
 
 FREE = 17
