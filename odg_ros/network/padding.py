@@ -39,7 +39,7 @@ def passing_cutoff(score_threshold: float) -> int:
 
 def _select(mask: torch.Tensor, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """``torch.where(mask, a, b)`` for uint8 ``a``, ``b`` as bit operations (mask bool)."""
-    return b ^ ((a ^ b) & -mask.view(torch.uint8))          # -1 = 255: all of a's bits
+    return b ^ ((a ^ b) & (mask.to(torch.uint8) * 255))      # 255: all of a's bits
 
 
 def _three_voxel_passes(flat: torch.Tensor, scratch: torch.Tensor, strides,
@@ -80,7 +80,7 @@ class OccupancyPadding(nn.Module):
         B = labels.shape[0]
         C, (X, Y, Z) = self.num_classes, self.grid_shape
         occupied = labels != C
-        confidence = confidence * occupied.view(torch.uint8)
+        confidence = confidence * occupied.to(torch.uint8)
         grids = torch.zeros((B, C, X + 2, Y + 2, Z + 2), dtype=torch.uint8,
                             device=labels.device)
         grids[:, :, 1:-1, 1:-1, 1:-1].scatter_(
@@ -95,14 +95,14 @@ class OccupancyPadding(nn.Module):
         label = torch.full_like(top, 255)
         for c in range(C):
             # c where the class has the top score, else 255
-            label = torch.minimum(label, (closed[:, c] == top).view(torch.uint8).sub_(1)
+            label = torch.minimum(label, (closed[:, c] == top).to(torch.uint8).sub_(1)
                                   .bitwise_or_(c))
         top, label = (t.view(B, X + 2, Y + 2, Z + 2)[:, 1:-1, 1:-1, 1:-1] for t in (top, label))
         keep = occupied & self._passes(confidence)
         filled = ~keep & self._passes(top)
         free = torch.full_like(labels, C)
         new_labels = _select(keep, labels, _select(filled, label, free))
-        new_confidence = _select(keep, confidence, top * filled.view(torch.uint8))
+        new_confidence = _select(keep, confidence, top * filled.to(torch.uint8))
         return new_labels, new_confidence
 
 
