@@ -29,7 +29,7 @@ from ..config import ModelConfig
 from ..network.backbone import folded_for_inference
 from ..network.budget import QueryBudget, needed_queries
 from ..network.feature_ring import FeatureRing
-from ..network.padding import pad_occupancy
+from ..network.padding import OccupancyPadding
 from ..network.postprocess import ranked_boxes, voxelise
 from ..network.precision import half_dtype, precision_context, with_half_matrix_weights
 from ..preprocess import IMAGENET_MEAN, IMAGENET_STD
@@ -96,6 +96,8 @@ class OnlineStep(nn.Module):
         self.visibility = Visibility(cfg.grid_shape, cfg.pc_range, cfg.voxel_size,
                                      self.free_label, device=device) if visibility else None
         self.layout = GeometryLayout(capacity, cfg.num_cams, cfg.num_frames)
+        self.padding = OccupancyPadding(cfg.grid_shape, self.free_label, cfg.score_threshold,
+                                        device) if cfg.occupancy_padding else None
         self.register_buffer("mean", torch.tensor(IMAGENET_MEAN, device=device),
                              persistent=False)
         self.register_buffer("std", torch.tensor(IMAGENET_STD, device=device),
@@ -152,11 +154,10 @@ class OnlineStep(nn.Module):
         """The grid and the ranked boxes of ``output`` (see ``forward``)."""
         layer = output.last
         labels, confidence = voxelise(layer.means, layer.logits, self.cfg, self.free_label)
-        if self.cfg.occupancy_padding:      # static shapes too: filters over the whole grid
+        if self.padding is not None:        # static shapes too: filters over the whole grid
             grid = (1, *self.cfg.grid_shape)
-            labels, confidence = (t.flatten(1) for t in pad_occupancy(
-                labels.view(grid), confidence.view(grid), self.free_label,
-                self.cfg.score_threshold))
+            labels, confidence = (t.flatten(1) for t in self.padding(labels.view(grid),
+                                                                     confidence.view(grid)))
         if layer.boxes is None:                        # a model without dynamic queries
             empty = layer.means.new_zeros(1, 0)
             boxes, score = layer.means.new_zeros(1, 0, 9), empty
@@ -169,3 +170,4 @@ class OnlineStep(nn.Module):
         else:
             observed = self.visibility(labels[0], *self.layout.current_view(packed))
         return labels[0], confidence[0], boxes[0], score[0], label[0], valid[0], observed
+
