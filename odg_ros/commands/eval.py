@@ -1,5 +1,5 @@
 """``odg eval --checkpoint CKPT --data INFOS [--save-pred DIR] [--miou-convention C]
-[--query-budget full|auto|FRACTION] [--json]``.
+[--query-budget full|auto|FRACTION] [--precision P] [--json]``.
 
 The grid is padded as OPUS pads it at test time (``network/padding.py``) unless
 ``--set occupancy_padding=false``."""
@@ -10,7 +10,7 @@ import json
 from ..metrics.detection import format_detection
 from ..metrics.score import format_table
 from ..network.checkpoint import load_model
-from ..network.precision import resolve_device
+from ..network.precision import PRECISIONS, resolve_device, resolve_precision
 from ..online.predictor import resolve_budget
 from ..train.evaluate import evaluate
 from .common import (config_overrides, device, existing_dir, existing_file, infos_file,
@@ -39,6 +39,11 @@ def add_arguments(parser):
                              "query_budget parameter: full (default), auto (chosen per "
                              "keyframe from the one before) or a fraction in (0, 1]; the "
                              "result then says the mean share of the queries refined")
+    parser.add_argument("--precision", choices=PRECISIONS + ("auto",), default=None,
+                        help="score the node's arithmetic at this precision (its folded "
+                             "backbone, bf16 / fp16 weights, autocast decoder; auto: what "
+                             "the node's precision auto picks on this machine; default: the "
+                             "training model in float32)")
     parser.add_argument("--json", action="store_true", help="print JSON only")
     parser.add_argument("--set", action="append", metavar="KEY=VALUE",
                         help="config override at inference, e.g. motion_compensation=false "
@@ -51,15 +56,24 @@ def run(args) -> int:
     model, cfg = load_model(args.checkpoint, device=device, **config_overrides(args.set))
     budgets, policy = resolve_budget(args.query_budget, model, cfg)
     budget = policy if policy is not None else budgets[0]
-    result = evaluate(model, cfg, args.data, occ_root=args.occ_root, save_pred=args.save_pred,
+    scored = model
+    if args.precision is not None:
+        from ..online.step import NodeInferenceModel
+        args.precision = resolve_precision(args.precision, device)
+        scored = NodeInferenceModel(model, cfg, device, args.precision)
+    result = evaluate(scored, cfg, args.data, occ_root=args.occ_root, save_pred=args.save_pred,
                       device=device, rayiou=not args.no_rayiou, limit=args.limit,
                       progress=not args.json, miou_convention=args.miou_convention,
                       budget=budget)
+    if args.precision is not None:
+        result["precision"] = f"{args.precision} (the node's arithmetic)"
     if args.json:
         print(json.dumps(result, indent=2))
     else:
         print(format_table(result))
         print(f"grid padding (OPUS test time): {'on' if cfg.occupancy_padding else 'off'}")
+        if args.precision is not None:
+            print(f"precision: {result['precision']}")
         print(f"mIoU over the dynamic classes: {result['mIoU_dynamic']}")
         if "boxes" in result:
             print(format_detection(result["boxes"]))

@@ -171,3 +171,26 @@ class OnlineStep(nn.Module):
             observed = self.visibility(labels[0], *self.layout.current_view(packed))
         return labels[0], confidence[0], boxes[0], score[0], label[0], valid[0], observed
 
+
+class NodeInferenceModel(nn.Module):
+    """The offline model's call (every frame of a sample through the backbone, then the
+    decoder) computed with an ``OnlineStep``'s own modules and precision: the folded
+    channels-last backbone, bf16 / fp16 weights where ``precision`` asks, float32 feature
+    layout, autocast decoder. What ``odg eval --precision`` scores: the node's arithmetic
+    on the evaluation's samples."""
+
+    def __init__(self, model: nn.Module, cfg: ModelConfig, device, precision: str):
+        super().__init__()
+        self.step = OnlineStep(model, cfg, cfg.num_frames, device, precision, visibility=False)
+        self.decoder = self.step.model.decoder          # as the model's (budget needs)
+
+    def forward(self, images: torch.Tensor, ego2img: torch.Tensor, ego_warp: torch.Tensor,
+                time_delta: torch.Tensor, **decode_options):
+        """images [B, T, N, 3, H, W] normalised; geometry as ``ODG.forward``."""
+        B, T, N = images.shape[:3]
+        levels = self.step.features(images.flatten(0, 2))            # [1, B*T*N, C, h, w]
+        levels = [f[0].unflatten(0, (B, T, N)) for f in levels]
+        frame_feats = [[f[:, t] for f in levels] for t in range(T)]
+        with precision_context(self.step.precision, self.step.device):
+            return self.step.model.decode(frame_feats, ego2img, ego_warp, time_delta,
+                                          **decode_options)
