@@ -41,9 +41,10 @@ def add_arguments(parser):
                              "result then says the mean share of the queries refined")
     parser.add_argument("--precision", choices=PRECISIONS + ("auto",), default=None,
                         help="score the node's arithmetic at this precision (its folded "
-                             "backbone, bf16 / fp16 weights, autocast decoder; auto: what "
-                             "the node's precision auto picks on this machine; default: the "
-                             "training model in float32)")
+                             "backbone; bf16 / fp16 weights and an autocast decoder, or "
+                             "bf16-encoder: ResNet + FPN in bf16, the decoder in fp32; auto: "
+                             "what the node's precision auto picks on this machine; default: "
+                             "the training model in float32)")
     parser.add_argument("--json", action="store_true", help="print JSON only")
     parser.add_argument("--set", action="append", metavar="KEY=VALUE",
                         help="config override at inference, e.g. motion_compensation=false "

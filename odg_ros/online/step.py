@@ -31,7 +31,8 @@ from ..network.budget import QueryBudget, needed_queries
 from ..network.feature_ring import FeatureRing
 from ..network.padding import OccupancyPadding
 from ..network.postprocess import ranked_boxes, voxelise
-from ..network.precision import half_dtype, precision_context, with_half_matrix_weights
+from ..network.precision import (decoder_half_dtype, half_dtype, precision_context,
+                                 with_half_matrix_weights)
 from ..preprocess import IMAGENET_MEAN, IMAGENET_STD
 from .visibility import Visibility
 
@@ -112,9 +113,11 @@ class OnlineStep(nn.Module):
             # every step (one kernel each); the geometry stays float32 (sampling.full_precision)
             self.backbone = self.backbone.to(self.half)
             self.neck = with_half_matrix_weights(self.neck, self.half)
+        decoder_half = decoder_half_dtype(precision)
+        if decoder_half is not None:
             self.model = copy.copy(model)                # shares all but the decoder
             self.model._modules = dict(model._modules)
-            self.model.decoder = with_half_matrix_weights(model.decoder, self.half)
+            self.model.decoder = with_half_matrix_weights(model.decoder, decoder_half)
         self.ring = FeatureRing(capacity, cfg.num_groups)
         with torch.no_grad():                                               # shapes only
             H, W = cfg.image_size

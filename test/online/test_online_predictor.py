@@ -118,9 +118,9 @@ def test_bf16_predictor_stays_close_to_fp32_and_unknown_precision_fails():
 
 
 def test_precision_auto_is_bf16_only_where_the_cpu_has_bf16_instructions(monkeypatch):
-    """auto: bf16 on a CPU with AVX512-BF16 or AMX (and oneDNN's bf16 kernels), fp32 on one
-    without (oneDNN also says yes on a plain AVX-512 CPU, where bf16 is emulated) and on a
-    GPU; an explicit precision is kept."""
+    """auto: the bf16 encoder on a CPU with AVX512-BF16 or AMX (and oneDNN's bf16 kernels),
+    fp32 on one without (oneDNN also says yes on a plain AVX-512 CPU, where bf16 is
+    emulated) and on a GPU; an explicit precision is kept."""
     from odg_ros.network import precision
 
     model, cfg = make_model()
@@ -131,13 +131,13 @@ def test_precision_auto_is_bf16_only_where_the_cpu_has_bf16_instructions(monkeyp
     monkeypatch.setattr(precision, "_cpu_flags", lambda: frozenset({"avx512f", "avx512_bf16"}))
     native = precision.cpu_has_native_bf16()
     assert native == bool(torch.ops.mkldnn._is_mkldnn_bf16_supported())
-    assert precision.resolve_precision("auto", "cpu") == ("bf16" if native else "fp32")
+    assert precision.resolve_precision("auto", "cpu") == ("bf16-encoder" if native else "fp32")
     assert precision.resolve_precision("auto", "cuda") == "fp32"
     with pytest.raises(ValueError, match="precision"):
         precision.resolve_precision("fp8", "cpu")
 
 
-@pytest.mark.parametrize("precision", ["fp32", "bf16"])
+@pytest.mark.parametrize("precision", ["fp32", "bf16", "bf16-encoder"])
 def test_the_evaluation_model_computes_what_the_node_step_computes(precision):
     """``odg eval --precision``'s model (every frame through the step's own backbone, then
     the decoder) gives the online step's outputs on the same frames."""

@@ -251,3 +251,30 @@ def test_bf16_step_stores_its_matrix_weights_in_bf16_and_casts_none():
             torch.autocast("cpu", dtype=torch.bfloat16):
         model.extract_features(torch.zeros(1, cfg.num_cams, 3, *cfg.image_size))
     assert counter.casts > 20
+
+
+def test_bf16_encoder_step_runs_the_encoder_in_bf16_and_the_decoder_in_fp32():
+    """bf16-encoder: ResNet and FPN weights in bf16, the decoder's float32 and shared with
+    the model, no autocast around it; its decoder outputs equal the fp32 decoder's on the
+    same (bf16-rounded) features."""
+    model, cfg = make_model()
+    sets = make_sets(cfg, 2)
+    predictor = OnlinePredictor(model, cfg, "cpu", max_gap=1.0, precision="bf16-encoder",
+                                keep_output=True)
+    step = predictor.online_step
+    encoder = [m for part in (step.backbone, step.neck) for m in part.modules()
+               if isinstance(m, torch.nn.Conv2d)]
+    assert len(encoder) > 20 and all(m.weight.dtype == torch.bfloat16 for m in encoder)
+    assert step.model.decoder is model.decoder
+    assert all(p.dtype == torch.float32 for p in model.parameters())       # not mutated
+    for s in sets:
+        online = predictor.step(*s)
+    ego2img, warps, deltas, frame_index, _ = step.layout.unpack(predictor._packed)
+    with torch.inference_mode():
+        fp32 = model._decode_stored(step.ring.all_levels(), ego2img, warps, deltas,
+                                    frame_index, False)
+    assert torch.equal(online.output.last.means, fp32.last.means)
+    assert torch.equal(online.output.last.logits, fp32.last.logits)
+    features = step.ring.all_levels()[0]
+    assert features.dtype == torch.float32 and features.abs().sum() > 0
+    assert torch.equal(features, features.bfloat16().float())          # bf16 values
