@@ -1,4 +1,5 @@
 """Builds with pip (plain virtualenv) and with colcon (ament_python) on a ROS 2 install."""
+import os
 from glob import glob
 
 from setuptools import find_packages, setup
@@ -13,7 +14,9 @@ setup(
         ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
         ("share/" + package_name, ["package.xml", "LICENSE"]),
         ("share/" + package_name + "/launch", glob("launch/*.py")),
-        ("share/" + package_name + "/config", glob("config/*")),
+        ("share/" + package_name + "/config",
+         [p for p in glob("config/*") if os.path.isfile(p)]),
+        ("share/" + package_name + "/config/bags", glob("config/bags/*.yaml")),
         ("share/" + package_name + "/model", glob("model/*.yaml") + glob("model/*.md")
          + glob("model/*.pt")),
     ],

@@ -137,6 +137,21 @@ def invert_transforms(T) -> np.ndarray:
     return inv
 
 
+def invert_projections(matrices) -> np.ndarray:
+    """The inverses of [N, 4, 4] projections (ego2img: img2ego); NaN for a singular one (its
+    camera then observes nothing: the visibility reads no voxel through NaN geometry)."""
+    matrices = np.asarray(matrices, dtype=np.float64)
+    try:
+        return np.linalg.inv(matrices)
+    except np.linalg.LinAlgError:
+        out = np.full_like(matrices, np.nan)
+        for i, m in enumerate(matrices):
+            try:
+                out[i] = np.linalg.inv(m)
+            except np.linalg.LinAlgError:
+                pass
+        return out
+
 def ego_to_image(intrinsics, T_ego_from_cam) -> np.ndarray:
     """4x4 ``ego2img`` from 3x3 intrinsics (of the network input) and the camera extrinsics."""
     P = np.eye(4)

@@ -3,14 +3,19 @@
 Resize keeps the aspect ratio so the width matches the network input; then the top is
 cropped (or the bottom zero-padded) to the input height, the BEVDet/SparseBEV convention
 that keeps the road. Intrinsics are adjusted the same way.
+
+NumPy and Pillow; torch only inside ``normalize`` (the host side of an exported step runs
+without it: online/onnx_inputs.py).
 """
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
-import torch
 from PIL import Image
 
-from .transfer import device_constant
+if TYPE_CHECKING:
+    import torch
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
@@ -75,6 +80,17 @@ def adjust_intrinsics(K, src_hw, dst_hw) -> np.ndarray:
     return K2
 
 
+def image_bounds(image_hws, input_hw) -> np.ndarray:
+    """float32 [N, 4] (u0, v0, u1, v1): each camera's whole image, of size image_hws[n]
+    (H, W), in the pixels of the network input it is resized and cropped to (``input_hw``):
+    the rows cropped off the top lie above row 0."""
+    bounds = []
+    for hw in image_hws:
+        _, crop_top, (resized_h, resized_w) = resize_crop_params(tuple(hw), tuple(input_hw))
+        bounds.append((0.0, -float(crop_top), float(resized_w), float(resized_h - crop_top)))
+    return np.asarray(bounds, dtype=np.float32)
+
+
 def resize_crop(image: np.ndarray, dst_hw) -> np.ndarray:
     """HxWx3 uint8 RGB -> H'xW'x3 uint8 (resize to width, crop top / pad bottom)."""
     if image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
@@ -91,6 +107,7 @@ def resize_crop(image: np.ndarray, dst_hw) -> np.ndarray:
 
 def normalize(images_uint8: torch.Tensor) -> torch.Tensor:
     """[..., H, W, 3] uint8 RGB -> [..., 3, H, W] float32, ImageNet mean/std normalised."""
+    from .transfer import device_constant
     x = images_uint8.float().div_(255.0)
     mean = device_constant(IMAGENET_MEAN, x.device, x.dtype)
     std = device_constant(IMAGENET_STD, x.device, x.dtype)

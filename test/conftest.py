@@ -48,3 +48,11 @@ def ros_context(rclpy_module):
     rclpy_module.init(context=context)
     yield context
     context.try_shutdown()
+
+
+@pytest.fixture(scope="session")
+def layout_world(tmp_path_factory):
+    """One synthetic scene (keyframe gaps 0.55 and 0.75 s) as a bag of every nuScenes
+    converter layout (testing/bag_layouts.py): shared by the bag and the node tests."""
+    from testing.bag_layouts import build_layout_world
+    return build_layout_world(tmp_path_factory.mktemp("layout_world"))

@@ -30,8 +30,10 @@ COMMANDS = {
     "odg_node --help": RUN,
     "odg_node --ros-args --params-file config/odg.yaml -p device:=cpu":
         "runs until stopped; its start-up with these defaults is test/ros/test_node_startup.py",
-    "ros2 launch odg_ros odg.launch.py namespace:=odg use_sim_time:=true":
-        "needs a ROS 2 install; the launch description is test/ros/test_launch.py",
+    "export FASTDDS_DEFAULT_PROFILES_FILE=$PWD/config/fastdds_localhost.xml "
+    "ROS_AUTOMATIC_DISCOVERY_RANGE=SYSTEM_DEFAULT RMW_IMPLEMENTATION=rmw_fastrtps_cpp":
+        "shell settings; test_the_readme_dds_settings_are_those_of_dds_py",
+    "unset ROS_LOCALHOST_ONLY": "shell settings; test_the_readme_dds_settings_are_those_of_dds_py",
     "odg prepare --dataroot data/nuscenes --version v1.0-mini --split train --out "
     "data/nuscenes/infos_train.pkl": RUN,
     "odg prepare --dataroot data/nuscenes --version v1.0-mini --split val --out "
@@ -128,6 +130,20 @@ def test_the_readme_commands_run_at_tiny_sizes(tmp_path, capsys):
             assert odg(argv[1:]) == 0, (command, capsys.readouterr().err[-2000:])
         ran.append(command)
     assert len(ran) == sum(v == RUN for v in COMMANDS.values())
+
+
+def test_the_readme_dds_settings_are_those_of_dds_py():
+    """What the README tells a user to set for a node started by hand is what
+    odg_ros.ros.dds sets for the demo, odg replay and the tests."""
+    from odg_ros.ros.dds import localhost_dds_env
+    commands = readme_commands()
+    export = next(c for c in commands if c.startswith("export "))
+    readme = dict(item.split("=", 1) for item in export.split()[1:])
+    readme["FASTDDS_DEFAULT_PROFILES_FILE"] = readme["FASTDDS_DEFAULT_PROFILES_FILE"].replace(
+        "$PWD", str(ROOT))
+    env = localhost_dds_env({"ROS_LOCALHOST_ONLY": "1", "HOME": "/home/someone"})
+    assert readme == {k: v for k, v in env.items() if k != "HOME"}
+    assert "unset ROS_LOCALHOST_ONLY" in commands and "ROS_LOCALHOST_ONLY" not in env
 
 
 def test_rviz_config_shows_the_node_outputs():

@@ -31,7 +31,8 @@ from odg_ros.data.lidar import load_points
 BAG_VERSION = 8
 
 
-def _rosbags_qos(qos: layout.TopicQos):
+def rosbags_qos(qos: layout.TopicQos):
+    """A layout QoS as the rosbags Qos recorded with a connection (offered_qos_profiles)."""
     from rosbags.interfaces import (Qos, QosDurability, QosHistory, QosLiveliness,
                                     QosReliability, QosTime)
     zero = QosTime(sec=0, nsec=0)
@@ -153,7 +154,7 @@ def write_scene_bag(records: list[SensorRecord], out, *, force: bool = False,
                 if topic not in connections:
                     connections[topic] = writer.add_connection(
                         topic, msg.__msgtype__, typestore=store,
-                        offered_qos_profiles=[_rosbags_qos(layout.topic_qos(topic))])
+                        offered_qos_profiles=[rosbags_qos(layout.topic_qos(topic))])
                 writer.write(connections[topic], stamp_ns,
                              store.serialize_cdr(msg, msg.__msgtype__))
                 counts[topic] += 1

@@ -14,7 +14,7 @@ import sys
 
 SUBCOMMANDS = {
     "info": "model size, Gaussians per layer, FLOPs of a preset",
-    "bench": "latency of one online step per stage (and the speed-vs-error sweep)",
+    "bench": "the node's step per camera set, per stage (and the speed-vs-error sweep)",
     "synth": "generate the synthetic driving world (nuScenes + Occ3D layout)",
     "prepare": "build the infos index from a nuScenes-format dataroot + Occ3D GT",
     "score": "mIoU / RayIoU of saved predictions against the GT",
@@ -22,8 +22,8 @@ SUBCOMMANDS = {
     "profile": "ops and host syncs of a training step, by phase and source line",
     "eval": "run a checkpoint over a split and score it",
     "export": "training checkpoint -> shipped one (compressed, score threshold calibrated)",
-    "bag": "write rosbag2 MCAP bags (synth world or nuScenes)",
-    "replay": "publish a rosbag2 bag with rclpy",
+    "bag": "write rosbag2 MCAP bags (synth world or nuScenes), or a scene's rig file",
+    "replay": "publish rosbag2 bags with rclpy, one after the other",
     "demo": "the end-to-end demo: world -> bag -> node -> planner stand-in -> scores",
     "ablation": "the ablation table and plot of several odg eval --json results",
 }

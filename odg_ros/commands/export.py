@@ -1,7 +1,9 @@
 """``odg export --checkpoint CKPT --out FILE [--compress int8] [--calibrate INFOS]``:
 turn a training checkpoint into a shipped one (weights only, compressed, threshold chosen).
-``odg export --checkpoint CKPT --onnx FILE``: the node's online step over a full ring as
-ONNX (for onnxruntime or a TensorRT engine; docs/compiled_node.md).
+``odg export --checkpoint CKPT --onnx FILE [--frames K]``: the node's online step as ONNX
+with named inputs (images, camera matrices, ego warps, time deltas, the history of
+features; for onnxruntime or a TensorRT engine; docs/compiled_node.md), fed by
+odg_ros/online/onnx_inputs.py.
 ``odg export --checkpoint CKPT --aoti FILE.pt2 [--device D] [--precision P] [--frames K]``:
 the online step compiled ahead of time (AOTInductor) for the node's ``compiled_step``."""
 from __future__ import annotations
@@ -22,8 +24,10 @@ def add_arguments(parser):
     what.add_argument("--out", default=None,
                       help="the shipped checkpoint to write (no default: this or --onnx)")
     what.add_argument("--onnx", default=None, metavar="FILE",
-                      help="write the online step (backbone, ring, decoder, post-processing) "
-                           "over a full ring as ONNX instead (no default: this or --out)")
+                      help="write the online step (backbone, history, decoder, "
+                           "post-processing, visibility) as ONNX with named inputs instead; "
+                           "odg_ros/online/onnx_inputs.py makes them from CameraInfo, "
+                           "extrinsics, poses and stamps (no default: this or --out)")
     what.add_argument("--aoti", default=None, metavar="FILE.pt2",
                       help="compile the online step ahead of time (AOTInductor) into this "
                            "file, for the node's compiled_step: a restart then skips the "
@@ -33,7 +37,8 @@ def add_arguments(parser):
     parser.add_argument("--precision", choices=PRECISIONS, default="fp32",
                         help="--aoti: the node's precision parameter")
     parser.add_argument("--frames", type=positive_int, default=None,
-                        help="--aoti: the node's history_frames (default: the model's)")
+                        help="--aoti, --onnx: the history frames, the node's "
+                             "history_frames (default: the model's)")
     parser.add_argument("--compress", choices=("none", "fp16", "int8"), default="int8",
                         help="weight storage (int8: per-output-channel scales, ~4x smaller)")
     parser.add_argument("--calibrate", default=None, metavar="INFOS", type=infos_file,
@@ -78,15 +83,17 @@ def export_step(args) -> int:
     except ImportError:
         print("odg export --onnx needs onnx and onnxscript: pip install onnx onnxscript")
         return 2
-    from ..online.onnx_export import export_onnx
+    from ..online.onnx_export import export_onnx, graph_signature
     model, cfg = load_model(args.checkpoint)
-    _, inputs, files = export_onnx(model, cfg, args.onnx)
+    frames = args.frames or cfg.num_frames
+    if frames > cfg.num_frames:
+        raise UserError(f"--frames {frames}: the model takes at most {cfg.num_frames}")
+    _, _, files = export_onnx(model, cfg, args.onnx, frames)
     report = {"source": str(args.checkpoint), "onnx": str(files[0][0]),
               "files": {str(p): size for p, size in files},
-              "bytes": sum(size for _, size in files),
-              "inputs": {name: list(t.shape) for name, t in
-                         zip(["images", "packed"] + [f"ring_{i}" for i in
-                                                     range(len(inputs) - 2)], inputs)}}
+              "bytes": sum(size for _, size in files), "history_frames": frames,
+              **graph_signature(files[0][0]),
+              "inputs_from": "odg_ros/online/onnx_inputs.py (docs/compiled_node.md)"}
     print(json.dumps(report, indent=2))
     return 0
 

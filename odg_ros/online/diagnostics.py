@@ -25,26 +25,60 @@ OK, WARN, ERROR, STALE = 0, 1, 2, 3
 # infos, poses and extrinsics, and its ego->image matrices.
 STAGES = ("lookup", "decode_images", "upload", "model", "download", "publish")
 
-# Counters that are normal under load and do not raise the level on their own.
-LOAD_COUNTERS = ("stale_sets_dropped", "tf_ignored", "tf_received", "tf_frames_forgotten")
+# Counters that are normal under load and do not raise the level on their own (sets_waited:
+# sets that waited for their poses / extrinsics; sets_waiting: how many wait now).
+LOAD_COUNTERS = ("stale_sets_dropped", "tf_ignored", "tf_received", "tf_frames_forgotten",
+                 "sets_waited", "sets_waiting")
 # Counters of inputs that arrived (not problems).
 INPUT_COUNTERS = ("sets_completed", "tf_received")
 
 
+def transform_topics_needed(pose_source: str, extrinsics_source: str) -> tuple[bool, bool]:
+    """(whether /tf is needed, whether one of /tf and /tf_static is) for "never received":
+    /tf carries the ego pose (pose_source tf); camera transforms may come on either
+    (extrinsics_source tf) or not at all (auto: the rig file then). /tf_static on its own is
+    never needed."""
+    return pose_source == "tf", pose_source != "tf" and extrinsics_source == "tf"
+
+
 class InputMonitor:
     """Per input topic: messages received and the steady time of the last one. Thread-safe:
-    the subscription callbacks record, a timer reads."""
+    the subscription callbacks record, a timer reads.
+
+    Every topic is reported; ``never_received`` names only those the configuration needs
+    (``watch(topic, needed=False)``: an optional one, e.g. /tf_static when transforms can
+    come from /tf) and, for topics of which one is enough (``need_one_of``), the group."""
 
     def __init__(self, topics=(), clock=time.monotonic):
         self._clock = clock
         self._lock = threading.Lock()
         self._counts = {topic: 0 for topic in topics}
+        self._needed = set(self._counts)
+        self._groups: list[tuple[str, ...]] = []
         self._last: dict[str, float] = {}
 
-    def watch(self, topic: str) -> None:
+    def watch(self, topic: str, needed: bool = True) -> None:
         """Report ``topic`` from now on, as never received until it is."""
         with self._lock:
             self._counts.setdefault(topic, 0)
+            if needed:
+                self._needed.add(topic)
+            else:
+                self._needed.discard(topic)
+
+    def need_one_of(self, topics) -> None:
+        """At least one of ``topics`` (watched) is needed, e.g. camera transforms on /tf or
+        /tf_static."""
+        with self._lock:
+            self._groups.append(tuple(topics))
+
+    def never_received(self) -> list[str]:
+        """The needed topics (and groups: 'a or b') of which no message came."""
+        with self._lock:
+            never = [t for t, n in self._counts.items() if n == 0 and t in self._needed]
+            never += [" or ".join(group) for group in self._groups
+                      if not any(self._counts.get(t, 0) for t in group)]
+            return never
 
     def received(self, topic: str) -> None:
         now = self._clock()
@@ -62,11 +96,14 @@ class InputMonitor:
 
 class PipelineStats:
     """Thread-safe: outputs are recorded by the worker, status read by a timer. ``inputs``:
-    the InputMonitor of the node's subscriptions (None: inputs judged by the counters)."""
+    the InputMonitor of the node's subscriptions (None: inputs judged by the counters);
+    ``first_set_grace_s``: how long the first complete set may wait for its poses before it
+    counts as silent (the pipeline's pose_wait)."""
 
     def __init__(self, window: int = 100, rate_window_s: float = 5.0,
                  stale_after_s: float = 5.0, clock=time.monotonic,
-                 max_tf_rate: float = float("inf"), inputs: InputMonitor | None = None):
+                 max_tf_rate: float = float("inf"), inputs: InputMonitor | None = None,
+                 first_set_grace_s: float = 0.0):
         self._lock = threading.Lock()
         self._clock = clock
         self.inputs = inputs
@@ -81,10 +118,18 @@ class PipelineStats:
         self.outputs = 0
         self.max_tf_rate = float(max_tf_rate)
         self._previous_counters: dict[str, int] = {}
-        self._started = clock()
+        self._first_set: float | None = None       # steady time the first set completed
+        self.first_set_grace_s = float(first_set_grace_s)
         # (clock, counters) of the reports of the last stale_after_s: what happened meanwhile
         self._counter_history: deque[tuple[float, dict[str, int]]] = deque()
         self._window_base: dict[str, int] = {}
+
+    def record_complete_set(self) -> None:
+        """A camera set became complete (the no-output timer starts at the first one)."""
+        if self._first_set is None:
+            with self._lock:
+                if self._first_set is None:
+                    self._first_set = self._clock()
 
     def record_output(self, image_stamp: float, now: float, timings: dict[str, float],
                       received: float | None = None, query_budget: str | None = None,
@@ -142,16 +187,21 @@ class PipelineStats:
                 "refined_fraction": float(np.mean(self._refined)) if self._refined else None,
             }
 
-    def status(self, counters: dict[str, int]) -> dict:
+    def status(self, counters: dict[str, int], extrinsics: dict[str, str] | None = None) \
+            -> dict:
         """A DiagnosticStatus as a dict: {'level', 'message', 'values': [(key, str)]}.
 
         OK while sets flow and nothing was skipped since the last call; WARN when sets were
         skipped or dropped incomplete since the last call, before the first output, when no
         input came for ``stale_after_s`` ("no input for N s": a stopped bag, a dead driver),
         or when /tf brings more than ``max_tf_rate`` transforms/s; ERROR when no output came
-        for ``stale_after_s`` (since the start or the last output) while inputs kept
-        arriving, with the dominant reason they were dropped over that time. Topics that
-        never sent are named in every non-OK message.
+        for ``stale_after_s`` (since the last output, or the first complete camera set plus
+        the wait it may spend on its poses, ``first_set_grace_s``) while inputs kept
+        arriving, with the dominant reason they were dropped over that time: never before
+        the first complete set (a node waiting for its cameras is not failing; its WARN
+        names what it waits for). The needed topics that never sent are named in
+        every non-OK message. ``extrinsics``: camera -> where its extrinsics come from
+        (reported as values).
         """
         snap = self.snapshot()
         now = self._clock()
@@ -176,7 +226,7 @@ class PipelineStats:
         else:
             arriving = any(k not in LOAD_COUNTERS for k in window)
         level, message = self._verdict(snap, now, problems, window, arriving, quiet_for)
-        never = [topic for topic, (count, _) in inputs.items() if count == 0]
+        never = self.inputs.never_received() if self.inputs is not None else []
         if never and level != OK:
             message += f"; never received: {', '.join(never)}"
         tf_rate = increased.get("tf_received", 0) / elapsed if elapsed > 0 else 0.0
@@ -184,16 +234,20 @@ class PipelineStats:
             level = max(level, WARN)
             message += (f"; /tf flood: {tf_rate:.0f} transforms/s (> {self.max_tf_rate:.0f}), "
                         f"{increased.get('tf_ignored', 0)} dropped unread as not needed")
-        return {"level": level, "message": message,
-                "values": self._values(snap, counters, inputs)}
+        values = self._values(snap, counters, inputs)
+        values += [(f"extrinsics {camera}", source)
+                   for camera, source in (extrinsics or {}).items()]
+        return {"level": level, "message": message, "values": values}
 
     def _verdict(self, snap, now, problems, window, arriving, quiet_for) -> tuple[int, str]:
         """(level, message) of ``status`` before the input and /tf notes."""
         problem_text = ", ".join(f"{k}: {v}" for k, v in sorted(problems.items()))
         skipped = f" (skipped: {problem_text})" if problem_text else ""
-        silent_for = (snap["seconds_since_output"] if snap["outputs"]
-                      else now - self._started)
-        if silent_for > self.stale_after_s and arriving:
+        with self._lock:
+            first_set = self._first_set
+        silent_for = (snap["seconds_since_output"] if snap["outputs"] else None
+                      if first_set is None else now - first_set - self.first_set_grace_s)
+        if silent_for is not None and silent_for > self.stale_after_s and arriving:
             message = f"no output for {silent_for:.1f} s while inputs arrive"
             drops = {k: v for k, v in window.items()
                      if k not in LOAD_COUNTERS and k not in INPUT_COUNTERS}
@@ -211,8 +265,11 @@ class PipelineStats:
             return WARN, f"no input for {quiet_for:.1f} s" + (
                 f" (last output {snap['seconds_since_output']:.1f} s ago)"
                 if snap["outputs"] else "")
-        if snap["outputs"] == 0:
+        if snap["outputs"] == 0 and first_set is None:
             return WARN, "waiting for the first complete camera set" + skipped
+        if snap["outputs"] == 0:
+            return WARN, (f"waiting for the first output (the first set completed "
+                          f"{now - first_set:.1f} s ago)" + skipped)
         if snap["seconds_since_output"] > self.stale_after_s:
             return ERROR, f"no output for {snap['seconds_since_output']:.1f} s" + skipped
         if problems:

@@ -19,8 +19,9 @@ BAD_INPUT_KINDS = (
     "bad_pose",             # NaN or non-orthonormal pose
     "implausible_motion",   # pose sample faster / accelerating more than a car can: a glitch
     "bad_tf",               # TF link that would close a loop
-    "pose_miss",            # no pose at a camera stamp (outside the buffer + bound)
-    "missing_extrinsics",   # no base_link -> camera transform
+    "pose_miss",            # no pose at a camera stamp: outside the buffer, across a gap
+                            # wider than max_pose_gap, or still missing after pose_wait
+    "missing_extrinsics",   # no base_link -> camera transform (after pose_wait)
     "future_stamp",         # image stamp ahead of the node clock
     "bad_stamp",            # header stamp that is no valid time (nanosec outside [0, 1e9))
     "image_too_large",      # encoded header declares more pixels than max_image_pixels
@@ -29,14 +30,19 @@ BAD_INPUT_KINDS = (
 
 
 class BadInput(Exception):
-    """An unusable input. ``kind`` is one of ``BAD_INPUT_KINDS``."""
+    """An unusable input. ``kind`` is one of ``BAD_INPUT_KINDS``.
 
-    def __init__(self, kind: str, message: str):
+    ``pending``: the look-up failed only because its data has not arrived yet (a pose or
+    transform newer than any received, within the gap interpolation may bridge): the set
+    may wait for it, as tf2's message filter holds a message, instead of being skipped."""
+
+    def __init__(self, kind: str, message: str, pending: bool = False):
         if kind not in BAD_INPUT_KINDS:
             raise ValueError(f"unknown bad-input kind {kind!r}")
         super().__init__(message)
         self.kind = kind
         self.message = message
+        self.pending = bool(pending)
 
     def __str__(self) -> str:
         return f"{self.kind}: {self.message}"

@@ -8,15 +8,23 @@ backwards (a bag loop, a replayed set) or jumps forward by more than ``max_gap``
 (dropped input), or when the ego moved between two frames faster than ``max_speed`` (a
 teleport: relocalisation): frames across such a break would be warped with a meaningless
 ego motion.
+
+Plain Python and NumPy (no torch import): the host side of an exported step uses it too
+(onnx_inputs.py).
 """
 from __future__ import annotations
 
 import math
 from collections import deque
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, Sequence
 
 import numpy as np
-import torch
+
+from ..geometry import invert_transforms
+
+if TYPE_CHECKING:
+    import torch
 
 
 @dataclass
@@ -80,3 +88,37 @@ class FrameHistory:
     def frames(self) -> list[Frame]:
         """Frames newest first (index 0 = current)."""
         return list(self._frames)
+
+    def newest_is_provisional(self, min_interval: float) -> bool:
+        """Whether the newest frame is closer than ``min_interval`` (s) to the one before it:
+        then the next set takes its place (``push(replace_newest=True)``), so the frames kept
+        stay at least ``min_interval`` apart."""
+        frames = self._frames
+        return len(frames) > 1 and frames[0].stamp - frames[1].stamp < min_interval
+
+
+def history_geometry(frames: Sequence[Frame], slots: Sequence[int], capacity: int,
+                     num_frames: int):
+    """The decoder's geometry of history ``frames`` (newest first) stored in ring ``slots``
+    (one each, newest first) of a ring of ``capacity`` slots, in storage-slot order:
+
+    ego2img float64 [capacity, N, 4, 4]  each frame's ego -> network-input pixels
+    ego_warp float64 [capacity, 4, 4]    T_ego(frame)_from_ego(current) = P_frame^-1 P_current
+    time_delta float64 [capacity]        current stamp - frame stamp (s)
+    frame_index list[int] [num_frames]   the slot each of the model's time steps reads; a
+                                         step beyond the frames kept repeats the oldest
+
+    Empty slots get the oldest frame's geometry (finite; no time step reads them)."""
+    current, oldest = frames[0], frames[-1]
+    N = len(current.ego2img)
+    # the warps of all frames in one stacked computation
+    frame_warps = invert_transforms(np.stack([f.pose for f in frames])) @ current.pose
+    ego2img = np.broadcast_to(oldest.ego2img, (capacity, N, 4, 4)).copy()
+    warps = np.broadcast_to(frame_warps[-1], (capacity, 4, 4)).copy()
+    deltas = np.full(capacity, current.stamp - oldest.stamp)
+    for frame, slot, warp in zip(frames, slots, frame_warps):
+        ego2img[slot] = frame.ego2img
+        warps[slot] = warp
+        deltas[slot] = current.stamp - frame.stamp
+    frame_index = list(slots) + [slots[-1]] * (num_frames - len(slots))
+    return ego2img, warps, deltas, frame_index

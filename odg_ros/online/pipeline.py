@@ -3,13 +3,18 @@
 The node (odg_ros/ros/node.py) only converts messages and publishes; everything it decides
 lives here so it is unit-tested without rclpy::
 
-    on_image ─> CameraSetSync ─> LatestMailbox ─> prepare(): CameraInfo check, poses at
-    on_camera_info (K, size)        every camera stamp, extrinsics, ego2img, decode + resize
-    on_pose ─> PoseBuffer             ─> LatestMailbox ─> infer(): OnlinePredictor.step
-                                                                   ─> OnlineResult
+    on_image ─> CameraSetSync ─> WaitingSets ──> prepare(): CameraInfo check, poses at
+    on_camera_info (K, size)        ^ (until its   every camera stamp, extrinsics, ego2img,
+    on_pose ─> PoseBuffer ─ notify ─┤  poses are   decode + resize ─> LatestMailbox
+    transforms_arrived ──── notify ─┘  there)      ─> infer(): OnlinePredictor.step
+                                                                  ─> OnlineResult
 
-``process`` runs both in the caller's thread; ``start_decoding`` runs ``prepare`` in a
-thread of its own, so the next set decodes while the model runs (``next_prepared``).
+A complete set whose poses or camera transforms have not arrived yet waits for them, up to
+``pose_wait`` seconds of the node's clock (online/waiting.py: the newest ready set wins,
+older ones are dropped as stale); one whose wait runs out is a ``pose_miss`` (or
+``missing_extrinsics``) saying how long it waited. ``process`` runs both stages in the
+caller's thread; ``start_decoding`` runs ``prepare`` in a thread of its own, so the next set
+decodes while the model runs (``next_prepared``).
 
 Every unusable input raises ``BadInput`` after it has been counted; the caller logs it
 (throttled) and carries on with the next message or set.
@@ -38,12 +43,15 @@ from .predictor import OnlinePredictor
 from .rig import CameraCalibration, IntrinsicsRange, check_intrinsics, set_ego2img
 from .sync import CameraSet, CameraSetSync
 from .visibility import image_bounds
+from .waiting import FAILED, PENDING, READY, WaitingSets
 
 
 @dataclass
 class PipelineSettings:
     """slop: max stamp spread of one set (s); max_future: how far an image stamp may be
     ahead of the node clock (s); pose_max_extrapolation: beyond the pose buffer (s);
+    max_pose_gap: the widest gap between two poses interpolated across (s); pose_wait: how
+    long a set may wait for poses / transforms not received yet (s, node clock);
     time_jump: a stamp this much older than the newest one means the source restarted (s);
     plausibility: intrinsics (CameraInfo), max_speed (m/s) / max_acceleration (m/s^2) of the
     ego between poses, max_image_pixels of a decoded image."""
@@ -52,6 +60,8 @@ class PipelineSettings:
     slop: float = 0.05
     max_future: float = 0.5
     pose_max_extrapolation: float = 0.05
+    max_pose_gap: float = 1.0
+    pose_wait: float = 1.0
     time_jump: float = 1.0
     intrinsics: IntrinsicsRange = IntrinsicsRange()
     max_speed: float = 70.0
@@ -106,14 +116,18 @@ class OnlinePipeline:
     ``next_prepared``/``infer`` (the node).
 
     extrinsics: T_ego_from_cam per (camera name, CameraInfo frame id, stamp), e.g. from a rig
-    file or TF; it raises BadInput('missing_extrinsics') when it has none.
+    file or TF (online/extrinsics.py); it raises BadInput('missing_extrinsics') when it has
+    none, pending when it may still come. An object with a ``settle(camera, frame_id)``
+    method is told when a set's wait ran out (extrinsics auto: the rig file from then on).
     pose_lookup: T_global_from_ego at a stamp (e.g. TF); None = the internal PoseBuffer fed by
-    ``on_pose`` (odometry).
+    ``on_pose`` (odometry). Call ``transforms_arrived`` when its data grows (TF messages).
+    clock: the node's clock in seconds (0 while it does not run), which measures the wait
+    for poses; None: the steady clock.
     """
 
     def __init__(self, predictor: OnlinePredictor, settings: PipelineSettings,
                  extrinsics: ExtrinsicsLookup, pose_lookup: PoseLookup | None = None,
-                 stats: PipelineStats | None = None):
+                 stats: PipelineStats | None = None, clock: Callable[[], float] | None = None):
         self.predictor = predictor
         self.settings = settings
         self.camera_names = tuple(settings.camera_names)
@@ -123,12 +137,15 @@ class OnlinePipeline:
         self.input_hw = tuple(predictor.cfg.image_size)
         self.extrinsics = extrinsics
         self.poses = PoseBuffer(max_extrapolation=settings.pose_max_extrapolation,
+                                max_interpolation_gap=settings.max_pose_gap,
                                 time_jump=settings.time_jump, max_speed=settings.max_speed,
                                 max_acceleration=settings.max_acceleration)
         predictor.history.max_speed = settings.max_speed    # a teleport restarts the history
         self.pose_lookup = pose_lookup if pose_lookup is not None else self._buffer_lookup
         self.sync = CameraSetSync(self.camera_names, settings.slop, time_jump=settings.time_jump)
-        self.mailbox = LatestMailbox()           # complete sets, not decoded yet
+        # complete sets, not decoded yet, waiting for their poses / extrinsics if need be
+        self.waiting = WaitingSets(self._ready, settings.pose_wait,
+                                   clock if clock is not None else time.monotonic)
         self.prepared = LatestMailbox()          # decoded sets (start_decoding)
         self.pacing = DecodePacing()             # when start_decoding's thread decodes
         self._decoding: threading.Thread | None = None
@@ -165,7 +182,8 @@ class OnlinePipeline:
             complete = self.sync.add(camera, stamp, (image, header))
         for camera_set in complete:
             camera_set.completed_at = time.monotonic()
-            self.mailbox.put(camera_set)
+            self.stats.record_complete_set()
+            self.waiting.put(camera_set)
         return bool(complete)
 
     def on_camera_info(self, camera: str, K, height: int, width: int, frame_id: str) -> None:
@@ -188,6 +206,12 @@ class OnlinePipeline:
                 self.poses.add(stamp, T_global_from_ego)
         except BadInput as error:
             raise self.count_bad_input(error) from None
+        self.waiting.notify()
+
+    def transforms_arrived(self) -> None:
+        """New data behind ``pose_lookup`` / ``extrinsics`` (a TF message): a waiting set may
+        be ready now."""
+        self.waiting.notify()
 
     def _buffer_lookup(self, stamp: float) -> np.ndarray:
         with self._pose_lock:
@@ -195,7 +219,9 @@ class OnlinePipeline:
 
     # ------------------------------------------------------------------------- worker
     def next_set(self, timeout: float | None = None) -> CameraSet | None:
-        return self.mailbox.get(timeout)
+        """The newest complete set ready to prepare: its look-ups succeed, fail for good, or
+        waited ``pose_wait`` in vain (then ``prepare`` counts the miss). None on timeout."""
+        return self.waiting.get(timeout)
 
     def process(self, camera_set: CameraSet) -> OnlineResult:
         """Run one complete set through the model. Raises (counted) BadInput to skip it."""
@@ -241,10 +267,10 @@ class OnlinePipeline:
         ``on_bad_input(error)`` called; any other exception calls ``on_error()`` inside its
         ``except`` block (for the traceback)."""
         def run():
-            while not self.mailbox.closed:
+            while not self.waiting.closed:
                 if not self.pacing.wait_until_due(timeout=0.2):
                     continue
-                camera_set = self.mailbox.get(timeout=0.2)
+                camera_set = self.waiting.get(timeout=0.2)
                 if camera_set is None:
                     continue
                 try:
@@ -270,9 +296,23 @@ class OnlinePipeline:
             self.pacing.taken()
         return prepared
 
-    def _prepare(self, camera_set: CameraSet) -> PreparedSet:
+    def _ready(self, camera_set: CameraSet, final: bool) -> str:
+        """WaitingSets' probe: READY, FAILED (a look-up fails for good) or PENDING (one waits
+        for data not received yet). ``final``: its wait ran out (a source that can settle
+        does so: extrinsics auto takes the rig file)."""
+        start = time.perf_counter()
+        try:
+            looked_up = self._look_up(camera_set, settle=final)
+        except BadInput as error:
+            return PENDING if error.pending else FAILED
+        # kept for prepare (the set is handed on next): the look-ups are not done twice
+        camera_set.looked_up = (looked_up, time.perf_counter() - start)
+        return READY
+
+    def _look_up(self, camera_set: CameraSet, settle: bool = False):
+        """(camera infos, poses [1 + N, 4, 4]: the reference stamp's then each camera's,
+        sensor2ego [N, 4, 4]) of a set; raises BadInput (pending where the data may come)."""
         names = self.camera_names
-        t_lookup = time.perf_counter()
         with self._input_lock:
             infos = {c: self._camera_info.get(c) for c in names}
         missing = [c for c in names if infos[c] is None]
@@ -280,16 +320,51 @@ class OnlinePipeline:
             raise BadInput("missing_camera_info", f"no valid CameraInfo yet for {missing}")
 
         # Cheap checks before the expensive decoding, each kind for the whole set at once
-        # (stacked: NumPy on 4x4 matrices costs its per-call overhead, not arithmetic).
+        # (stacked: NumPy on 4x4 matrices costs its per-call overhead, not arithmetic). The
+        # newest stamp first: while a set waits for its poses, that is the one missing.
         stamps = [camera_set.reference_stamp] + [camera_set.stamps[c] for c in names]
-        poses = _stacked_transforms([self.pose_lookup(t) for t in stamps])
+        order = sorted(range(len(stamps)), key=lambda i: -stamps[i])
+        looked_up = [None] * len(stamps)
+        for i in order:
+            looked_up[i] = self.pose_lookup(stamps[i])
+        poses = _stacked_transforms(looked_up)
         for i in np.flatnonzero(~rigid_mask(poses))[:1]:
             raise BadInput("bad_pose", f"pose at t={stamps[i]:.3f} is not a finite rigid "
                            "transform")
-        sensor2ego = _stacked_transforms([self.extrinsics(c, infos[c].frame_id,
-                                                          camera_set.stamps[c]) for c in names])
+        sensor2ego = _stacked_transforms([self._extrinsics(c, infos[c].frame_id,
+                                                           camera_set.stamps[c], settle)
+                                          for c in names])
         for i in np.flatnonzero(~rigid_mask(sensor2ego))[:1]:
             raise BadInput("missing_extrinsics", f"extrinsics of {names[i]} are not rigid")
+        return infos, poses, sensor2ego
+
+    def _extrinsics(self, camera: str, frame_id: str, stamp: float, settle: bool):
+        try:
+            return self.extrinsics(camera, frame_id, stamp)
+        except BadInput as error:
+            settle_source = getattr(self.extrinsics, "settle", None)
+            if not (settle and error.pending and settle_source is not None):
+                raise
+        settle_source(camera, frame_id)
+        return self.extrinsics(camera, frame_id, stamp)
+
+    def _prepare(self, camera_set: CameraSet) -> PreparedSet:
+        names = self.camera_names
+        t_lookup = time.perf_counter()
+        try:
+            if camera_set.looked_up is not None:
+                (infos, poses, sensor2ego), seconds = camera_set.looked_up
+                camera_set.looked_up = None
+                t_lookup -= seconds                   # timed as it was done, in the probe
+            else:
+                infos, poses, sensor2ego = self._look_up(camera_set)
+        except BadInput as error:
+            if not error.pending:
+                raise
+            waited = (f"still missing after waiting {camera_set.waited:.2f} s (pose_wait "
+                      f"{self.settings.pose_wait:g} s)" if camera_set.expired
+                      else "not received (yet)")
+            raise BadInput(error.kind, f"{waited}: {error.message}") from None
         try:
             intrinsics = np.stack([adjust_intrinsics(infos[c].intrinsics, infos[c].image_hw,
                                                      self.input_hw) for c in names])
@@ -345,7 +420,9 @@ class OnlinePipeline:
         out["input_time_jumps"] = sync["time_jumps"]
         out["sets_completed"] = sync["sets_emitted"]
         out["pose_teleports"] = self.poses.teleports
-        out["stale_sets_dropped"] = self.mailbox.dropped + self.prepared.dropped
+        out["stale_sets_dropped"] = self.waiting.dropped + self.prepared.dropped
+        out["sets_waited"] = self.waiting.waited
+        out["sets_waiting"] = len(self.waiting)
         history_resets = self.predictor.history.resets
         out["history_resets_time_backwards"] = history_resets["time_backwards"]
         out["history_resets_gap"] = history_resets["gap"]
@@ -353,7 +430,7 @@ class OnlinePipeline:
         return out
 
     def close(self) -> None:
-        self.mailbox.close()
+        self.waiting.close()
         self.prepared.close()
         self.pacing.close()
         if self._decoding is not None:

@@ -1,17 +1,25 @@
 """Ego pose buffer with interpolation at any stamp (odometry -> pose at each camera's stamp).
 
 Poses are ``T_global_from_ego`` 4x4 (geometry.py conventions). Between two buffered poses
-the translation is interpolated linearly and the rotation by quaternion slerp. Outside the
-buffered interval a pose is extrapolated (same formulas, constant velocity of the two end
-poses) only up to ``max_extrapolation`` seconds; farther is a pose miss, never a guess. Two
-neighbours farther apart than ``max_interpolation_gap`` (odometry dropped out) are a pose
-miss too.
+the translation is interpolated linearly and the rotation by quaternion slerp, as tf2 does,
+when they are at most ``max_interpolation_gap`` apart (the node's ``max_pose_gap``: nuScenes
+converters publish poses at keyframes only, 2 Hz, with gaps scattered around 0.5 s). Outside
+the buffered interval a pose is extrapolated (same formulas, constant velocity of the two end
+poses) only up to ``max_extrapolation`` seconds; farther is a pose miss, never a guess.
+
+A miss is *pending* (``BadInput.pending``) when the pose may still come: nothing received
+yet, or the stamp is newer than the newest pose by at most the gap bound (the next pose can
+still bracket it). Every other miss is final: a stamp older than the buffer, two neighbours
+farther apart than the bound (odometry dropped out), a non-finite stamp, or a stamp more than
+the bound beyond the newest pose.
 
 A sample that would make the ego move faster than ``max_speed`` or accelerate harder than
 ``max_acceleration`` from its neighbours is a glitch: rejected (``implausible_motion``), so it
-is never interpolated into a camera pose. A jump that persists (``teleport_samples`` glitches
-in a row, consistent with each other: relocalisation, a new map) is a teleport: the buffer
-starts over from them (``teleports`` counts it).
+is never interpolated into a camera pose. Speeds and accelerations are measured between real
+samples over at least MIN_MOTION_DT, so a 2 Hz stream is judged by its mean velocities over
+0.5-1 s (a real car's stay far below the bounds). A jump that persists (``teleport_samples``
+glitches in a row, consistent with each other: relocalisation, a new map) is a teleport: the
+buffer starts over from them (``teleports`` counts it).
 """
 from __future__ import annotations
 
@@ -79,7 +87,7 @@ class PoseBuffer:
     MIN_MOTION_DT = 0.05
 
     def __init__(self, capacity: int = 2000, max_extrapolation: float = 0.05,
-                 max_interpolation_gap: float = 0.5, time_jump: float = 1.0,
+                 max_interpolation_gap: float = 1.0, time_jump: float = 1.0,
                  max_speed: float = math.inf, max_acceleration: float = math.inf,
                  teleport_samples: int = 3):
         if capacity < 2 or max_extrapolation < 0 or not max_interpolation_gap > 0 \
@@ -196,17 +204,26 @@ class PoseBuffer:
         return None
 
     def lookup(self, stamp: float) -> np.ndarray:
-        """``T_global_from_ego`` at ``stamp``; raises ``BadInput('pose_miss')`` if unknown."""
+        """``T_global_from_ego`` at ``stamp``; raises ``BadInput('pose_miss')`` if unknown,
+        with ``pending`` set when the pose for ``stamp`` may still arrive."""
         stamps = self._stamps
         if not math.isfinite(stamp):
             raise BadInput("pose_miss", f"no pose at a non-finite stamp {stamp}")
         if not stamps:
-            raise BadInput("pose_miss", f"no pose received yet (wanted t={stamp:.3f})")
+            raise BadInput("pose_miss", f"no pose received yet (wanted t={stamp:.3f})",
+                           pending=True)
         first, last = stamps[0], stamps[-1]
-        if stamp < first - self.max_extrapolation or stamp > last + self.max_extrapolation:
-            raise BadInput("pose_miss", f"no pose near t={stamp:.3f}: buffer spans "
-                           f"[{first:.3f}, {last:.3f}], extrapolation bound "
-                           f"{self.max_extrapolation * 1e3:.0f} ms")
+        gap = self.max_interpolation_gap
+        if stamp < first - self.max_extrapolation:
+            raise BadInput("pose_miss", f"no pose near t={stamp:.3f}: older than the buffer, "
+                           f"which spans [{first:.3f}, {last:.3f}]")
+        if stamp > last + self.max_extrapolation:
+            ahead = stamp - last
+            if ahead <= gap:
+                raise BadInput("pose_miss", f"no pose at t={stamp:.3f} yet: the newest is "
+                               f"{ahead:.3f} s older", pending=True)
+            raise BadInput("pose_miss", f"no pose near t={stamp:.3f}: the newest pose is "
+                           f"{ahead:.3f} s older (> max_pose_gap {gap:g} s)")
         i = bisect.bisect_left(stamps, stamp)
         if i < len(stamps) and stamps[i] == stamp:
             return self._poses[i].copy()
@@ -215,7 +232,8 @@ class PoseBuffer:
         # neighbours (i-1, i) inside; the two end poses when extrapolating
         lo = min(max(i - 1, 0), len(stamps) - 2)
         hi = lo + 1
-        if stamps[hi] - stamps[lo] > self.max_interpolation_gap:
+        if stamps[hi] - stamps[lo] > gap:
+            # beyond the newest pose, the next one may still close the gap
             raise BadInput("pose_miss", f"pose gap of {stamps[hi] - stamps[lo]:.3f} s around "
-                           f"t={stamp:.3f} (> {self.max_interpolation_gap} s)")
+                           f"t={stamp:.3f} (> max_pose_gap {gap:g} s)", pending=stamp > last)
         return interpolate_pose(stamps[lo], self._poses[lo], stamps[hi], self._poses[hi], stamp)

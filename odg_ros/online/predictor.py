@@ -15,19 +15,18 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 import torch
 
 from ..config import ModelConfig
-from ..geometry import invert_transforms
-from ..network.outputs import ODGOutput
+from ..geometry import invert_projections
 from ..network.postprocess import box_dicts
 from ..network.precision import precision_context, resolve_precision
-from ..network.budget import budget_ladder, budget_of
+from ..network.budget import QueryBudget, budget_ladder, budget_of
 from .budget_policy import BudgetPolicy
-from .history import Frame, FrameHistory
+from .history import Frame, FrameHistory, history_geometry
 from .step import MODES, OnlineStep
 
 LOG = logging.getLogger(__name__)
@@ -55,7 +54,6 @@ class Prediction:
     history_reset: str | None = None
     query_budget: str = "full"
     refined_fraction: float = 1.0
-    output: ODGOutput | None = field(default=None, repr=False)
     observed: np.ndarray | None = None
 
 
@@ -101,12 +99,15 @@ class CudaGraphStep:
 
 
 def resolve_budget(query_budget, model, cfg):
-    """query_budget "full" | "auto" | a fraction in (0, 1] -> (the budgets the step runs,
-    None standing for the full one; the ``BudgetPolicy`` of "auto" or None)."""
+    """query_budget "full" | "auto" | a fraction in (0, 1] | one ``QueryBudget`` (a rung of
+    the ladder, tools/profile_budget.py) -> (the budgets the step runs, None standing for the
+    full one; the ``BudgetPolicy`` of "auto" or None)."""
     if query_budget in ("full", None):
         return [None], None
     heads = model.decoder.budget_heads
-    if query_budget == "auto":
+    if isinstance(query_budget, QueryBudget):
+        ladder, policy = [query_budget], None
+    elif query_budget == "auto":
         ladder = budget_ladder(cfg)
         policy = BudgetPolicy(ladder)
     else:
@@ -129,7 +130,7 @@ class OnlinePredictor:
 
     def __init__(self, model: torch.nn.Module, cfg: ModelConfig, device: str | torch.device,
                  max_gap: float = 1.0, num_frames: int | None = None,
-                 keep_output: bool = False, min_interval: float = 0.0,
+                 min_interval: float = 0.0,
                  precision: str = "fp32", compile: str = "eager", compiled_step=None,
                  visibility: bool = True, query_budget="full"):
         """num_frames: history length k (current set included), at most cfg.num_frames
@@ -158,7 +159,6 @@ class OnlinePredictor:
         self.cfg = cfg
         self.device = torch.device(device)
         self.history = FrameHistory(k, max_gap)
-        self.keep_output = keep_output   # tests compare the raw network output
         self.min_interval = float(min_interval)
         # auto -> bf16 or fp32 for this device; an unknown / unusable one fails here
         self.precision = resolve_precision(precision, self.device)
@@ -256,19 +256,9 @@ class OnlinePredictor:
         """History frames (newest first) stored in ring ``slots`` -> the packed buffer, in
         storage-slot order; empty slots get the oldest frame's geometry (finite, never read).
         With the current set's inverse ego2img and image ``bounds`` for its visibility."""
-        current, oldest = frames[0], frames[-1]
-        k, N = self.layout.capacity, self.cfg.num_cams
-        # the warps of all frames in one stacked computation (ego_warp's products)
-        frame_warps = invert_transforms(np.stack([f.pose for f in frames])) @ current.pose
-        ego2img = np.broadcast_to(oldest.ego2img, (k, N, 4, 4)).copy()
-        warps = np.broadcast_to(frame_warps[-1], (k, 4, 4)).copy()
-        deltas = np.full(k, current.stamp - oldest.stamp)
-        for frame, slot, warp in zip(frames, slots, frame_warps):
-            ego2img[slot] = frame.ego2img
-            warps[slot] = warp
-            deltas[slot] = current.stamp - frame.stamp
-        frame_index = slots + [slots[-1]] * (self.cfg.num_frames - len(slots))
-        img2ego = _inverse(current.ego2img) if self.visibility else np.eye(4)
+        ego2img, warps, deltas, frame_index = history_geometry(
+            frames, slots, self.layout.capacity, self.cfg.num_frames)
+        img2ego = invert_projections(frames[0].ego2img) if self.visibility else np.eye(4)
         self.layout.pack(self._packed_host.numpy(), ego2img, warps, deltas, frame_index,
                          slots[0], img2ego, bounds)
 
@@ -287,8 +277,7 @@ class OnlinePredictor:
         t0 = time.perf_counter()
         # the newest kept set is provisional while it is closer than min_interval to the one
         # before it: this set takes its place
-        kept = self.history.frames()
-        replace = len(kept) > 1 and kept[0].stamp - kept[1].stamp < self.min_interval
+        replace = self.history.newest_is_provisional(self.min_interval)
         reset = self.history.push(Frame(features=None, pose=np.asarray(pose, np.float64),
                                         ego2img=np.asarray(ego2img, np.float64),
                                         stamp=float(stamp)), replace_newest=replace)
@@ -346,7 +335,6 @@ class OnlinePredictor:
                           boxes=boxes, timings=timings, num_frames=len(frames),
                           history_reset=reset, query_budget=self._budget_name(budget),
                           refined_fraction=self._refined_fraction(budget),
-                          output=self._raw_output(budget) if self.keep_output else None,
                           observed=observed.reshape(X, Y, Z).astype(bool)
                           if self.visibility else None)
 
@@ -361,26 +349,3 @@ class OnlinePredictor:
             self._host_outputs[budget] = [torch.empty_like(o, device="cpu").pin_memory()
                                           for o in outputs]
         return self._host_outputs[budget]
-
-    def _raw_output(self, budget=None) -> ODGOutput:
-        """The decoder's full output over the ring as the step just saw it (tests)."""
-        ego2img, warps, deltas, frame_index, _ = self.layout.unpack(self._packed)
-        with precision_context(self.precision, self.device):
-            return self.online_step.model._decode_stored(self.ring.all_levels(), ego2img, warps,
-                                                         deltas, frame_index, False,
-                                                         budget=budget)
-
-
-def _inverse(matrices: np.ndarray) -> np.ndarray:
-    """The inverses of [N, 4, 4] matrices; NaN for a singular one (its camera then observes
-    nothing: visibility.py reads no voxel through NaN geometry)."""
-    try:
-        return np.linalg.inv(matrices)
-    except np.linalg.LinAlgError:
-        out = np.full_like(matrices, np.nan, dtype=np.float64)
-        for i, m in enumerate(matrices):
-            try:
-                out[i] = np.linalg.inv(m)
-            except np.linalg.LinAlgError:
-                pass
-        return out

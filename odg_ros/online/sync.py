@@ -59,6 +59,9 @@ class CameraSet:
     stamps: dict[str, float]
     payloads: dict[str, Any]
     completed_at: float | None = None      # steady clock, when its last message came
+    waited: float = 0.0       # seconds it waited for its poses / extrinsics (waiting.py)
+    expired: bool = False     # handed on because that wait ran out
+    looked_up: Any = None     # its look-ups, done while deciding it was ready (pipeline.py)
 
     @property
     def reference_camera(self) -> str:

@@ -35,7 +35,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from ..preprocess import resize_crop_params
+from ..preprocess import image_bounds  # noqa: F401  (the bounds the step reads)
 
 # occluder kinds: 0 / 1 / 2 the mid-plane across that axis, 3 / 4 / 5 the line through the
 # centre along that axis, BALL about the centre, FREE none
@@ -324,14 +324,3 @@ class Visibility(nn.Module):
         depth = nn.functional.pad(depth, (1, 1, 1, 1), value=-float("inf"))
         return depth, nn.functional.pad(hit_kind, (1, 1, 1, 1), value=FREE), \
             nn.functional.pad(plane, (1, 1, 1, 1), value=float("nan"))
-
-
-def image_bounds(image_hws, input_hw) -> np.ndarray:
-    """float32 [N, 4] (u0, v0, u1, v1): each camera's whole image, of size image_hws[n]
-    (H, W), in the pixels of the network input it is resized and cropped to (``input_hw``):
-    the rows cropped off the top lie above row 0."""
-    bounds = []
-    for hw in image_hws:
-        _, crop_top, (resized_h, resized_w) = resize_crop_params(tuple(hw), tuple(input_hw))
-        bounds.append((0.0, -float(crop_top), float(resized_w), float(resized_h - crop_top)))
-    return np.asarray(bounds, dtype=np.float32)

@@ -7,8 +7,10 @@ latest-wins mailboxes between them), and publishes.
 
 Inputs (all remappable): one image topic per camera (CompressedImage or Image, best-effort
 sensor QoS), one CameraInfo per camera, the ego pose from /tf (+ /tf_static) or an Odometry
-topic, camera extrinsics from a rig file or TF. TF is read straight from tf2_msgs/TFMessage
-into a small transform buffer (online/transforms.py), so the node does not need tf2_ros.
+topic, camera extrinsics from TF when the data carries them, else a rig file
+(online/extrinsics.py). TF is read straight from tf2_msgs/TFMessage into a small transform
+buffer (online/transforms.py), so the node does not need tf2_ros. A set whose poses or
+transforms have not arrived yet waits for them up to ``pose_wait`` (online/waiting.py).
 
 Outputs (reliable, keep-last 1): ~/occupancy (odg_ros_msgs/SemanticVoxelGrid, with the
 observed mask of online/visibility.py), ~/occupancy/cloud (PointCloud2: occupied voxel
@@ -57,9 +59,10 @@ from std_msgs.msg import Float32
 
 from ..network.checkpoint import load_model
 from ..network.precision import resolve_device, slow_precision_warning
-from ..online.diagnostics import InputMonitor, PipelineStats
+from ..online.diagnostics import InputMonitor, PipelineStats, transform_topics_needed
 from ..online import parameters as node_parameters
 from ..online.errors import BadInput
+from ..online.extrinsics import CameraExtrinsics
 from ..online.images import EncodedImage
 from ..online.pipeline import OnlinePipeline, PipelineSettings
 from ..online.poses import pose_from_xyz_xyzw
@@ -112,18 +115,26 @@ class OdgNode(Node):
         cameras = list(p["camera_names"])
         predictor = load_predictor(p, self.get_logger())
         self.cfg = predictor.cfg
-        self.tf, pose_lookup, extrinsics = pose_sources(p, cameras)
+        self.cameras = cameras
+        self.tf, pose_lookup, self.extrinsics = pose_sources(p, cameras, self._log_note)
         # /tf frames looked up from: the ego frame, and each camera's CameraInfo frame
         self._tf_base = {p["base_frame"]} if p["pose_source"] == "tf" else set()
         self._tf_cameras: dict[str, str] = {}
         self.tf.set_wanted(self._tf_base)
+        if p["extrinsics_source"] != "rig":
+            # a converter sends base_link -> every sensor with the first /tf, maybe before
+            # the CameraInfo that names a camera's frame: keep them from the start
+            self.tf.keep_children_of({p["base_frame"]})
         self.inputs = InputMonitor()
         self.stats = PipelineStats(stale_after_s=float(p["no_output_timeout"]),
-                                   max_tf_rate=float(p["max_tf_rate"]), inputs=self.inputs)
+                                   max_tf_rate=float(p["max_tf_rate"]), inputs=self.inputs,
+                                   first_set_grace_s=float(p["pose_wait"]))
         self.internal_errors = 0
         self._error_lock = threading.Lock()
-        self.pipeline = OnlinePipeline(predictor, pipeline_settings(p, cameras), extrinsics,
-                                       pose_lookup, self.stats)
+        # the wait for poses runs on the node's clock: bag time under use_sim_time
+        self.pipeline = OnlinePipeline(predictor, pipeline_settings(p, cameras),
+                                       self.extrinsics, pose_lookup, self.stats,
+                                       clock=self.now_seconds)
         self._bad_input_loggers = {}
         self.outputs = messages.Outputs(self, self.cfg, self.output_frame,
                                         (float(p["bev_min_z"]), float(p["bev_max_z"])))
@@ -186,22 +197,33 @@ class OdgNode(Node):
         if p["pose_source"] == "odometry":
             self._input(Odometry, p["odometry_topic"], self.on_odometry,
                         QoSProfile(depth=100, reliability=ReliabilityPolicy.BEST_EFFORT))
-        if p["pose_source"] == "tf" or p["extrinsics_source"] == "tf":
+        if p["pose_source"] == "tf" or p["extrinsics_source"] != "rig":
             from tf2_msgs.msg import TFMessage    # on ROS installs and in the venv shim
-            self._input(TFMessage, "/tf", lambda m: self.on_tf(m, False), TF_QOS)
-            self._input(TFMessage, "/tf_static", lambda m: self.on_tf(m, True),
-                        TF_STATIC_QOS)
+            tf_needed, either_needed = transform_topics_needed(p["pose_source"],
+                                                               p["extrinsics_source"])
+            tf = self._input(TFMessage, "/tf", lambda m: self.on_tf(m, False), TF_QOS,
+                             needed=tf_needed)
+            tf_static = self._input(TFMessage, "/tf_static", lambda m: self.on_tf(m, True),
+                                    TF_STATIC_QOS, needed=False)
+            if either_needed:
+                self.inputs.need_one_of((tf, tf_static))
 
-    def _input(self, message_type, topic: str, callback, qos) -> None:
+    def _input(self, message_type, topic: str, callback, qos, needed: bool = True) -> str:
         """A subscription whose messages are counted per topic (its name after remapping)
-        for the diagnostics before ``callback`` sees them."""
+        for the diagnostics before ``callback`` sees them; returns that name."""
         name = self.resolve_topic_name(topic)
-        self.inputs.watch(name)
+        self.inputs.watch(name, needed)
 
         def receive(msg):
             self.inputs.received(name)
             callback(msg)
         self._inputs.append(self.create_subscription(message_type, topic, receive, qos))
+        return name
+
+    def _log_note(self, level: str, message: str) -> None:
+        """The extrinsics' notes ('info' or 'warning'; each logged once by its source)."""
+        logger = self.get_logger()
+        (logger.warning if level == "warning" else logger.info)(message)
 
     # ------------------------------------------------------------------ bad input reporting
     def warn_bad_input(self, error: BadInput) -> None:
@@ -238,7 +260,7 @@ class OdgNode(Node):
         except BadInput as error:
             self.warn_bad_input(error)
             return
-        if self.params["extrinsics_source"] == "tf" and \
+        if self.params["extrinsics_source"] != "rig" and \
                 self._tf_cameras.get(camera) != msg.header.frame_id:
             self._tf_cameras[camera] = msg.header.frame_id
             self.tf.set_wanted(self._tf_base | set(self._tf_cameras.values()))
@@ -262,7 +284,8 @@ class OdgNode(Node):
         for transform in msg.transforms:
             # A busy tree: most dynamic transforms are off the chains we look up; drop them
             # by name before converting anything (statics are few and kept, up to a cap).
-            if not static and not wants(transform.child_frame_id):
+            if not static and not wants(transform.child_frame_id,
+                                        transform.header.frame_id):
                 continue
             t, r = transform.transform.translation, transform.transform.rotation
             try:
@@ -272,6 +295,7 @@ class OdgNode(Node):
                             static)
             except BadInput as error:
                 self.warn_bad_input(self.pipeline.count_bad_input(error))
+        self.pipeline.transforms_arrived()
 
     # ------------------------------------------------------------------------ inference
     def _work(self) -> None:
@@ -319,7 +343,7 @@ class OdgNode(Node):
         return counters
 
     def publish_diagnostics(self) -> None:
-        status = self.stats.status(self.counters())
+        status = self.stats.status(self.counters(), self.extrinsics.sources(self.cameras))
         if self.internal_errors:
             status["level"] = max(status["level"], 2)      # DiagnosticStatus.ERROR
             status["message"] += f"; {self.internal_errors} internal errors (see the log)"
@@ -370,28 +394,29 @@ def load_predictor(p: dict, logger) -> OnlinePredictor:
     return predictor
 
 
-def pose_sources(p: dict, cameras: list[str]):
-    """(the TF buffer, the pose look-up or None for odometry, the extrinsics look-up) of the
-    validated parameters ``p``."""
+def pose_sources(p: dict, cameras: list[str], log=lambda level, message: None):
+    """(the TF buffer, the pose look-up or None for odometry, the CameraExtrinsics) of the
+    validated parameters ``p``; ``log(level, message)`` takes the extrinsics' notes."""
     tf = TransformBuffer(max_extrapolation=float(p["max_pose_extrapolation"]),
+                         max_interpolation_gap=float(p["max_pose_gap"]),
                          cache_time=float(p["tf_cache_time"]), max_speed=float(p["max_speed"]),
                          max_acceleration=float(p["max_acceleration"]))
     pose_lookup = None
     if p["pose_source"] == "tf":
         global_frame, base = p["global_frame"], p["base_frame"]
         pose_lookup = lambda t: tf.lookup(global_frame, base, t, "pose_miss")  # noqa
-    if p["extrinsics_source"] == "rig":
+    rig = None
+    if p["extrinsics_source"] != "tf":
         rig = load_rig(p["rig_file"] or resource_path("config/rig_nuscenes.yaml"))
         missing = [c for c in cameras if c not in rig.cameras]
-        if missing:
+        if missing and p["extrinsics_source"] == "rig":
             raise ValueError(f"cameras {missing} are not in the rig file "
                              f"(it has {list(rig.cameras)})")
-        extrinsics = lambda camera, frame_id, t: rig.cameras[camera].sensor2ego  # noqa
-    else:
-        base = p["base_frame"]
-        extrinsics = lambda camera, frame_id, t: tf.lookup(  # noqa
-            base, frame_id, t, "missing_extrinsics")
-    return tf, pose_lookup, extrinsics
+        if missing:
+            log("warning", f"cameras {missing} are not in the rig file: their extrinsics "
+                "can only come from TF")
+    return tf, pose_lookup, CameraExtrinsics(p["extrinsics_source"], p["base_frame"], tf, rig,
+                                             log)
 
 
 def pipeline_settings(p: dict, cameras: list[str]) -> PipelineSettings:
@@ -399,6 +424,8 @@ def pipeline_settings(p: dict, cameras: list[str]) -> PipelineSettings:
     return PipelineSettings(cameras, slop=float(p["slop"]),
                             max_future=float(p["max_future_stamp"]),
                             pose_max_extrapolation=float(p["max_pose_extrapolation"]),
+                            max_pose_gap=float(p["max_pose_gap"]),
+                            pose_wait=float(p["pose_wait"]),
                             intrinsics=IntrinsicsRange(float(p["min_focal_length"]),
                                                        float(p["max_focal_length"]),
                                                        float(p["max_principal_point_offset"])),

@@ -1,6 +1,7 @@
 """``odg ... --set`` goes through the node's own validator (types, misspelt booleans,
 ranges, unknown keys), and a damaged or foreign bag: each is one line,
-``odg CMD: error: ...``, exit code 2, no traceback."""
+``odg CMD: error: ...``, exit code 2, no traceback. A bag cut short (a recording that ended
+badly) plays up to the damage after one warning line; a missing one is "not found"."""
 from __future__ import annotations
 
 import pickle
@@ -91,7 +92,7 @@ def damaged(good_bag, tmp_path, how):
     return bag
 
 
-@pytest.mark.parametrize("how", ["truncated", "corrupt", "foreign"])
+@pytest.mark.parametrize("how", ["corrupt", "foreign"])
 def test_a_damaged_or_foreign_bag_is_one_line(how, good_bag, tmp_path, capsys):
     pytest.importorskip("rclpy", reason="odg replay publishes with rclpy")
     from odg_ros.ros.dds import use_localhost_dds
@@ -102,3 +103,28 @@ def test_a_damaged_or_foreign_bag_is_one_line(how, good_bag, tmp_path, capsys):
     lines = [line for line in err.splitlines() if line.strip()]
     assert len(lines) == 1 and lines[0].startswith("odg replay: error: "), err
     assert f"{bag} is not a readable rosbag2 bag" in lines[0]
+
+
+def test_a_bag_cut_short_plays_to_the_damage_with_one_warning(good_bag, tmp_path, capsys):
+    pytest.importorskip("rclpy", reason="odg replay publishes with rclpy")
+    from odg_ros.ros.dds import use_localhost_dds
+    use_localhost_dds()
+    bag = damaged(good_bag, tmp_path, "truncated")      # cut mid-chunk: nothing complete
+    assert main(["replay", str(bag), "--quiet", "--rate", "50"]) == 2
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"odg replay: error: {bag} ended badly")
+    assert lines[0].endswith("not one message is complete")
+    mcap = next(bag.glob("*.mcap"))                     # cut in the summary: every message
+    mcap.write_bytes(next(good_bag.glob("*.mcap")).read_bytes()[:-100])
+    assert main(["replay", str(bag), "--quiet", "--rate", "50"]) == 0
+    out, err = capsys.readouterr()
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith(f"odg replay: warning: {bag} ended badly"), err
+    assert "replaying the 376 of 376 messages before that, 1.04 s of bag time" in lines[0]
+    assert out.startswith("published 376 messages")
+
+
+def test_a_missing_bag_is_not_found(tmp_path, capsys):
+    assert main(["replay", str(tmp_path / "nowhere"), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err == f"odg replay: error: {tmp_path / 'nowhere'} not found"

@@ -100,6 +100,9 @@ def test_only_the_needed_chains_are_converted_the_rest_dropped_by_name():
     assert not any(tf.wants(name) for name in busy)
     assert tf.counters["tf_ignored"] == 251       # map before it was needed + the 250
     assert tf.counters["tf_received"] == 255
+    # a sensor's first /tf before its CameraInfo named its frame: kept as a child of the ego
+    tf.keep_children_of({"base_link"})
+    assert tf.wants("CAM_BACK", "base_link") and not tf.wants("fixed_frame_0", "world")
 
 
 # ------------------------------------------------------------------ plausibility
@@ -241,10 +244,20 @@ def test_no_output_while_inputs_arrive_is_an_error_with_the_dominant_reason():
     clock[0] = 30.0                               # inputs stopped: not this error any more
     assert "while inputs arrive" not in stats.status(counters)["message"]
 
+    # never an output: the timer runs from the first complete set, not from the start
     never = diagnostics.PipelineStats(stale_after_s=5.0, clock=lambda: clock[0])
     clock[0] += 6.0
-    assert never.status({"sets_completed": 0, "missing_extrinsics": 12})["level"] \
-        == diagnostics.ERROR
+    assert never.status({"sets_completed": 0, "missing_camera_info": 0})["level"] \
+        == diagnostics.WARN
+    never.record_complete_set()
+    clock[0] += 4.0
+    assert never.status({"sets_completed": 8, "missing_extrinsics": 8})["level"] \
+        == diagnostics.WARN
+    clock[0] += 2.0
+    status = never.status({"sets_completed": 12, "missing_extrinsics": 12})
+    assert status["level"] == diagnostics.ERROR
+    assert "no output for 6.0 s while inputs arrive: 100 % of dropped sets and inputs were " \
+        "missing_extrinsics" in status["message"]
 
 
 def test_a_tf_flood_shows_in_diagnostics():

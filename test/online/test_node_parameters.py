@@ -11,6 +11,7 @@ import yaml
 from odg_ros.config import load_preset
 from odg_ros.network.precision import PRECISIONS
 from odg_ros.online import parameters
+from odg_ros.online.extrinsics import SOURCES as EXTRINSICS_SOURCES
 from odg_ros.resources import resource_path
 
 
@@ -31,6 +32,7 @@ def test_params_file_holds_every_parameter_at_its_default():
 def test_schema_enums_match_the_code():
     schema = parameters.load_schema()
     assert schema["precision"].enum == PRECISIONS
+    assert schema["extrinsics_source"].enum == EXTRINSICS_SOURCES
     for preset in schema["preset"].enum:
         load_preset(preset)           # every listed preset exists
 

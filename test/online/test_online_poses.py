@@ -1,4 +1,8 @@
-"""Pose interpolation (linear + slerp), the extrapolation bound, bad poses, the TF buffer."""
+"""Pose interpolation (linear + slerp), the extrapolation and gap bounds, poses not received
+yet (pending) against poses that cannot come, bad poses, the TF buffer, the motion checks on
+sparse (2 Hz) poses."""
+import math
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation, Slerp
@@ -144,3 +148,115 @@ def test_pose_from_ros_fields():
         with pytest.raises(BadInput) as error:
             pose_from_xyz_xyzw(translation, quaternion)
         assert error.value.kind == "bad_pose"
+
+
+# ---------------------------------------------- sparse poses: the gap bound, "not yet"
+def kind_and_pending(call, *args):
+    try:
+        call(*args)
+    except BadInput as error:
+        return error.kind, error.pending
+    return "ok", False
+
+
+def test_keyframe_gaps_of_nuscenes_are_interpolated_up_to_the_bound():
+    """Poses at 2 Hz keyframes with one gap stretched to 0.55 s and one to 0.75 s (as
+    scene-0061 has, and worse): interpolated across with the default bound (1 s), a miss
+    for good across a gap wider than the bound."""
+    stamps = [10.0, 10.5, 11.05, 11.55, 12.3, 12.8]
+    default, narrow = PoseBuffer(), PoseBuffer(max_interpolation_gap=0.5)
+    for t in stamps:
+        for buffer in (default, narrow):
+            buffer.add(t, yaw_pose(0.1 * t, (5.0 * t, 0, 0)))
+    for t in (10.8, 11.3, 12.0):
+        assert default.lookup(t)[0, 3] == pytest.approx(5.0 * t)
+    assert kind_and_pending(narrow.lookup, 10.25) == ("ok", False)
+    assert kind_and_pending(narrow.lookup, 10.8) == ("pose_miss", False)
+    assert kind_and_pending(narrow.lookup, 12.0) == ("pose_miss", False)
+    two_seconds = PoseBuffer()
+    two_seconds.add(10.0, np.eye(4))
+    two_seconds.add(12.0, np.eye(4))
+    assert kind_and_pending(two_seconds.lookup, 11.0) == ("pose_miss", False)
+    with pytest.raises(ValueError):
+        PoseBuffer(max_interpolation_gap=0.0)
+
+
+def test_a_pose_not_received_yet_is_pending_a_pose_that_cannot_come_is_not():
+    buffer = PoseBuffer(max_extrapolation=0.05, max_interpolation_gap=1.0)
+    assert kind_and_pending(buffer.lookup, 10.0) == ("pose_miss", True)   # nothing yet
+    buffer.add(10.0, np.eye(4))
+    buffer.add(10.5, make_transform(np.eye(3), [2.5, 0, 0]))
+    assert kind_and_pending(buffer.lookup, 10.54) == ("ok", False)       # extrapolated
+    assert kind_and_pending(buffer.lookup, 10.6) == ("pose_miss", True)  # the next may come
+    assert kind_and_pending(buffer.lookup, 11.5) == ("pose_miss", True)  # still within 1 s
+    assert kind_and_pending(buffer.lookup, 11.51) == ("pose_miss", False)  # no gap bridges
+    assert kind_and_pending(buffer.lookup, 9.9) == ("pose_miss", False)  # older than all
+    assert kind_and_pending(buffer.lookup, math.nan) == ("pose_miss", False)
+    buffer.add(11.7, np.eye(4))                           # a gap of 1.2 s: too wide
+    assert kind_and_pending(buffer.lookup, 11.0) == ("pose_miss", False)
+    wide_end = PoseBuffer(max_extrapolation=0.05, max_interpolation_gap=0.5)
+    wide_end.add(10.0, np.eye(4))
+    wide_end.add(10.8, np.eye(4))
+    # just beyond the newest, the two end poses too far apart to extrapolate from: the
+    # next pose can still bracket the stamp
+    assert kind_and_pending(wide_end.lookup, 10.82) == ("pose_miss", True)
+
+
+def test_every_dynamic_tf_edge_takes_the_gap_bound_and_not_yet_is_pending():
+    """map -> base_link and base_link -> CAM_FRONT both on /tf at 2 Hz (a public nuScenes
+    converter): both interpolated across a 0.75 s gap with a bound of 1 s, a miss with 0.5."""
+    cam = make_transform(Rotation.from_euler("xyz", [-90, 0, -90], degrees=True).as_matrix(),
+                         (1.7, 0.0, 1.5))
+    wide, narrow = TransformBuffer(), TransformBuffer(max_interpolation_gap=0.5)
+    for tf in (wide, narrow):
+        assert kind_and_pending(tf.lookup, "map", "base_link", 10.0) == ("pose_miss", True)
+        for t in (10.0, 10.75):
+            tf.add("map", "base_link", t, yaw_pose(0.1 * t, (5.0 * t, 0, 0)))
+            tf.add("base_link", "CAM_FRONT", t, cam)
+    assert wide.lookup("map", "base_link", 10.3)[0, 3] == pytest.approx(51.5)
+    assert np.allclose(wide.lookup("base_link", "CAM_FRONT", 10.3), cam)
+    assert kind_and_pending(narrow.lookup, "map", "base_link", 10.3) == ("pose_miss", False)
+    assert kind_and_pending(narrow.lookup, "base_link", "CAM_FRONT", 10.3,
+                            "missing_extrinsics") == ("missing_extrinsics", False)
+    # beyond the newest keyframe: the next one may still come
+    assert kind_and_pending(wide.lookup, "map", "CAM_FRONT", 11.0) == ("pose_miss", True)
+    # a chain of a pending edge and one that fails for good fails for good
+    wide.add("world", "map", 10.0, np.eye(4))
+    wide.add("world", "map", 11.5, np.eye(4))                  # 1.5 s: too wide
+    assert kind_and_pending(wide.lookup, "world", "CAM_FRONT", 11.0) == ("pose_miss", False)
+    assert kind_and_pending(wide.lookup, "CAM_FRONT", "world", 11.0) == ("pose_miss", False)
+    assert wide.connected("base_link", "CAM_FRONT") and not wide.connected("map", "CAM_BACK")
+    assert kind_and_pending(wide.lookup, "base_link", "CAM_BACK", 10.3,
+                            "missing_extrinsics") == ("missing_extrinsics", True)
+    with pytest.raises(ValueError):
+        TransformBuffer(max_interpolation_gap=0.0)
+
+
+@pytest.mark.parametrize("gaps", [(0.5,), (0.55,), (0.75,), (1.0,), (0.5, 0.55, 0.5, 0.75)])
+def test_sparse_true_poses_of_the_synthetic_worlds_are_never_implausible(synthetic_worlds,
+                                                                         gaps):
+    """The motion checks (max_speed 70 m/s, max_acceleration 30 m/s^2: the node's defaults)
+    judge a 2 Hz stream by its mean velocities over 0.5-1 s: the synthetic worlds' true ego
+    poses at keyframe gaps of 0.5 to 1 s (turns, stops, starts) are all accepted, and a
+    60 m glitch at the next keyframe is still rejected (a position glitch e over gaps g reads
+    as an acceleration of about e / g^2: caught from 7.5 m at 0.5 s, 30 m at 1 s)."""
+    for world in synthetic_worlds:
+        buffer = PoseBuffer(max_speed=70.0, max_acceleration=30.0)
+        t, k = 0.0, 0
+        while t <= world.duration:
+            buffer.add(t, world.ego_pose(t))
+            t, k = t + gaps[k % len(gaps)], k + 1
+        assert len(buffer) == k and buffer.teleports == 0
+        glitch = world.ego_pose(t)
+        glitch[:3, 3] += (60.0, 0.0, 0.0)
+        assert kind_and_pending(buffer.add, t, glitch) == ("implausible_motion", False)
+
+
+@pytest.fixture(scope="module")
+def synthetic_worlds():
+    """odg synth's worlds: a right turn at 9.3 m/s on a 4 m radius (2.2 g: the harshest the
+    generator makes), a left turn at 5.4 m/s (0.4 g), an open road with speed changes."""
+    from odg_ros.data.synth.city import SceneKind
+    from odg_ros.data.synth.generate import scene_world
+    return [scene_world(0, 1, 20.0), scene_world(0, 7, 20.0),
+            scene_world(1, 0, 8.0, SceneKind(roads="open-road"))]

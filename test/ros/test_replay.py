@@ -1,4 +1,6 @@
-"""odg replay: a bag published by a separate process arrives complete, byte-exact and on time."""
+"""odg replay: a bag published by a separate process arrives complete, byte-exact and on time;
+several bags play back to back (the bag time jumps), --topics and --remap as ros2 bag play
+has them."""
 from __future__ import annotations
 
 import os
@@ -18,17 +20,26 @@ from testing.ros import RawRecorder, non_loopback, udp_local_addresses
 
 
 @pytest.fixture(scope="module")
-def bag(tmp_path_factory):
+def bags(tmp_path_factory):
+    """A folder of two bags: scene-0001 (1 s) and scene-0002 (0.5 s, 60 s later)."""
     root = tmp_path_factory.mktemp("tiny_nuscenes")
-    tiny_nuscenes.build(root, scene_durations_s=(1.0,))
-    out = tmp_path_factory.mktemp("bags") / "scene-0001"
-    write_scene_bag(NuScenesSensorTables(root).scene_records("scene-0001"), out, progress=False)
-    return out
+    tiny_nuscenes.build(root, scene_durations_s=(1.0, 0.5))
+    folder = tmp_path_factory.mktemp("bags")
+    tables = NuScenesSensorTables(root)
+    for scene in ("scene-0001", "scene-0002"):
+        write_scene_bag(tables.scene_records(scene), folder / scene, progress=False)
+    return folder
 
 
-def start_replay(bag, *args):
-    return subprocess.Popen([sys.executable, "-m", "odg_ros.commands", "replay", str(bag), "--quiet",
-                             *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+@pytest.fixture(scope="module")
+def bag(bags):
+    return bags / "scene-0001"
+
+
+def start_replay(*bags_then_options):
+    return subprocess.Popen([sys.executable, "-m", "odg_ros.commands", "replay",
+                             *map(str, bags_then_options), "--quiet"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 
 def subscribe_all(rclpy_module, context, bag, extra=None):
@@ -146,10 +157,73 @@ def test_ctrl_c_stops_cleanly(rclpy_module, bag):
     assert "interrupted" in out and "Traceback" not in err
 
 
+def test_bags_back_to_back_with_topics_and_remap(ros_context, rclpy_module, bags):
+    """Two bags in the order given (the later scene first: the bag time jumps back 60 s),
+    only two of their topics, /tf published as /replayed/tf."""
+    from nav_msgs.msg import Odometry
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from rclpy.serialization import deserialize_message
+    from rosgraph_msgs.msg import Clock
+    from sensor_msgs.msg import CompressedImage
+    from tf2_msgs.msg import TFMessage
+
+    reliable = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
+    best_effort = QoSProfile(depth=1000, reliability=ReliabilityPolicy.BEST_EFFORT)
+    node = rclpy_module.create_node("replay_test_remap", context=ros_context)
+    recorder = RawRecorder(node, {"/replayed/tf": (TFMessage, reliable),
+                                  "/tf": (TFMessage, reliable),
+                                  "/odom": (Odometry, reliable),
+                                  "/CAM_FRONT/image_rect_compressed": (CompressedImage,
+                                                                       best_effort),
+                                  "/clock": (Clock, reliable)})
+    executor = rclpy_module.executors.SingleThreadedExecutor(context=ros_context)
+    executor.add_node(node)
+    order = [bags / "scene-0002", bags / "scene-0001"]
+    replay = start_replay(order[0], order[1], "--rate", "4", "--clock",
+                          "--topics", "/tf", "/CAM_FRONT/image_rect_compressed",
+                          "--remap", "/tf:=/replayed/tf", "--wait-for-subscribers", "20")
+    out, err = spin_until_exit(executor, replay)
+    node.destroy_node()
+    assert replay.returncode == 0, err
+    sent = sum(1 for bag in order for _ in iter_bag(bag, topics=[
+        "/tf", "/CAM_FRONT/image_rect_compressed"]))
+    assert out.startswith(f"published {sent} messages on 2 topics"), out
+    assert "from 2 bags" in out and "remapped /tf -> /replayed/tf" in out, out
+    playing = [line for line in err.splitlines() if " playing " in line]
+    assert [line.split(": ", 2)[1] for line in playing] == ["playing 1/2", "playing 2/2"], err
+    assert str(order[0]) in playing[0] and str(order[1]) in playing[1]
+
+    for topic, published_as in (("/tf", "/replayed/tf"),
+                                ("/CAM_FRONT/image_rect_compressed",) * 2):
+        want = [raw for bag in order for _, _, _, raw in iter_bag(bag, topics=[topic])]
+        got = [raw for _, raw in recorder.received[published_as]]
+        assert len(got) == len(want) and all(map(same_cdr, got, want)), topic
+    assert not recorder.received["/tf"]              # remapped away, nothing under the old name
+    assert not recorder.received["/odom"]            # not among --topics
+    clock = [deserialize_message(raw, Clock).clock for _, raw in recorder.received["/clock"]]
+    clock_ns = [c.sec * 1_000_000_000 + c.nanosec for c in clock]
+    want_ns = [sorted({s for _, s, _, _ in iter_bag(bag, topics=["/tf", "/CAM_FRONT/"
+                                                                 "image_rect_compressed"])})
+               for bag in order]
+    assert clock_ns == want_ns[0] + want_ns[1]       # one jump back, at the second bag
+    assert want_ns[1][0] < want_ns[0][-1] - 50e9
+
+
 def test_bad_arguments(rclpy_module, tmp_path, bag):
     result = subprocess.run([sys.executable, "-m", "odg_ros.commands", "replay", str(tmp_path)],
                             capture_output=True, text=True, timeout=60)
-    assert result.returncode == 2 and "not a rosbag2 folder" in result.stderr
+    assert result.returncode == 2 and "is not a rosbag2 bag" in result.stderr
+    result = subprocess.run([sys.executable, "-m", "odg_ros.commands", "replay",
+                             str(tmp_path / "missing")], capture_output=True, text=True,
+                            timeout=60)
+    assert result.returncode == 2 and f"{tmp_path / 'missing'} not found" in result.stderr
+    result = subprocess.run([sys.executable, "-m", "odg_ros.commands", "replay", str(bag),
+                             "--topics", "/tf", "/nope"], capture_output=True, text=True,
+                            timeout=60)
+    assert result.returncode == 2 and "--topics: not in the bag: /nope" in result.stderr
+    result = subprocess.run([sys.executable, "-m", "odg_ros.commands", "replay", str(bag),
+                             "--remap", "/tf"], capture_output=True, text=True, timeout=60)
+    assert result.returncode == 2 and "expected old_topic:=new_topic" in result.stderr
     result = subprocess.run([sys.executable, "-m", "odg_ros.commands", "replay", str(bag),
                              "--rate", "0"], capture_output=True, text=True, timeout=60)
     assert result.returncode == 2 and "--rate: must be > 0" in result.stderr
