@@ -13,7 +13,7 @@
    come faster than the node takes them, so it runs back to back. Its grids per second as
    a planner receives them, and its own ``/diagnostics`` stage times.
 
-    python -m tools.node_rate [--out out/demo] [--rate 0.5] [--precision bf16] [--step-only]
+    python -m tools.node_rate [--out out/demo] [--rate 0.5] [--precision auto] [--step-only]
         [--json]
 
 Prints both with their ratios (node ``stage_model_ms`` / step wall time; node grids per
@@ -153,8 +153,8 @@ def main(argv=None) -> int:
     parser.add_argument("--rate", type=float, default=0.5,
                         help="replay speed, x real time (default 0.5: 6 camera sets per "
                              "second, more than the CPU node takes)")
-    parser.add_argument("--precision", default="fp32",
-                        help="the node's precision parameter (default fp32)")
+    parser.add_argument("--precision", default="auto",
+                        help="the node's precision parameter (default auto, the node's)")
     parser.add_argument("--steps", type=int, default=16,
                         help="steps timed alone, after two warm-up steps (default 16)")
     parser.add_argument("--threads", type=int, default=None,

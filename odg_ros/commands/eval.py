@@ -10,7 +10,7 @@ import json
 from ..metrics.detection import format_detection
 from ..metrics.score import format_table
 from ..network.checkpoint import load_model
-from ..network.precision import PRECISIONS, resolve_device, resolve_precision
+from ..network.precision import NODE_PRECISIONS, resolve_device, resolve_precision
 from ..online.predictor import resolve_budget
 from ..train.evaluate import evaluate
 from .common import (config_overrides, device, existing_dir, existing_file, infos_file,
@@ -39,7 +39,7 @@ def add_arguments(parser):
                              "query_budget parameter: full (default), auto (chosen per "
                              "keyframe from the one before) or a fraction in (0, 1]; the "
                              "result then says the mean share of the queries refined")
-    parser.add_argument("--precision", choices=PRECISIONS + ("auto",), default=None,
+    parser.add_argument("--precision", choices=NODE_PRECISIONS, default=None,
                         help="score the node's arithmetic at this precision (its folded "
                              "backbone; bf16 / fp16 weights and an autocast decoder, or "
                              "bf16-encoder: ResNet + FPN in bf16, the decoder in fp32; auto: "

@@ -12,6 +12,8 @@ import torch
 from torch import nn
 
 PRECISIONS = ("fp32", "bf16", "bf16-encoder", "fp16")
+# the node's precision parameter: one of those, or auto (resolve_precision)
+NODE_PRECISIONS = ("auto",) + PRECISIONS
 
 
 def resolve_device(name: str) -> str:
@@ -110,6 +112,6 @@ def slow_precision_warning(precision: str, device) -> str | None:
     and emulates (odg_cpu on an AVX2-only EPYC: 2,270 ms a step against 327 ms in fp32)."""
     if precision in ("bf16", "bf16-encoder") and torch.device(device).type == "cpu" and \
             not cpu_has_native_bf16():
-        return ("bf16 on this CPU has no native bf16 kernels (no AVX512-BF16 / AMX): expect "
-                "it several times slower than fp32; use precision fp32 here")
+        return (f"{precision} on this CPU has no native bf16 kernels (no AVX512-BF16 / AMX): "
+                "expect it several times slower than fp32; use precision fp32 (or auto) here")
     return None

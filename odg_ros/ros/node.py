@@ -389,7 +389,8 @@ def load_predictor(p: dict, logger) -> OnlinePredictor:
                                 compiled_step=p["compiled_step"].strip() or None,
                                 visibility=bool(p["visibility"]),
                                 query_budget=p["query_budget"])
-    logger.info(f"online step: {predictor.mode} mode, start-up (compile, capture) "
+    logger.info(f"online step: {predictor.mode} mode, precision {predictor.precision}, "
+                f"start-up (compile, capture) "
                 f"{predictor.startup_seconds:.1f} s")
     return predictor
 
