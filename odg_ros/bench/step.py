@@ -33,6 +33,7 @@ from tqdm import tqdm
 
 from ..config import ModelConfig
 from ..network import ODG
+from ..network.precision import resolve_precision
 from ..online.marks import LAYER_PARTS, STEP_STAGES, DecoderMarks, MarkRecorder
 from ..online.predictor import OnlinePredictor, resolve_mode
 from ..rig import ring_ego2img
@@ -274,7 +275,9 @@ def bench_node_step(cfg: ModelConfig, device="cpu", modes=None, iters: int = 5,
     export --aoti`` that the compiled and graphs variants run instead of compiling."""
     settings = settings or node_settings()
     modes = tuple(modes or (settings["compile"],))
-    precisions = tuple(precisions or (settings["precision"],))
+    # auto -> what the node runs on this device, so variants are named by what they compute
+    precisions = tuple(dict.fromkeys(resolve_precision(p, device)
+                                     for p in precisions or (settings["precision"],)))
     model = (model or ODG(cfg)).to(device).eval()
     if frames is not None and not 1 <= frames <= cfg.num_frames:
         raise ValueError(f"--frames must be in 1..{cfg.num_frames} for {cfg.name}")

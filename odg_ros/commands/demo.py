@@ -46,9 +46,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help=f"replay speed, x real time (default {DEFAULT_RATE:g}: 12 Hz "
                              "camera sets every 333 ms, about what the CPU model keeps up with)")
     # network/precision.PRECISIONS, not imported here: `odg demo --help` stays torch-free
-    parser.add_argument("--precision", choices=("fp32", "bf16", "fp16"), default="fp32",
-                        help="the node's inference precision (bf16 autocast is ~1.4x faster on "
-                             "a CPU with AVX512-BF16/AMX)")
+    parser.add_argument("--precision", choices=("auto", "fp32", "bf16-encoder", "bf16", "fp16"),
+                        default="auto",
+                        help="the node's precision parameter (default auto, the node's: "
+                             "bf16-encoder on a CPU with AVX512-BF16/AMX, else fp32)")
     parser.add_argument("--device", type=device, default="auto",
                         help="the node's device: auto (cuda when available), cpu, cuda or cuda:N")
     parser.add_argument("--json", action="store_true",

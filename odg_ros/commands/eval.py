@@ -1,6 +1,6 @@
 """``odg eval --checkpoint CKPT --data [NAME=]INFOS ... [--save-pred DIR]
 [--miou-convention C] [--query-budget full|auto|FRACTION] [--visibility-min-clear P]
-[--json]``.
+[--precision P] [--json]``.
 
 The grid is padded as OPUS pads it at test time (``network/padding.py``) unless
 ``--set occupancy_padding=false``. Several ``--data`` splits (scene classes) are scored each
@@ -9,16 +9,15 @@ the visibility against mask_camera, the confidence's calibration error, label fl
 from __future__ import annotations
 
 import json
-
 from pathlib import Path
 
 from ..metrics.detection import format_detection
 from ..metrics.planner import format_planner
 from ..metrics.score import format_table
 from ..network.checkpoint import load_model
-from ..network.precision import resolve_device
-from ..online.predictor import resolve_budget
+from ..network.precision import NODE_PRECISIONS, resolve_device, resolve_precision
 from ..network.visibility import DEFAULT_MIN_CLEAR
+from ..online.predictor import resolve_budget
 from ..train.evaluate import BEV_BAND, evaluate
 from .common import (UserError, config_overrides, device, existing_dir, existing_file,
                      infos_file, positive_int, probability)
@@ -58,6 +57,12 @@ def add_arguments(parser):
                         metavar=("MIN_Z", "MAX_Z"),
                         help="the node's bev_min_z and bev_max_z (m, grid frame; default "
                              f"{BEV_BAND[0]} {BEV_BAND[1]})")
+    parser.add_argument("--precision", choices=NODE_PRECISIONS, default=None,
+                        help="score the node's arithmetic at this precision (its folded "
+                             "backbone; bf16 / fp16 weights and an autocast decoder, or "
+                             "bf16-encoder: ResNet + FPN in bf16, the decoder in fp32; auto: "
+                             "what the node's precision auto picks on this machine; default: "
+                             "the training model in float32)")
     parser.add_argument("--json", action="store_true", help="print JSON only")
     parser.add_argument("--set", action="append", metavar="KEY=VALUE",
                         help="config override at inference, e.g. motion_compensation=false "
@@ -74,11 +79,18 @@ def run(args) -> int:
     if len(set(names)) != len(names):
         raise UserError(f"--data names {names}: give each split its own NAME=")
     data = args.data[0][1] if len(args.data) == 1 else dict(args.data)
-    result = evaluate(model, cfg, data, occ_root=args.occ_root, save_pred=args.save_pred,
+    scored = model
+    if args.precision is not None:
+        from ..online.step import NodeInferenceModel
+        args.precision = resolve_precision(args.precision, device)
+        scored = NodeInferenceModel(model, cfg, device, args.precision)
+    result = evaluate(scored, cfg, data, occ_root=args.occ_root, save_pred=args.save_pred,
                       device=device, rayiou=not args.no_rayiou, limit=args.limit,
                       progress=not args.json, miou_convention=args.miou_convention,
                       budget=budget, min_clear=args.visibility_min_clear,
                       bev_band=tuple(args.bev_band))
+    if args.precision is not None:
+        result["precision"] = f"{args.precision} (the node's arithmetic)"
     if args.json:
         print(json.dumps(result, indent=2))
     else:
@@ -87,6 +99,8 @@ def run(args) -> int:
                   f"{_number(values.get('RayIoU'))}, {values['samples']} keyframes")
         print(format_table(result))
         print(f"grid padding (OPUS test time): {'on' if cfg.occupancy_padding else 'off'}")
+        if args.precision is not None:
+            print(f"precision: {result['precision']}")
         print(f"mIoU over the dynamic classes: {result['mIoU_dynamic']}")
         if "boxes" in result:
             print(format_detection(result["boxes"]))

@@ -15,9 +15,9 @@ from pathlib import Path
 
 from ..network.checkpoint import (compress_state, load_model, load_weights, read_checkpoint,
                                   save_checkpoint)
-from ..train.calibrate import DEFAULT_THRESHOLDS, calibrate_thresholds, fit_probabilities
-from ..network.precision import PRECISIONS, resolve_device
+from ..network.precision import NODE_PRECISIONS, resolve_device, resolve_precision
 from ..network.visibility import DEFAULT_MIN_CLEAR
+from ..train.calibrate import DEFAULT_THRESHOLDS, calibrate_thresholds, fit_probabilities
 from .common import UserError, device, existing_file, infos_file, positive_int, probability
 
 
@@ -38,8 +38,10 @@ def add_arguments(parser):
                            "compile (no default: this, --out or --onnx)")
     parser.add_argument("--device", type=device, default="cpu",
                         help="--aoti: the device it runs on (cpu, cuda, cuda:N or auto)")
-    parser.add_argument("--precision", choices=PRECISIONS, default="fp32",
-                        help="--aoti: the node's precision parameter")
+    parser.add_argument("--precision", choices=NODE_PRECISIONS, default="auto",
+                        help="--aoti: the node's precision parameter (default auto, as the "
+                             "node's: bf16-encoder on a CPU with bf16 instructions, else fp32; "
+                             "resolved on this machine)")
     parser.add_argument("--frames", type=positive_int, default=None,
                         help="--aoti, --onnx: the history frames, the node's "
                              "history_frames (default: the model's)")
@@ -141,8 +143,9 @@ def export_compiled_step(args) -> int:
         raise UserError(f"--aoti {args.aoti} --frames {frames}: a .pt2 file and at most the "
                         f"model's {cfg.num_frames} frames")
     start = time.perf_counter()
-    path, signature = export_artifact(model, cfg, args.aoti, frames,
-                                      resolve_device(args.device), args.precision,
+    device = resolve_device(args.device)
+    path, signature = export_artifact(model, cfg, args.aoti, frames, device,
+                                      resolve_precision(args.precision, device),
                                       min_clear=args.visibility_min_clear)
     report = {"source": str(args.checkpoint), "aoti": str(path),
               "bytes": path.stat().st_size, "compile_s": round(time.perf_counter() - start, 1),

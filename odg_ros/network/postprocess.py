@@ -67,9 +67,12 @@ def voxelise(means: torch.Tensor, logits: torch.Tensor, cfg: ModelConfig, free_l
     starts = torch.ones_like(voxel, dtype=torch.bool)
     starts[:, 1:] = voxel[:, 1:] != voxel[:, :-1]
     segment = starts.long().cumsum(dim=1) - 1                         # [B, P] in 0..P-1
+    # the points' score rows in voxel order: rows picked by index_select (gather with an
+    # expanded index copies element by element on the CPU, ~40x slower)
+    rows = order + torch.arange(B, device=order.device).unsqueeze(1) * (Q * K)
+    sorted_scores = scores.flatten(0, 1).index_select(0, rows.flatten()).view(B, Q * K, C)
     summed = torch.zeros_like(scores).scatter_add_(
-        1, segment.unsqueeze(-1).expand(-1, -1, C), scores.gather(1, order.unsqueeze(-1)
-                                                                  .expand(-1, -1, C)))
+        1, segment.unsqueeze(-1).expand(-1, -1, C), sorted_scores)
     counts = torch.zeros(B, Q * K, device=means.device).scatter_add_(
         1, segment, torch.ones_like(voxel, dtype=torch.float32))
     segment_voxel = torch.full_like(voxel, cells).scatter_(1, segment, voxel)

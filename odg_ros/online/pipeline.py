@@ -37,6 +37,7 @@ from ..preprocess import adjust_intrinsics
 from .images import (DEFAULT_MAX_PIXELS, DeviceJpegDecoder, EncodedImage, decode_for_input,
                      select_jpeg_decoder, to_network_input)
 from .mailbox import LatestMailbox
+from .pacing import DecodePacing
 from .poses import PoseBuffer
 from .predictor import OnlinePredictor
 from .rig import CameraCalibration, IntrinsicsRange, check_intrinsics, set_ego2img
@@ -146,6 +147,7 @@ class OnlinePipeline:
         self.waiting = WaitingSets(self._ready, settings.pose_wait,
                                    clock if clock is not None else time.monotonic)
         self.prepared = LatestMailbox()          # decoded sets (start_decoding)
+        self.pacing = DecodePacing()             # when start_decoding's thread decodes
         self._decoding: threading.Thread | None = None
         # JPEG sets decoded on the GPU where torchvision can (None: Pillow on the CPU)
         self.jpeg_decoder, self.jpeg_decoder_reason = select_jpeg_decoder(predictor.device)
@@ -259,15 +261,23 @@ class OnlinePipeline:
 
         One prepared set waits at most; a newer one replaces it (counted in
         stale_sets_dropped), so the model always starts on the newest set decoded, in
-        stamp order. A bad set is counted and ``on_bad_input(error)`` called; any other
-        exception calls ``on_error()`` inside its ``except`` block (for the traceback)."""
+        stamp order. Once the model's and the decoding's durations are known, the thread
+        decodes the newest set just before the model will want it (pacing.py): one decode
+        per output, not one per set that arrives. A bad set is counted and
+        ``on_bad_input(error)`` called; any other exception calls ``on_error()`` inside its
+        ``except`` block (for the traceback)."""
         def run():
             while not self.waiting.closed:
+                if not self.pacing.wait_until_due(timeout=0.2):
+                    continue
                 camera_set = self.waiting.get(timeout=0.2)
                 if camera_set is None:
                     continue
                 try:
-                    self.prepared.put(self.prepare(camera_set))
+                    start = time.monotonic()
+                    prepared = self.prepare(camera_set)
+                    self.pacing.decoded(time.monotonic() - start)
+                    self.prepared.put(prepared)
                 except BadInput as error:
                     on_bad_input(error)
                 except Exception:     # never let the thread die silently
@@ -277,8 +287,14 @@ class OnlinePipeline:
         self._decoding.start()
 
     def next_prepared(self, timeout: float | None = None) -> PreparedSet | None:
-        """The newest set prepared by ``start_decoding``'s thread (None on timeout)."""
-        return self.prepared.get(timeout)
+        """The newest set prepared by ``start_decoding``'s thread (None on timeout). Call it
+        when done with the previous one: that tells the decoding thread how long a set
+        takes."""
+        self.pacing.ready()
+        prepared = self.prepared.get(timeout)
+        if prepared is not None:
+            self.pacing.taken()
+        return prepared
 
     def _ready(self, camera_set: CameraSet, final: bool) -> str:
         """WaitingSets' probe: READY, FAILED (a look-up fails for good) or PENDING (one waits
@@ -416,6 +432,7 @@ class OnlinePipeline:
     def close(self) -> None:
         self.waiting.close()
         self.prepared.close()
+        self.pacing.close()
         if self._decoding is not None:
             self._decoding.join(timeout=5.0)
         self._decoder_pool.shutdown(wait=False, cancel_futures=True)

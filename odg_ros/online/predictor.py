@@ -23,7 +23,7 @@ import torch
 from ..config import ModelConfig
 from ..geometry import invert_projections
 from ..network.postprocess import box_dicts
-from ..network.precision import precision_context
+from ..network.precision import precision_context, resolve_precision
 from ..network.budget import QueryBudget, budget_ladder, budget_of
 from .budget_policy import BudgetPolicy
 from .history import Frame, FrameHistory, history_geometry
@@ -143,10 +143,11 @@ class OnlinePredictor:
         ``min_interval`` after the last set kept, else the next set takes its place. So kept
         frames are >= min_interval apart, and frame 1 is 0..~2 x min_interval before frame 0
         (training draws 0.33-0.67 s). precision: fp32, or bf16 / fp16 weights and
-        autocast for the backbone and decoder (step.OnlineStep; fp16 on CUDA only). compile: eager,
-        compiled, graphs (CUDA) or auto (``resolve_mode``); the compile and the graph
-        capture happen here, at start-up (``startup_seconds``); compiled_step: a .pt2 file
-        of ``odg export --aoti`` run instead of compiling (artifact.py; refused with a
+        autocast for the backbone and decoder (step.OnlineStep; fp16 on CUDA only), or
+        auto (bf16 on a CPU with native bf16, else fp32: precision.resolve_precision).
+        compile: eager, compiled, graphs (CUDA) or auto (``resolve_mode``); the compile and
+        the graph capture happen here, at start-up (``startup_seconds``); compiled_step: a
+        .pt2 file of ``odg export --aoti`` run instead of compiling (artifact.py; refused with a
         StaleArtifact if built for another model, configuration, precision, history length,
         device or torch). The grid's free label is the model's class count (cfg.num_classes).
         visibility: also compute which voxels the cameras observe (network/visibility.py);
@@ -163,8 +164,8 @@ class OnlinePredictor:
         self.device = torch.device(device)
         self.history = FrameHistory(k, max_gap)
         self.min_interval = float(min_interval)
-        precision_context(precision, self.device)      # an unknown / unusable one fails here
-        self.precision = precision
+        # auto -> bf16 or fp32 for this device; an unknown / unusable one fails here
+        self.precision = resolve_precision(precision, self.device)
         self.mode = resolve_mode(compile, self.device, compiled_step is not None)
         self.budgets, self.policy = resolve_budget(query_budget, model, cfg)
         if compiled_step is not None and self.budgets != [None]:
@@ -173,7 +174,7 @@ class OnlinePredictor:
         start = time.perf_counter()
         self.visibility = bool(visibility)
         self.min_clear = float(min_clear)
-        self.online_step = OnlineStep(model, cfg, k, self.device, precision,
+        self.online_step = OnlineStep(model, cfg, k, self.device, self.precision,
                                       visibility=self.visibility,
                                       min_clear=self.min_clear).eval()
         self.ring = self.online_step.ring              # same capacity: slots follow history
@@ -188,7 +189,7 @@ class OnlinePredictor:
         self._packed = self._packed_host.to(self.device)
         self._function = self.online_step
         if compiled_step is not None:
-            self._function = self._load_compiled_step(compiled_step, model, k, precision)
+            self._function = self._load_compiled_step(compiled_step, model, k, self.precision)
         elif self.mode != "eager":
             self._function = torch.compile(self.online_step, fullgraph=True, dynamic=False)
         self._graphs, self._host_outputs = {}, {}

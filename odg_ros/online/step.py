@@ -30,9 +30,10 @@ from ..network.backbone import folded_for_inference
 from ..network.budget import QueryBudget, needed_queries
 from ..network.calibration import Calibration
 from ..network.feature_ring import FeatureRing
-from ..network.padding import pad_occupancy
+from ..network.padding import OccupancyPadding
 from ..network.postprocess import ranked_boxes, voxelise
-from ..network.precision import half_dtype, precision_context, with_half_matrix_weights
+from ..network.precision import (decoder_half_dtype, half_dtype, precision_context,
+                                 with_half_matrix_weights)
 from ..preprocess import IMAGENET_MEAN, IMAGENET_STD
 from .marks import mark
 from ..network.visibility import DEFAULT_MIN_CLEAR, Visibility
@@ -103,6 +104,8 @@ class OnlineStep(nn.Module):
                                      self.free_label, min_clear, device=device) \
             if visibility else None
         self.layout = GeometryLayout(capacity, cfg.num_cams, cfg.num_frames)
+        self.padding = OccupancyPadding(cfg.grid_shape, self.free_label, cfg.score_threshold,
+                                        device) if cfg.occupancy_padding else None
         self.register_buffer("mean", torch.tensor(IMAGENET_MEAN, device=device),
                              persistent=False)
         self.register_buffer("std", torch.tensor(IMAGENET_STD, device=device),
@@ -117,9 +120,11 @@ class OnlineStep(nn.Module):
             # every step (one kernel each); the geometry stays float32 (sampling.full_precision)
             self.backbone = self.backbone.to(self.half)
             self.neck = with_half_matrix_weights(self.neck, self.half)
+        decoder_half = decoder_half_dtype(precision)
+        if decoder_half is not None:
             self.model = copy.copy(model)                # shares all but the decoder
             self.model._modules = dict(model._modules)
-            self.model.decoder = with_half_matrix_weights(model.decoder, self.half)
+            self.model.decoder = with_half_matrix_weights(model.decoder, decoder_half)
         self.ring = FeatureRing(capacity, cfg.num_groups)
         with torch.no_grad():                                               # shapes only
             H, W = cfg.image_size
@@ -161,12 +166,11 @@ class OnlineStep(nn.Module):
         layer = output.last
         with mark("grid"):
             labels, confidence = voxelise(layer.means, layer.logits, self.cfg, self.free_label)
-        if self.cfg.occupancy_padding:      # static shapes too: filters over the whole grid
+        if self.padding is not None:        # static shapes too: filters over the whole grid
             grid = (1, *self.cfg.grid_shape)
             with mark("padding"):
-                labels, confidence = (t.flatten(1) for t in pad_occupancy(
-                    labels.view(grid), confidence.view(grid), self.free_label,
-                    self.cfg.score_threshold))
+                labels, confidence = (t.flatten(1) for t in self.padding(labels.view(grid),
+                                                                         confidence.view(grid)))
         labels, confidence = labels[0], confidence[0]
         hazard = None
         if self.calibration.calibrated:
@@ -188,3 +192,27 @@ class OnlineStep(nn.Module):
                 observed = self.visibility(labels, *self.layout.current_view(packed),
                                            hazard=hazard)
         return labels, confidence, boxes[0], score[0], label[0], valid[0], observed
+
+
+class NodeInferenceModel(nn.Module):
+    """The offline model's call (every frame of a sample through the backbone, then the
+    decoder) computed with an ``OnlineStep``'s own modules and precision: the folded
+    channels-last backbone, bf16 / fp16 weights where ``precision`` asks, float32 feature
+    layout, autocast decoder. What ``odg eval --precision`` scores: the node's arithmetic
+    on the evaluation's samples."""
+
+    def __init__(self, model: nn.Module, cfg: ModelConfig, device, precision: str):
+        super().__init__()
+        self.step = OnlineStep(model, cfg, cfg.num_frames, device, precision, visibility=False)
+        self.decoder = self.step.model.decoder          # as the model's (budget needs)
+
+    def forward(self, images: torch.Tensor, ego2img: torch.Tensor, ego_warp: torch.Tensor,
+                time_delta: torch.Tensor, **decode_options):
+        """images [B, T, N, 3, H, W] normalised; geometry as ``ODG.forward``."""
+        B, T, N = images.shape[:3]
+        levels = self.step.features(images.flatten(0, 2))            # [1, B*T*N, C, h, w]
+        levels = [f[0].unflatten(0, (B, T, N)) for f in levels]
+        frame_feats = [[f[:, t] for f in levels] for t in range(T)]
+        with precision_context(self.step.precision, self.step.device):
+            return self.step.model.decode(frame_feats, ego2img, ego_warp, time_delta,
+                                          **decode_options)

@@ -89,7 +89,7 @@ class ChildProcess:
         return self.process.returncode
 
 
-def node_command(checkpoint: Path, precision: str = "fp32", device: str = "auto") -> list[str]:
+def node_command(checkpoint: Path, precision: str = "auto", device: str = "auto") -> list[str]:
     return [sys.executable, "-m", "odg_ros.ros.node", "--ros-args",
             "--params-file", str(resource_path("config/odg.yaml")),
             "-r", f"__node:={NODE_NAME}",
@@ -207,7 +207,7 @@ class PlannerStandIn:
 
 
 def run_session(bag: Path, checkpoint: Path, sets: CameraSets, out_dir: Path, rate: float,
-                progress: bool = True, log=print, precision: str = "fp32",
+                progress: bool = True, log=print, precision: str = "auto",
                 device: str = "auto") -> SessionRecord:
     """Start the node, wait until it is up, replay the bag, receive every output, collect the
     node's final diagnostics; stop everything. Raises DemoError on any failure."""

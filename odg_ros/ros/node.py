@@ -394,7 +394,8 @@ def load_predictor(p: dict, logger) -> OnlinePredictor:
         logger.warning(f"visibility_min_clear {p['visibility_min_clear']} has no effect: the "
                        "checkpoint has no calibration (odg export --calibrate), so only the "
                        "predicted surfaces hide space and 'observed' is less precise")
-    logger.info(f"online step: {predictor.mode} mode, start-up (compile, capture) "
+    logger.info(f"online step: {predictor.mode} mode, precision {predictor.precision}, "
+                f"start-up (compile, capture) "
                 f"{predictor.startup_seconds:.1f} s")
     return predictor
 

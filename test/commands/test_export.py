@@ -295,3 +295,18 @@ def test_keep_thresholds_needs_calibrate(tiny_split, tmp_path, capsys):
     assert main(["export", "--checkpoint", str(checkpoint), "--out", str(tmp_path / "a.pt"),
                  "--keep-thresholds"]) == 2
     assert "--calibrate" in capsys.readouterr().err
+
+
+def test_eval_precision_scores_the_node_arithmetic(tiny_split, capsys):
+    """--precision fp32 scores the node step's own modules (folded backbone): the grid of
+    the training model within a voxel or two; bf16 runs and says so."""
+    data, checkpoint = tiny_split
+    args = ["eval", "--checkpoint", str(checkpoint), "--data", str(data), "--no-rayiou", "--json"]
+    assert main(args) == 0
+    training = json.loads(capsys.readouterr().out)
+    assert main(args + ["--precision", "fp32"]) == 0
+    node = json.loads(capsys.readouterr().out)
+    assert node["precision"] == "fp32 (the node's arithmetic)" and "precision" not in training
+    assert node["mIoU"] == pytest.approx(training["mIoU"], abs=0.5)
+    assert main(args + ["--precision", "bf16"]) == 0
+    assert json.loads(capsys.readouterr().out)["precision"].startswith("bf16")

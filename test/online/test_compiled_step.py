@@ -81,7 +81,8 @@ def test_export_aoti_refuses_a_wrong_file_name_or_history_in_one_line(tmp_path, 
 def test_compiled_step_equals_eager_and_loads_in_seconds(tmp_path, capsys):
     checkpoint = write_tiny_checkpoint(tmp_path / "tiny.pt", **TINY)
     path = tmp_path / "step.pt2"
-    assert main(["export", "--checkpoint", str(checkpoint), "--aoti", str(path)]) == 0
+    assert main(["export", "--checkpoint", str(checkpoint), "--aoti", str(path),
+                 "--precision", "fp32"]) == 0
     report = json.loads(capsys.readouterr().out)
     model, cfg = load_model(checkpoint)
     eager = OnlinePredictor(model, cfg, "cpu", max_gap=1.0)
@@ -112,6 +113,7 @@ def test_bench_refuses_a_stale_compiled_step_in_one_line(tmp_path, capsys):
     signature = step_signature(model, cfg, cfg.num_frames, "cpu", "bf16")
     path = fake_artifact(tmp_path / "step.pt2", signature)
     assert main(["bench", "--compile", "eager,compiled", "--checkpoint", str(checkpoint),
-                 "--compiled-step", str(path), "--iters", "1", "--json"]) == 2
+                 "--compiled-step", str(path), "--iters", "1", "--precision", "fp32",
+                 "--json"]) == 2
     error = capsys.readouterr().err.strip()
     assert "\n" not in error and "built for precision bf16, this node runs fp32" in error

@@ -9,7 +9,7 @@ import pytest
 import yaml
 
 from odg_ros.config import load_preset
-from odg_ros.network.precision import PRECISIONS
+from odg_ros.network.precision import NODE_PRECISIONS
 from odg_ros.online import parameters
 from odg_ros.online.extrinsics import SOURCES as EXTRINSICS_SOURCES
 from odg_ros.resources import resource_path
@@ -31,7 +31,7 @@ def test_params_file_holds_every_parameter_at_its_default():
 
 def test_schema_enums_match_the_code():
     schema = parameters.load_schema()
-    assert schema["precision"].enum == PRECISIONS
+    assert schema["precision"].enum == NODE_PRECISIONS
     assert schema["extrinsics_source"].enum == EXTRINSICS_SOURCES
     for preset in schema["preset"].enum:
         load_preset(preset)           # every listed preset exists
@@ -48,7 +48,7 @@ def test_schema_enums_match_the_code():
     ("history_frames", -1, "history_frames=-1: expected >= 0"),
     ("history_frames", 1.5, "expected int"),
     ("score_threshold", 1.5, "expected -1 to 1"),
-    ("precision", "fp64", "expected one of: fp32, bf16, fp16"),
+    ("precision", "fp64", "expected one of: auto, fp32, bf16, bf16-encoder, fp16"),
     ("camera_names", ["CAM_FRONT", 3], "list of strings"),
     ("warn_throttle", "abc", "expected float"),
     ("no_such_parameter", 1, "unknown parameter 'no_such_parameter'"),

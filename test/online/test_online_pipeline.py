@@ -320,3 +320,68 @@ def test_the_result_carries_what_the_whole_camera_images_see(model_and_cfg):
     assert result.observed.shape == result.grid.shape and result.observed.any()
     assert np.array_equal(result.observed, whole.observed)
     assert result.observed.sum() > cropped.observed.sum()     # the cropped rows count
+
+
+def test_pacing_decodes_the_next_set_when_the_model_is_due_to_want_it():
+    """DecodePacing's clock arithmetic: unknown durations -> decode at once; then just
+    before the current set is due to end, less one decode; one set waiting -> after the
+    next take."""
+    from odg_ros.online.pacing import MARGIN_S, DecodePacing
+    now = [100.0]
+    pacing = DecodePacing(clock=lambda: now[0])
+    assert pacing.due() is None
+    pacing.decoded(0.02)
+    pacing.taken()                                   # the first set: 0.5 s of model
+    assert pacing.due() is None                      # its duration is not known yet
+    now[0] = 100.5
+    pacing.ready()
+    pacing.ready()                                   # a second ask measures nothing
+    assert pacing.busy_s == pytest.approx(0.5)
+    pacing.taken()
+    assert pacing.due() == pytest.approx(100.5 + 0.5 - 0.02 - MARGIN_S)
+    pacing.decoded(0.02)
+    assert pacing.due() == float("inf")              # one set waits for the next take
+    now[0] = 101.0
+    pacing.ready()
+    pacing.taken()
+    assert pacing.due() == pytest.approx(101.0 + 0.5 - 0.02 - MARGIN_S)
+
+
+def test_a_node_slower_than_its_cameras_decodes_one_fresh_set_per_output(model_and_cfg):
+    """Sets every 50 ms, a model of at least 300 ms: once the durations are known (from the
+    third output on), the decoding thread decodes about one set per output, not six or
+    more, and the set each output starts on is among the newest that had arrived."""
+    pipeline, prepared, bad, errors = decoding_ahead(model_and_cfg)
+    feed_calibration_and_poses(pipeline, 10.0, 40.0)
+    step = pipeline.predictor.step
+    pipeline.predictor.step = lambda *args: (time.sleep(0.3), step(*args))[1]
+    fed, outputs, stop = [], [], threading.Event()
+
+    def feed():
+        for k in range(300):
+            if stop.is_set():
+                return
+            fed.append(10.5 + k / 12)
+            feed_set(pipeline, fed[-1], set_images(k % 3), encode=jpeg)
+            time.sleep(0.05)
+
+    def work():
+        while not stop.is_set() and len(outputs) < 7:
+            prepared_set = pipeline.next_prepared(timeout=0.2)
+            if prepared_set is not None:         # (decodes so far, sets behind the newest)
+                age = round((fed[-1] - prepared_set.camera_set.reference_stamp) * 12)
+                outputs.append((len(prepared), age))
+                pipeline.infer(prepared_set)
+
+    feeder, worker = threading.Thread(target=feed), threading.Thread(target=work)
+    try:
+        feeder.start(), worker.start()
+        worker.join(60.0)
+    finally:
+        stop.set()
+        feeder.join(10.0)
+        pipeline.close()
+    assert len(outputs) == 7 and not bad and not errors, outputs
+    decodes = outputs[-1][0] - outputs[3][0]             # from the 4th to the 7th output
+    assert decodes <= 1.5 * 3, f"{decodes} sets decoded for 3 outputs: {outputs}"
+    assert max(age for _, age in outputs[3:]) <= 2, outputs       # a set or two behind

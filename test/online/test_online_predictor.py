@@ -115,3 +115,47 @@ def test_bf16_predictor_stays_close_to_fp32_and_unknown_precision_fails():
         OnlinePredictor(model, cfg, "cpu", precision="fp8")
     with pytest.raises(ValueError, match="CUDA"):
         OnlinePredictor(model, cfg, "cpu", precision="fp16")
+
+
+def test_precision_auto_is_bf16_only_where_the_cpu_has_bf16_instructions(monkeypatch):
+    """auto: the bf16 encoder on a CPU with AVX512-BF16 or AMX (and oneDNN's bf16 kernels),
+    fp32 on one without (oneDNN also says yes on a plain AVX-512 CPU, where bf16 is
+    emulated) and on a GPU; an explicit precision is kept."""
+    from odg_ros.network import precision
+
+    model, cfg = make_model()
+    monkeypatch.setattr(precision, "_cpu_flags", lambda: frozenset({"avx2", "avx512f"}))
+    assert not precision.cpu_has_native_bf16()
+    assert OnlinePredictor(model, cfg, "cpu", precision="auto").precision == "fp32"
+    assert OnlinePredictor(model, cfg, "cpu", precision="bf16").precision == "bf16"
+    monkeypatch.setattr(precision, "_cpu_flags", lambda: frozenset({"avx512f", "avx512_bf16"}))
+    native = precision.cpu_has_native_bf16()
+    assert native == bool(torch.ops.mkldnn._is_mkldnn_bf16_supported())
+    assert precision.resolve_precision("auto", "cpu") == ("bf16-encoder" if native else "fp32")
+    assert precision.resolve_precision("auto", "cuda") == "fp32"
+    with pytest.raises(ValueError, match="precision"):
+        precision.resolve_precision("fp8", "cpu")
+
+
+@pytest.mark.parametrize("precision", ["fp32", "bf16", "bf16-encoder"])
+def test_the_evaluation_model_computes_what_the_node_step_computes(precision):
+    """``odg eval --precision``'s model (every frame through the step's own backbone, then
+    the decoder) gives the online step's outputs on the same frames."""
+    from odg_ros.online.step import NodeInferenceModel
+
+    model, cfg = make_model()
+    sets = make_sets(cfg, 3)
+    predictor = OnlinePredictor(model, cfg, "cpu", max_gap=1.0, precision=precision)
+    evaluated = NodeInferenceModel(model, cfg, "cpu", precision)
+    for i, s in enumerate(sets):
+        predictor.step(*s)
+        chosen = [sets[j] for j in range(i, max(-1, i - cfg.num_frames), -1)]
+        pose, stamp = chosen[0][2], chosen[0][3]
+        with torch.inference_mode():
+            output = evaluated(
+                torch.stack([normalize(torch.from_numpy(c[0])) for c in chosen])[None],
+                torch.tensor(np.stack([c[1] for c in chosen]), dtype=torch.float32)[None],
+                torch.tensor(np.stack([ego_warp(pose, c[2]) for c in chosen]),
+                             dtype=torch.float32)[None],
+                torch.tensor([stamp - c[3] for c in chosen], dtype=torch.float32)[None])
+        assert_layers_close(raw_output(predictor).layers, output.layers, 1e-4)

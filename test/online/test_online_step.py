@@ -294,3 +294,35 @@ def test_bf16_step_stores_its_matrix_weights_in_bf16_and_casts_none():
             torch.autocast("cpu", dtype=torch.bfloat16):
         model.extract_features(torch.zeros(1, cfg.num_cams, 3, *cfg.image_size))
     assert counter.casts > 20
+
+
+def test_bf16_encoder_step_runs_the_encoder_in_bf16_and_the_decoder_in_fp32():
+    """bf16-encoder: ResNet and FPN weights in bf16, the decoder's float32 and shared with
+    the model, no autocast around it; its published grid and boxes are the fp32 decoder's
+    on the same (bf16-rounded) features."""
+    model, cfg = make_model()
+    sets = make_sets(cfg, 2)
+    predictor = OnlinePredictor(model, cfg, "cpu", max_gap=1.0, precision="bf16-encoder")
+    step = predictor.online_step
+    encoder = [m for part in (step.backbone, step.neck) for m in part.modules()
+               if isinstance(m, torch.nn.Conv2d)]
+    assert len(encoder) > 20 and all(m.weight.dtype == torch.bfloat16 for m in encoder)
+    assert step.model.decoder is model.decoder
+    assert all(p.dtype == torch.float32 for p in model.parameters())       # not mutated
+    for s in sets:
+        online = predictor.step(*s)
+    ego2img, warps, deltas, frame_index, _ = step.layout.unpack(predictor._packed)
+    with torch.inference_mode():
+        fp32 = model._decode_stored(step.ring.all_levels(), ego2img, warps, deltas,
+                                    frame_index, False)
+    grid, confidence = published_grid(fp32, cfg)
+    assert (online.grid != cfg.num_classes).sum() > 50                 # a real comparison
+    np.testing.assert_array_equal(online.grid, grid[0].numpy())
+    assert np.abs(online.confidence.astype(int) - confidence[0].numpy()).max() <= 1
+    boxes = box_list(fp32, cfg)[0]
+    assert [b["label"] for b in online.boxes] == [b["label"] for b in boxes]
+    np.testing.assert_allclose([b["center"] for b in online.boxes],
+                               [b["center"] for b in boxes], atol=1e-5)
+    features = step.ring.all_levels()[0]
+    assert features.dtype == torch.float32 and features.abs().sum() > 0
+    assert torch.equal(features, features.bfloat16().float())          # bf16 values

@@ -79,7 +79,9 @@ def write_params(path, checkpoint, **overrides):
                   image_topic="/test/{camera}/image", camera_info_topic="/test/{camera}/info",
                   pose_source="odometry", odometry_topic="/test/odom", output_frame="ego_test",
                   score_threshold=0.0, box_score_threshold=0.0, diagnostics_period=0.2,
-                  warn_throttle=0.2, history_max_gap=2.0)
+                  warn_throttle=0.2, history_max_gap=2.0,
+                  # the offline model's arithmetic on every CPU (auto picks by the CPU)
+                  precision="fp32")
     params.update(overrides)
     path.write_text(yaml.safe_dump({"/**": {"ros__parameters": params}}))
     return params

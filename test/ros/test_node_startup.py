@@ -20,7 +20,8 @@ def test_help_prints_the_parameters_and_exits():
     result = run_node("--help")
     assert result.returncode == 0, result.stderr
     assert "checkpoint (string, default shipped)" in result.stdout
-    assert "precision (string, default fp32; one of: fp32, bf16, fp16)" in result.stdout
+    assert ("precision (string, default auto; one of: auto, fp32, bf16, bf16-encoder, fp16)"
+            in result.stdout)
     assert result.stderr == ""                   # no ROS logging: nothing was started
 
 
