@@ -1,9 +1,12 @@
-"""Complete camera sets waiting for their poses and extrinsics, newest ready set first.
+"""Complete camera sets waiting for their poses, extrinsics and first CameraInfo, newest
+ready set first.
 
 A set can complete before the poses (or camera transforms) for its stamps have arrived:
 nuScenes bag converters publish /tf only at 2 Hz keyframes (a set between two keyframes needs
 the next one's transform) or write odometry in bursts up to 0.5 s after the stamps it
 carries. As tf2's message filter does, such a set waits, bounded, instead of being dropped.
+So does a set completed before the first CameraInfo of one of its cameras was read (a player
+publishes each CameraInfo next to its image; the node's callbacks run in their own order).
 
 ``probe(item, final)`` tells whether a set is READY (its look-ups succeed), FAILED (they fail
 for good) or PENDING (they only wait for data not received yet). The consumer (``get``)
@@ -98,7 +101,8 @@ class WaitingSets:
             self._condition.notify_all()
 
     def notify(self) -> None:
-        """New poses or transforms arrived: a waiting set may be ready now."""
+        """New poses, transforms or a first CameraInfo arrived: a waiting set may be ready
+        now."""
         with self._condition:
             if self._entries:
                 self._news += 1

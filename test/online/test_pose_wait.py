@@ -211,7 +211,8 @@ class Replay:
     set that is ready and prepares it (look-ups, decoding: the model is not what is tested),
     as the node's decoding thread does when it keeps up."""
 
-    def __init__(self, model_and_cfg, pose_source, extrinsics="rig", **settings):
+    def __init__(self, model_and_cfg, pose_source, extrinsics="rig", camera_info=True,
+                 **settings):
         model, cfg = model_and_cfg
         self.clock = [0.0]
         self.tf = TransformBuffer(max_interpolation_gap=settings.get("max_pose_gap", 1.0),
@@ -225,8 +226,9 @@ class Replay:
         self.pipeline = OnlinePipeline(predictor, PipelineSettings(CAMS, **settings),
                                        self.extrinsics, pose_lookup,
                                        clock=lambda: self.clock[0])
-        for name in CAMS:
-            self.pipeline.on_camera_info(name, scaled_K(name), *HW, frame_id=name)
+        if camera_info:
+            for name in CAMS:
+                self.pipeline.on_camera_info(name, scaled_K(name), *HW, frame_id=name)
         self.events = []
         self.prepared, self.errors = [], []
 
@@ -378,6 +380,45 @@ def test_extrinsics_auto_without_tf_waits_once_then_takes_the_rig_file(model_and
     assert len(infos) == len(CAMS) and "CAM_FRONT: no TF base_link -> CAM_FRONT" in infos[0]
 
 
+def camera_info_after_the_first_set(replay, late, never=()):
+    """Poses all along; the first set's images at 10.0 s, each camera's first CameraInfo
+    logged with its image, except ``late`` ones read 20 ms after the set completed (the
+    executor ran their callbacks after the image's) and ``never`` ones never sent."""
+    replay.at(9.9, lambda: [replay.pipeline.on_pose(float(t), pose_at(float(t)))
+                            for t in np.arange(9.5, 12.5, 0.02)])
+    replay.cameras(10.0, 11.0)
+    first_done = 10.0 + OFFSETS[-1] + 0.005
+    for name, offset in zip(CAMS, OFFSETS):
+        if name not in never:
+            replay.at(first_done + 0.02 if name in late else 10.0 + offset - 1e-4,
+                      lambda name=name: replay.pipeline.on_camera_info(
+                          name, scaled_K(name), *HW, frame_id=name))
+
+
+def test_a_set_completed_before_its_last_camera_info_waits_for_it(model_and_cfg):
+    replay = Replay(model_and_cfg, "odometry", camera_info=False)
+    camera_info_after_the_first_set(replay, late={CAMS[-1]})
+    counters = replay.run()
+    assert counters["missing_camera_info"] == 0, replay.errors
+    assert accounted(counters, replay) and counters["sets_waited"] >= 1
+    assert replay.prepared[0][0] == pytest.approx(10.0)      # the first set is not lost
+    broken = Replay(model_and_cfg, "odometry", camera_info=False, pose_wait=0.0)
+    camera_info_after_the_first_set(broken, late={CAMS[-1]})
+    assert broken.run()["missing_camera_info"] == 1           # the race, without the wait
+
+
+def test_a_camera_info_that_never_comes_is_missing_after_the_wait(model_and_cfg):
+    replay = Replay(model_and_cfg, "odometry", camera_info=False, pose_wait=0.5)
+    camera_info_after_the_first_set(replay, late=(), never={CAMS[2]})
+    counters = replay.run()
+    assert counters["missing_camera_info"] >= 1 and not replay.prepared
+    assert counters["sets_waiting"] == 0 and counters["sets_completed"] == \
+        counters["missing_camera_info"] + counters["stale_sets_dropped"]
+    message = replay.errors[0].message
+    assert message.startswith("still missing after waiting 0.50 s (pose_wait 0.5 s): ")
+    assert f"no valid CameraInfo yet for ['{CAMS[2]}']" in message
+
+
 def test_the_decoding_thread_waits_for_a_late_pose(model_and_cfg):
     """The node's path: sets prepared in their own thread, on the steady clock."""
     model, cfg = model_and_cfg
@@ -397,5 +438,22 @@ def test_the_decoding_thread_waits_for_a_late_pose(model_and_cfg):
         assert prepared is not None and prepared.camera_set.reference_stamp == 10.0
         assert prepared.camera_set.waited > 0.2 and not bad
         assert pipeline.counters()["sets_waited"] == 1
+    finally:
+        pipeline.close()
+
+
+def test_a_first_camera_info_wakes_the_waiting_room(model_and_cfg):
+    """The decoding thread sleeps until news (or its poll): a camera's first CameraInfo is
+    news; a repeated one (with every image) is not."""
+    model, cfg = model_and_cfg
+    pipeline = OnlinePipeline(OnlinePredictor(model, cfg, "cpu"), PipelineSettings(CAMS),
+                              lambda camera, frame, t: RIG.cameras[camera].sensor2ego)
+    woken = []
+    pipeline.waiting.notify = lambda: woken.append(True)
+    try:
+        pipeline.on_camera_info(CAMS[0], scaled_K(CAMS[0]), *HW, frame_id=CAMS[0])
+        assert len(woken) == 1
+        pipeline.on_camera_info(CAMS[0], scaled_K(CAMS[0]), *HW, frame_id=CAMS[0])
+        assert len(woken) == 1
     finally:
         pipeline.close()
