@@ -457,3 +457,23 @@ def test_a_first_camera_info_wakes_the_waiting_room(model_and_cfg):
         assert len(woken) == 1
     finally:
         pipeline.close()
+
+
+def test_the_first_set_after_a_jump_forward_waits_for_the_new_poses(model_and_cfg):
+    """Bags of two scenes back to back, the second much later: its first set completes
+    before its first /tf; the pose buffer holds only the first scene's. It waits, then
+    goes; no pose miss."""
+    replay = Replay(model_and_cfg, "tf")
+    replay.keyframe_tf([10.0, 10.5, 11.0])
+    replay.cameras(10.0, 10.9)
+    later = 5000.0
+    replay.at(later + OFFSETS[-1] + 0.005, lambda: replay.feed(later, 0))
+
+    def new_scene_poses():       # the new bag's first /tf messages, read after the images
+        for t in later + 0.02 * np.arange(26):
+            replay.tf.add("map", "base_link", float(t), pose_at(float(t)))
+        replay.pipeline.transforms_arrived()
+    replay.at(later + 0.1, new_scene_poses)
+    counters = replay.run()
+    assert counters["pose_miss"] == 0, replay.errors
+    assert replay.prepared[-1][0] == pytest.approx(later)
