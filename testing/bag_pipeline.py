@@ -18,14 +18,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-import yaml
 
 from odg_ros.bags.messages import deserialize
 from odg_ros.bags.reader import open_bag
 from odg_ros.online import node_setup
 from odg_ros.online.errors import BadInput
 from odg_ros.online.images import EncodedImage
-from odg_ros.online.parameters import validate
+from odg_ros.online.parameters import params_file_parameters, validate
 from odg_ros.online.poses import pose_from_xyz_xyzw
 from odg_ros.resources import resource_path
 
@@ -41,17 +40,6 @@ VARIANTS = {
 }
 
 
-def params_file_values(path) -> dict:
-    """The parameters a ROS params file gives every node (its ``/**`` and node sections
-    merged), without ``use_sim_time`` (rclpy's own; this run is on bag time anyway)."""
-    document = yaml.safe_load(Path(path).read_text()) or {}
-    values = {}
-    for section in document.values():
-        values.update(section.get("ros__parameters") or {})
-    values.pop("use_sim_time", None)
-    return values
-
-
 def layout_parameters(world, variant: str, **overrides) -> dict:
     """The node's validated parameters for a layout variant of a LayoutWorld
     (testing/bag_layouts.py): its documented params file, the world's rig file where the
@@ -59,7 +47,7 @@ def layout_parameters(world, variant: str, **overrides) -> dict:
     if variant not in VARIANTS:
         raise ValueError(f"unknown layout variant {variant!r} (one of {', '.join(VARIANTS)})")
     params_file, bag, needs_rig = VARIANTS[variant]
-    values = params_file_values(resource_path(params_file))
+    values = params_file_parameters(resource_path(params_file))
     if needs_rig:
         values["rig_file"] = str(world.rigs[bag])
     values.update(overrides)
