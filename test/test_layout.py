@@ -1,6 +1,8 @@
 """The package's layout as docs/architecture.md states it: imports go down the layers, the
 tools (bench, demo) are imported only by the commands and the demo session, no two public
-functions or classes share a name, and no function runs past ~80 lines without saying why.
+functions or classes share a name, no function runs past ~80 lines without saying why, and
+every benchmark times the one step the node runs (``OnlinePredictor``), never an assembly of
+its parts.
 
 Each rule is checked by a function that takes the parsed package, so the tests below also
 plant a violation and see each rule catch it."""
@@ -31,6 +33,17 @@ TOOL_IMPORTERS = ("odg_ros.commands", "odg_ros.ros.demo_session")
 # the interface every command module has, and the two entry points (odg, odg_node)
 SHARED_NAMES = {"add_arguments", "run", "main"}
 LONGEST_FUNCTION = 80
+# The benchmarks of the online step (odg bench, its sweep, the maintainer scripts that time
+# or profile it) run the node's own step: an OnlinePredictor. They import none of the step's
+# parts and call none of the model's own forward paths, so no second assembly of the step can
+# be timed in its place. A benchmark of one component against plain references says so here.
+BENCHMARKS = ("odg_ros.bench", "tools.bench_", "tools.profile_")
+COMPONENT_BENCHMARKS = {
+    "tools.bench_backbone": "the step's backbone alone, against plain ResNets",
+}
+STEP_PARTS = {"OnlineStep", "FeatureRing", "folded_for_inference", "voxelise", "pad_occupancy",
+              "ranked_boxes", "occupancy_grid", "box_list", "Visibility", "online_inputs"}
+MODEL_PATHS = {"decode_ring", "_decode_stored", "extract_features"}
 
 
 def parse_package(root: Path = PACKAGE) -> dict[str, ast.Module]:
@@ -118,6 +131,32 @@ def long_functions(modules: dict[str, ast.Module]) -> list[tuple[int, str]]:
     return sorted(found, reverse=True)
 
 
+def _last_name(node) -> str:
+    """``x`` of ``x``, ``a.x``, ``a.b.x`` (else '')."""
+    return node.id if isinstance(node, ast.Name) else \
+        node.attr if isinstance(node, ast.Attribute) else ""
+
+
+def step_assemblies(modules: dict[str, ast.Module]) -> list[str]:
+    """Where a benchmark (BENCHMARKS, less COMPONENT_BENCHMARKS) imports a part of the step
+    (STEP_PARTS) or runs the model itself: ``model(...)``, ``model.decode(...)`` or one of
+    MODEL_PATHS on anything."""
+    found = []
+    for name, tree in modules.items():
+        if not name.startswith(BENCHMARKS) or name in COMPONENT_BENCHMARKS:
+            continue
+        for node in ast.walk(tree):
+            if isinstance(node, ast.ImportFrom):
+                found += [f"{name}:{node.lineno} imports {a.name}" for a in node.names
+                          if a.name in STEP_PARTS]
+            elif isinstance(node, ast.Call):
+                call, receiver = node.func, getattr(node.func, "value", None)
+                if _last_name(call) == "model" or _last_name(call) in MODEL_PATHS or (
+                        _last_name(call) == "decode" and _last_name(receiver) == "model"):
+                    found.append(f"{name}:{node.lineno} calls {ast.unparse(call)}")
+    return found
+
+
 @pytest.fixture(scope="module")
 def modules():
     return parse_package()
@@ -155,3 +194,30 @@ def test_no_function_is_long_without_saying_why(modules):
     assert len(long_functions(planted)) == 1
     planted = {"odg_ros.extra": ast.parse(f'def long():\n    """Long because."""\n{body}\n')}
     assert long_functions(planted) == []
+
+
+def parse_tools() -> dict[str, ast.Module]:
+    """tools.NAME -> its syntax tree, for the maintainer scripts."""
+    return {f"tools.{path.stem}": ast.parse(path.read_text(), filename=str(path))
+            for path in sorted((PACKAGE.parent / "tools").glob("*.py"))}
+
+
+def test_every_benchmark_times_the_nodes_own_step(modules):
+    benchmarks = {**modules, **parse_tools()}
+    assert {n for n in benchmarks if n.startswith(BENCHMARKS)} >= {
+        "odg_ros.bench.step", "odg_ros.bench.sweep", "tools.profile_budget"}
+    assert step_assemblies(benchmarks) == []
+    assert set(COMPONENT_BENCHMARKS) <= set(benchmarks)
+    planted = {"odg_ros.bench.fast": ast.parse(
+        "from odg_ros.network.feature_ring import FeatureRing\n"
+        "def step(model, ring, images, *geometry):\n"
+        "    ring.push(model.extract_features(images))\n"
+        "    return model.decode_ring(ring, *geometry)\n"),
+        "tools.bench_decoder": ast.parse(
+        "def run(self, frames, *geometry):\n"
+        "    self.model.decode(frames, *geometry)\n    return self.model(frames, *geometry)\n"),
+        "tools.bench_jpeg": ast.parse("def run(jpeg, data):\n    return jpeg.decode(data)\n"),
+        "odg_ros.online.step": ast.parse("def f(model, x):\n    return model(x)\n")}
+    assert sorted(p.split(" ", 1)[1] for p in step_assemblies(planted)) == [
+        "calls model.decode_ring", "calls model.extract_features", "calls self.model",
+        "calls self.model.decode", "imports FeatureRing"]

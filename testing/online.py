@@ -12,6 +12,7 @@ from torch.utils._python_dispatch import TorchDispatchMode
 
 from odg_ros.geometry import make_transform
 from odg_ros.network import ODG
+from odg_ros.network.precision import precision_context
 from odg_ros.online.images import EncodedImage
 from odg_ros.online.rig import load_rig, set_ego2img
 from odg_ros.preprocess import adjust_intrinsics
@@ -24,6 +25,18 @@ def make_model():
     cfg = tiny_config(score_threshold=0.0, box_score_threshold=0.0)
     torch.manual_seed(0)
     return ODG(cfg).eval(), cfg
+
+
+@torch.inference_mode()
+def raw_output(predictor, budget=None):
+    """The decoder's full output (``ODGOutput``, every layer) over the predictor's ring as its
+    last step saw it: the eager decoder run again on the step's packed geometry, to compare
+    a step's raw outputs with a reference."""
+    step = predictor.online_step
+    ego2img, warps, deltas, frame_index, _ = step.layout.unpack(predictor._packed)
+    with precision_context(predictor.precision, predictor.device):
+        return step.model._decode_stored(step.ring.all_levels(), ego2img, warps, deltas,
+                                         frame_index, False, budget=budget)
 
 
 def make_sets(cfg, num_sets, seed=0):
@@ -98,3 +111,86 @@ class HostSyncCounter(TorchDispatchMode):
                 "output_size" not in (kwargs or {}):
             self.syncs.append("boolean index" if boolean_index else name)
         return func(*args, **(kwargs or {}))
+
+
+def _makes_the_host_wait(func, args, kwargs) -> bool:
+    name = func.overloadpacket.__name__
+    boolean_index = name.startswith("index") and any(
+        isinstance(i, torch.Tensor) and i.dtype == torch.bool
+        for i in (args[1] if len(args) > 1 and isinstance(args[1], (list, tuple)) else ()))
+    return name in HOST_SYNC_OPS or boolean_index or (
+        name == "repeat_interleave" and "output_size" not in (kwargs or {}))
+
+
+class _OpRecorder(TorchDispatchMode):
+    """Records every ATen op (with the tensor objects it took and made) of a capture; an op
+    that makes the host wait fails, as it does while a CUDA stream is capturing."""
+
+    def __init__(self):
+        super().__init__()
+        self.ops = []
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        kwargs = kwargs or {}
+        if _makes_the_host_wait(func, args, kwargs):
+            raise RuntimeError(f"{func}: operation not permitted when stream is capturing "
+                               "(it makes the host wait for the device)")
+        out = func(*args, **kwargs)
+        self.ops.append((func, args, kwargs, out))
+        return out
+
+
+class RecordedGraph:
+    """``predictor.CudaGraphStep`` on the CPU, replaying as a CUDA graph does: against the
+    memory of the capture.
+
+    The function runs twice (the warm-up), then once more while every ATen op it launches is
+    recorded with the tensors it read and wrote. ``replay()`` re-runs the recorded ops, not
+    the function: a tensor that existed before the capture (a static input buffer, a weight,
+    the feature ring's memory) is the very tensor of the capture, every later one is the
+    replay's own, and the results are copied into the capture's output tensors. So, as on a
+    GPU, a buffer reassigned after the capture (``ring._memory = ...``, ``_packed = ...``) is
+    neither read nor written by a replay, a Python value read during the capture (which
+    budget, which slot) is frozen into the graph, an op that waits for the device fails the
+    capture, and a result not copied out is overwritten by the next replay. Each instance is
+    one graph; ``captured`` lists every capture made."""
+
+    captured: list = []
+
+    def __init__(self, function, images, packed, device):
+        for _ in range(2):
+            function(images, packed)
+        with _OpRecorder() as recorder:
+            outputs = function(images, packed)
+        self.ops = recorder.ops
+        self.outputs = list(outputs)
+        self.replays = 0
+        RecordedGraph.captured.append(self)
+
+    def replay(self):
+        made = {}                     # id(tensor of the capture) -> the replay's tensor
+
+        def replayed(value):
+            if isinstance(value, torch.Tensor):
+                return made.get(id(value), value)
+            if isinstance(value, (list, tuple)):
+                return type(value)(replayed(v) for v in value)
+            return value
+
+        for func, args, kwargs, out in self.ops:
+            result = func(*replayed(args), **{k: replayed(v) for k, v in kwargs.items()})
+            for captured, new in zip(*(_tensors_of(x) for x in (out, result))):
+                made[id(captured)] = new
+        for static, value in zip(self.outputs, (made.get(id(o), o) for o in self.outputs)):
+            if value is not static:
+                static.copy_(value)
+        self.replays += 1
+        return self.outputs
+
+
+def _tensors_of(value) -> list:
+    if isinstance(value, torch.Tensor):
+        return [value]
+    if isinstance(value, (list, tuple)):
+        return [t for v in value for t in _tensors_of(v)]
+    return []

@@ -8,31 +8,35 @@
 # Where one job may run at most ten minutes, run the parts as jobs on one machine (carry .whl;
 # PART may list several, comma-separated), most wanted first. Times are estimates from the
 # first H100 run (ODG-T trained at 2.98 s a step then; torch.compile took ~90 s per model):
-#   0. first           one 9-minute call on a bare machine, no gsplat build: ODG-T's node
-#                      step, eager and graphs, fp32 and bf16 (2 compiles, ~4 min); ODG-T
-#                      trained 12 steps at batch 1 and 4 (~2 min, the world ~1 min); the
-#                      sync-debug count of a training step (~1 min); the backbone (~30 s)
+#   0. first           one call on a bare machine, at most 7 minutes by construction (each
+#                      check under its own time limit, skipped when it no longer fits; the
+#                      limits add up to the bound, which CHECK=parse checks), no gsplat build,
+#                      at most 8 files back: the query budgets as CUDA graphs (ODG-T, ODG-L),
+#                      the training step at 256 x 704 (waits, seconds per sample, batch 1
+#                      and 4), FlexAttention at ODG-T's and ODG-L's sizes, ODG-T's compiled
+#                      node step as one CUDA graph
 #   1. build,speed     gsplat JIT (90 s); 3 ODG-T runs + odg_cpu, 12 steps each (~5 min)
 #   2. node_t          4 compiles of ODG-T's step (~6-8 min)
 #   3. profile,compile census + profiler (~1 min); --compile (~3 min), checkpointing (~1 min)
 #   4. node_cpu,aoti   ~3 min; AOTInductor export and load (~3 min)
 #   5. node_l          ~6-8 min
-#   6. tests,train     ~4 min (the AOTInductor test compiles C++); ~3 min
+#   6. tests,train     ~2 min; ~3 min
 #   7. node            odg demo (~2 min) and the node's overhead (~1 min)
 #   8. bench,sweep     64 s, ~8 min (7 before the three budget rows); 9. presets  ~7 min
 #                      (two more ODG-L compiles: estimate)
 #
 # PART ("all" runs every one in this order):
-#   first    the first call on a machine (above): node_first.json, train_odg_t_b{1,4}.csv,
-#            sync_debug_b{1,4}.json (the waits of a training step under
-#            torch.cuda.set_sync_debug_mode("warn"), against the census), backbone.json
+#   first    the first call on a machine (above): OUT holds first.tar.gz (every check's
+#            JSON and log, checks.jsonl: each check's status and time), summary.md and
+#            summary.json (the figures against their targets, readable on their own) and
+#            gpu_checks.log; see docs/gpu_checks.md
 #   build    gsplat's CUDA kernels, JIT-compiled into .torch_extensions/ (kept for the next
 #            parts on the same machine), and what the machine is
 #   tests    the tests that only run on CUDA: gsplat against our renderer (values and
 #            gradients), training with gsplat, nvJPEG decoding of camera sets, the prefetcher's
 #            side-stream uploads, --compile's losses against eager's (Inductor), the node's
-#            step in every mode against eager, and the AOTInductor file
-#            end to end (ODG_AOTI_TEST=1: a C++ compile)
+#            step in every mode against eager (the AOTInductor file compiles for the CPU:
+#            `make test-torch211` runs it on the GPU machines' torch)
 #   train    the shipped checkpoint scored on CUDA and on the CPU (the same grid, to float
 #            noise); odg_cpu and ODG-T trained 12 steps with our renderer and gsplat's
 #   speed    seconds per training step: ODG-T at batch 1, 2 and 4, odg_cpu at batch 1
@@ -164,10 +168,6 @@ part_tests() {
         --timeout 900 --junitxml="$OUT/tests_node.xml" test/online/test_online_images.py \
         test/data/test_data_path.py test/train/test_train_options.py test/online/test_online_step.py \
         test/online/test_online_predictor.py
-    export ODG_AOTI_TEST=1
-    step "AOTInductor file end to end (C++ compile)" tests -q -p no:cacheprovider -rs \
-        --timeout 900 --junitxml="$OUT/tests_aoti.xml" test/online/test_compiled_step.py
-    unset ODG_AOTI_TEST
 }
 
 part_bench() {
@@ -298,25 +298,104 @@ node_bench() {  # node_bench NAME ARGS...: the node's step in each of MODES, fp3
         --precision fp32,bf16 --device "$DEVICE" --iters $iters --warmup $warmup --json "$@"
 }
 
+# first: one call on a bare machine, bounded. Each check runs under `timeout` with its own
+# limit, and only if that limit still fits in what is left of FIRST_LIMIT (counted from the
+# script's start); the last one, ODG-T's compile, gets all that is left. Each writes into
+# WORK, and after each check WORK is packed into OUT (first.tar.gz) with a summary readable on
+# its own (summary.md, summary.json): what the checks had made comes back even if the call is
+# cut. CHECK=parse adds the limits up (tools/gpu_checks_parse.py): the bound of the wall time.
+FIRST_LIMIT=420      # seconds: the part's wall time at most, from the script's start
+FIRST_FILES=8        # files in OUT at most (what a GPU call hands back)
+STARTUP=15           # seconds before the first check (bash, the gsplat and GPU probes)
+KILL_GRACE=2         # seconds between timeout's TERM and KILL
+PACK_LIMIT=5         # seconds for each packing of WORK into OUT
+WORK=out/gpu_first
+bounded() {  # bounded NAME SECONDS|rest:MIN [--into FILE] odg|tool ARGS...: one check of first
+    local name=$1 limit=$2 into= kind start=$SECONDS left status rc
+    shift 2
+    if [ "$1" = --into ]; then into=$2; shift 2; fi
+    kind=$1
+    shift
+    if [ "$CHECK" = parse ]; then
+        $kind "$@"
+        record bound first "$name" "$limit" "$((KILL_GRACE + PACK_LIMIT))"
+        return
+    fi
+    left=$((FIRST_LIMIT - SECONDS - KILL_GRACE - PACK_LIMIT))
+    if [[ $limit == rest:* ]]; then   # the time left, if at least MIN
+        [ "$left" -ge "${limit#rest:}" ] && limit=$left || limit=${limit#rest:}
+    fi
+    if [ "$left" -lt "$limit" ]; then
+        say "$name: skipped: its $limit s do not fit in the $left s left"
+        status="skipped (no time left)"
+    else
+        local command=($PY -m odg_ros.commands "$@")
+        [ "$kind" = tool ] && command=($PY -m "$@")
+        say "$name (at most $limit s): ${command[*]}"
+        if [ -n "$into" ]; then
+            timeout -k $KILL_GRACE "$limit" "${command[@]}" > "$into"
+        else
+            timeout -k $KILL_GRACE "$limit" "${command[@]}"
+        fi
+        rc=$?
+        case $rc in
+            0) status=ok ;;
+            124|137) status="timed out after $limit s"; failed=1 ;;
+            *) status="failed (exit $rc)"; failed=1 ;;
+        esac
+        say "$name: $status in $((SECONDS - start)) s"
+    fi
+    pack_first "$name" "$status" "$((SECONDS - start))" "$limit"
+}
+pack_first() {  # pack_first [CHECK STATUS SECONDS LIMIT]: the check's line into
+    # WORK/checks.jsonl, then WORK -> OUT/first.tar.gz, OUT/summary.{md,json} (each whole)
+    timeout -k 1 $PACK_LIMIT bash -c '
+        [ $# -gt 3 ] && $3 -c "import json, sys; print(json.dumps(dict(zip(
+            (\"check\", \"status\", \"seconds\", \"limit\"), sys.argv[1:]))))" \
+            "${@:4}" >> "$1/checks.jsonl"
+        tar -czf "$2/first.tar.gz.part" --exclude=./world -C "$1" . && mv "$2/first.tar.gz.part" "$2/first.tar.gz"
+        $3 -m tools.gpu_report "$1" --first --summary-json "$2/summary.json.part" \
+            > "$2/summary.md.part" && mv "$2/summary.json.part" "$2/summary.json" \
+            && mv "$2/summary.md.part" "$2/summary.md"' _ "$WORK" "$OUT" "$PY" "$@" \
+        || say "packing the results failed (the last complete pack is in $OUT)"
+}
+
 part_first() {
-    machine
-    MODES=eager,graphs node_bench first --preset odg_t --frames 8
-    world
-    resnet50_weights
-    for b in 1 4; do
-        train_run odg_t_b$b odg_t 12 --batch-size $b --renderer torch --log-every 4
-        [ "$DEVICE" = cpu ] && [ "$CHECK" = run ] && break   # ODG-T: tens of seconds a step
-    done
-    # the census with the CUDA paths on the CPU at batch 1 (batch 4's takes minutes: CI pins it)
-    step "host waits of a training step at batch 1" tool tools.sync_debug_step \
-        --data "$WORLD/infos_all.pkl" --backbone-weights "$R50" --batch-size 1 \
-        --device "$DEVICE" --json "$OUT/sync_debug_b1.json"
-    step "host waits of a training step at batch 4" tool tools.sync_debug_step \
-        --data "$WORLD/infos_all.pkl" --backbone-weights "$R50" --batch-size 4 \
-        --device "$DEVICE" --no-cpu-census --json "$OUT/sync_debug_b4.json"
-    if [ "$DEVICE" = cuda ] || [ "$CHECK" = parse ]; then
-        step "the node step's backbone" tool tools.bench_backbone --preset odg_t \
-            --precision bf16 --json "$OUT/backbone.json"
+    rm -rf "$WORK"; mkdir -p "$WORK"
+    : > "$WORK/checks.jsonl"
+    [ "$CHECK" = parse ] && record bound first startup "$STARTUP" 0
+    local iters=20 presets=(odg_t odg_l) flex=(600 4800) node=(--preset odg_t --frames 8)
+    local size=(--image-size 256 704 --frames 8 --render-pixels 512) modes=eager,graphs
+    local world=$WORK/world
+    if [ "$DEVICE" = cpu ] && [ "$CHECK" = run ]; then   # a dry run of the plumbing
+        iters=2 presets=(odg_cpu) flex=(48) node=(--preset odg_cpu --frames 2) modes=eager
+        size=(--image-size 32 88 --frames 2 --render-pixels 64)
+    fi
+    bounded machine 10 --into "$WORK/machine.json" tool tools.gpu_report --machine
+    # CudaGraphStep per query budget: full, auto (one graph per rung), 0.6 and 0.35, each
+    # against eager; the decoder at each rung; auto against full on the open road
+    bounded "query budgets as CUDA graphs" 65 tool tools.budget_graphs --preset "${presets[@]}" \
+        --precision bf16 --device "$DEVICE" --iters $iters "${size[@]:0:5}" \
+        --json "$WORK/budgets.json"
+    # the training step at the size users train, on a 2 s world (4 keyframes): host waits
+    # (sync-debug mode and the census on CUDA) and seconds per sample at batch 1 and 4
+    bounded world 25 odg synth --out "$world" --scenes 1 --seconds 2 --seed 1000
+    bounded infos 10 odg prepare --dataroot "$world" --out "$world/infos_all.pkl" --split all
+    bounded "training step, batch 1 and 4" 90 tool tools.sync_debug_step \
+        --data "$world/infos_all.pkl" --backbone-weights random --batch-size 1 4 \
+        --timed-steps 3 --device "$DEVICE" --no-cpu-census "${size[@]}" \
+        --json "$WORK/training_step.json"
+    # DaS attention compiled with FlexAttention at ODG-T's and ODG-L's sizes, bf16 autocast
+    bounded FlexAttention 40 tool tools.flex_attention_check --queries "${flex[@]}" \
+        --device "$DEVICE" --iters $iters --json "$WORK/flex_attention.json"
+    # ODG-T's node step compiled and replayed as one CUDA graph, bf16: a compile of minutes
+    bounded "node step" rest:90 --into "$WORK/node_step.json" odg bench --compile $modes \
+        --precision bf16 --device "$DEVICE" --iters $((iters * 2)) --warmup 3 --json \
+        "${node[@]}"
+    if [ "$CHECK" = parse ]; then
+        pack_first          # what the packing leaves in OUT, counted
+        record limit first "$FIRST_LIMIT" "$FIRST_FILES" \
+            "$(find "$OUT" -type f ! -name commands.jsonl | wc -l)"
     fi
 }
 

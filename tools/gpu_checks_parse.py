@@ -8,6 +8,13 @@ Each line is a JSON list: ``["odg", NAME, ARGS...]`` is parsed by ``odg NAME``'s
 ``["pytest", ARGS...]`` is collected (every file must exist and at least one test be selected).
 Files that an earlier step of the script writes (under ``out/``) need not exist yet; every
 other file must. Prints one line per failing command and exits 1 if any failed.
+
+A bounded part (``first``) also records its time limits: ``["bound", PART, CHECK, SECONDS,
+OVERHEAD]`` per check (``SECONDS`` may be ``rest:MIN``: the time left, at least MIN) and
+``["limit", PART, LIMIT, MAX_FILES, FILES]``. The upper bound of the part's wall time is the
+sum of the checks' limits and overheads, or LIMIT where a check takes the rest (the script
+then stops it at LIMIT); it must be at most LIMIT with every ``rest`` check given its MIN,
+and the part may leave at most MAX_FILES files in its output folder.
 """
 from __future__ import annotations
 
@@ -130,12 +137,44 @@ def check_pytest(argv: list[str]) -> str | None:
     return None
 
 
+def check_bounds(lines: list[list[str]]) -> tuple[list[str], list[str]]:
+    """(one line per bounded part, the problems) from the "bound" and "limit" records."""
+    bounds, reports, problems = {}, [], []
+    for line in lines:
+        if line[0] == "bound":
+            _, part, name, seconds, overhead = line
+            bounds.setdefault(part, []).append((name, seconds, int(overhead)))
+    for line in lines:
+        if line[0] != "limit":
+            continue
+        _, part, limit, max_files, files = line
+        limit, max_files, files = int(limit), int(max_files), int(files)
+        checks = bounds.get(part, [])
+        fixed = sum(int(s) + o for _, s, o in checks if not s.startswith("rest:"))
+        rest = [(n, int(s[5:]) + o) for n, s, o in checks if s.startswith("rest:")]
+        least = fixed + sum(s for _, s in rest)
+        bound = limit if rest else fixed
+        reports.append(f"part {part}: {len(checks)} time limits, wall time at most {bound} s "
+                       f"(limits {fixed} s" + (f" + the rest, at least {least - fixed} s"
+                                               if rest else "")
+                       + f"; limit {limit} s), {files} files (at most {max_files})")
+        if least > limit:
+            problems.append(f"part {part}: its checks need {least} s, more than its {limit} s")
+        if files > max_files:
+            problems.append(f"part {part}: {files} files in its output, more than {max_files}")
+    if bounds and not reports:
+        problems.append("time limits recorded without a part limit")
+    return reports, problems
+
+
 def main(argv=None) -> int:
     args = sys.argv[1:] if argv is None else argv
     if len(args) != 1:
         print("usage: python -m tools.gpu_checks_parse COMMANDS.jsonl", file=sys.stderr)
         return 2
     lines = [json.loads(line) for line in Path(args[0]).read_text().splitlines() if line]
+    reports, problems = check_bounds(lines)
+    lines = [line for line in lines if line[0] not in ("bound", "limit")]
     original = _parse_only()
     failures = 0
     try:
@@ -157,7 +196,9 @@ def main(argv=None) -> int:
     finally:
         argparse.ArgumentParser.parse_args = original
     print(f"{len(lines)} command lines, {failures} refused")
-    return 1 if failures else 0
+    for line in reports + problems:
+        print(line)
+    return 1 if failures or problems else 0
 
 
 if __name__ == "__main__":

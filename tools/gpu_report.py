@@ -2,11 +2,15 @@
 of ``tools/gpu_checks.sh`` in OUT: paste them, then write what they say.
 
     python -m tools.gpu_report OUT [--skip-steps 4] > tables.md
+    python -m tools.gpu_report WORK --first [--summary-json SUMMARY] > summary.md
+    python -m tools.gpu_report --machine > machine.json
 
 Reads what is there (every part is optional): machine.json, tests*.xml, train_*.csv,
 gpu_util_*.csv, profile_*.json, sync_debug_*.json, node_*.json, backbone.json, bench.json,
 eval_*.json, demo.json. A file that cannot be read is named in one line in the output instead
-of its table.
+of its table. ``--first``: the summary of the ``first`` part of tools/gpu_checks.sh (its
+checks, and the figures it is for against their targets), readable without the archive.
+``--machine``: what this machine is (GPU, torch, CUDA, Python, numpy, gsplat) as JSON.
 """
 from __future__ import annotations
 
@@ -129,8 +133,11 @@ def profile(out: Path) -> str:
 def host_waits(out: Path) -> str:
     """A training step's host waits: CUDA's sync-debug warnings against the census."""
     rows, differing = [], []
+    runs = []
     for path in sorted(out.glob("sync_debug_*.json")):
-        r = json.loads(path.read_text())
+        data = json.loads(path.read_text())
+        runs += data if isinstance(data, list) else [data]     # one batch size or several
+    for r in runs:
         warned = r.get("sync_debug_waits")
         census = r.get("census_cuda_paths_waits", r.get("census_cuda_waits"))
         rows.append([f"{r['preset']} {r['image_size'][0]} x {r['image_size'][1]}, "
@@ -189,10 +196,14 @@ def node(out: Path) -> str:
 def bench(out: Path) -> str:
     rows = []
     for name, r in sorted(json.loads((out / "bench.json").read_text()).items()):
-        lat = r["latency_ms"]
-        rows.append([name, f"{r['input'][2]} x {r['input'][3]}", r["frames"], fmt(r["fps"], 1),
-                     f"{lat['total']:.1f} ({lat['backbone']:.1f} / {lat['decoder']:.1f} / "
-                     f"{lat['postprocess']:.1f})", fmt(r.get("peak_memory_mb", 0) / 1024, 1)])
+        if "modes" in r:                     # odg bench: the node's step, one variant
+            mode, m = next(iter(r["modes"].items()))
+            name, lat, fps, total = f"{name} ({mode})", m["latency_ms"], m["fps"], "step"
+        else:                                # before the bench timed the node's own step
+            lat, fps, total = r["latency_ms"], r["fps"], "total"
+        stages = " / ".join(fmt(lat.get(k), 1) for k in ("backbone", "decoder", "postprocess"))
+        rows.append([name, f"{r['input'][2]} x {r['input'][3]}", r["frames"], fmt(fps, 1),
+                     f"{lat[total]:.1f} ({stages})", fmt(r.get("peak_memory_mb", 0) / 1024, 1)])
     return table(["model-precision", "input", "frames", "FPS",
                   "ms (backbone / decoder / post)", "peak memory GB"], rows)
 
@@ -223,7 +234,7 @@ def report(out: Path, skip_steps: int = 4) -> str:
                 ("The node's step (odg bench --compile)", "node_*.json", node),
                 ("The node step's backbone against a plain forward", "backbone.json",
                  backbone),
-                ("One online step, eager, per stage (odg bench)", "bench.json", bench),
+                ("The node's step per stage (odg bench)", "bench.json", bench),
                 ("The shipped checkpoint scored", "eval_*.json", scores),
                 ("odg demo end to end", "demo.json", demo)]
     parts = []
@@ -238,16 +249,162 @@ def report(out: Path, skip_steps: int = 4) -> str:
     return "\n\n".join(parts) + "\n"
 
 
+def machine_info() -> dict:
+    """What this machine is: Python, torch, CUDA, numpy, the GPU, gsplat's version."""
+    import platform
+
+    import numpy
+    import torch
+    info = {"python": platform.python_version(), "torch": torch.__version__,
+            "cuda": torch.version.cuda, "numpy": numpy.__version__, "device": None}
+    if torch.cuda.is_available():
+        p = torch.cuda.get_device_properties(0)
+        info.update(device=p.name, memory_gib=round(p.total_memory / 2**30, 1),
+                    capability=f"{p.major}.{p.minor}", multiprocessors=p.multi_processor_count)
+    try:
+        import gsplat
+        info["gsplat"] = gsplat.__version__
+    except ImportError:
+        pass
+    return info
+
+
+# the first call's figures and their targets (an H100; docs/gpu_checks.md)
+TARGETS = {"node_step_fps": 100.0, "open_road_decoder_speedup": 1.5, "training_waits": 8}
+
+
+def _read(path: Path):
+    return json.loads(path.read_text()) if path.is_file() else None
+
+
+def first_figures(work: Path) -> dict:
+    """The figures of a ``first`` run (its WORK folder), as one dictionary; what a check did
+    not make is missing."""
+    figures = {"checks": [json.loads(line) for line in
+                          (work / "checks.jsonl").read_text().splitlines() if line.strip()]
+               if (work / "checks.jsonl").is_file() else [],
+               "targets": TARGETS}
+    for name, path in (("machine", "machine.json"), ("node_step", "node_step.json")):
+        try:
+            value = _read(work / path)
+        except ValueError as error:
+            figures.setdefault("unreadable", []).append(f"{path}: {error}")
+            continue
+        if value is not None:
+            figures[name] = value
+    node_step = figures.pop("node_step", None)
+    if node_step:
+        figures["node_step"] = {
+            "preset": node_step.get("preset"), "precision": node_step.get("precisions"),
+            "modes": {name: {"fps": m.get("fps"), "step_ms": m.get("latency_ms", {}).get("step"),
+                             "startup_s": m.get("startup_s"),
+                             "grid_agreement_min": m.get("grid_agreement_min")}
+                      for name, m in node_step.get("modes", {}).items()}}
+    for name, path in (("budgets", "budgets.json"), ("training_step", "training_step.json"),
+                       ("flex_attention", "flex_attention.json")):
+        try:
+            value = _read(work / path)
+        except ValueError as error:
+            figures.setdefault("unreadable", []).append(f"{path}: {error}")
+            continue
+        if value is not None:
+            figures[name] = value
+    return figures
+
+
+def first_summary(figures: dict) -> str:
+    """The markdown summary of ``first_figures``."""
+    lines = ["# tools/gpu_checks.sh first"]
+    m = figures.get("machine")
+    if m:
+        lines.append(f"Machine: **{m.get('device') or 'no GPU'}**, torch {m.get('torch')} "
+                     f"(CUDA {m.get('cuda')}), Python {m.get('python')}, numpy "
+                     f"{m.get('numpy')}.")
+    lines.append("## Checks\n\n" + table(
+        ["check", "status", "seconds", "limit s"],
+        [[c.get("check"), c.get("status"), c.get("seconds"), c.get("limit")]
+         for c in figures["checks"]]))
+    rows = []
+    node_step = figures.get("node_step")
+    for name, mode in (node_step or {}).get("modes", {}).items():
+        rows.append([f"node step {node_step['preset']}, {name} (bf16)", fmt(mode["fps"], 1),
+                     ">= 100 FPS (H100)" if name.startswith("graphs") else "",
+                     f"step {fmt(mode['step_ms'], 2)} ms, start-up {fmt(mode['startup_s'], 1)} "
+                     f"s, grids agree {fmt(mode['grid_agreement_min'], 4)}"])
+    for b in figures.get("budgets") or []:
+        road = b["open_road"]
+        full = b["predictors"]["full"]["step_ms"].get("full")
+        rows.append([f"{b['preset']} step, full budget, graphs of the eager step",
+                     fmt(1e3 / full, 1) if full else "-", "", "FPS"])
+        rows.append([f"{b['preset']} decoder: full / auto on the open road",
+                     fmt(road["speedup"]), ">= 1.5 (ODG-L)" if b["preset"] == "odg_l" else "",
+                     f"{fmt(road['full_decoder_ms'], 2)} / {fmt(road['auto_decoder_ms'], 2)} ms "
+                     f"({fmt(100 * road['refined'], 0)} % refined)"])
+    for r in figures.get("training_step") or []:
+        rows.append([f"training step {r['preset']} {r['image_size'][0]} x {r['image_size'][1]}, "
+                     f"{r['frames']} frames, batch {r['batch_size']}",
+                     fmt(r.get("seconds_per_sample"), 3), "s per sample",
+                     f"host waits: sync-debug {fmt(r.get('sync_debug_waits'))}, census "
+                     f"{fmt(r.get('census_cuda_waits'), 0)} (target <= 8)"])
+    if rows:
+        lines.append("## Figures\n\n" + table(["what", "value", "target", "notes"], rows))
+    details = []
+    for b in figures.get("budgets") or []:
+        for setting, p in b["predictors"].items():
+            details.append([b["preset"], setting, p["captures"], ", ".join(p["budgets"]),
+                            fmt(p["grid_agreement_min"], 4),
+                            ", ".join(f"{k} {v:.2f}" for k, v in p.get("step_ms", {}).items())])
+    if details:
+        lines.append("## Query budgets as CUDA graphs (one capture per budget)\n\n" + table(
+            ["preset", "query_budget", "graphs", "budgets", "grid agreement with eager (min)",
+             "step ms"], details) + "\n\nDecoder ms by budget: " + "; ".join(
+            f"{b['preset']}: " + ", ".join(f"{k} {v:.2f}" for k, v in b["decoder_ms"].items())
+            for b in figures["budgets"]))
+    flex = figures.get("flex_attention")
+    if flex:
+        lines.append("## DaS attention, bf16 autocast: compiled FlexAttention and SDPA\n\n"
+                     + table(["queries", "compile s", "flex error", "sdpa error", "flex ms",
+                              "sdpa ms", "flex peak MiB", "sdpa peak MiB",
+                              "module compiled, bf16 vs fp32"],
+                             [[s["queries"], s["compile_s"], f"{s['flex_error']:.1e}",
+                               f"{s['sdpa_error']:.1e}", s["flex_ms"], s["sdpa_ms"],
+                               s["flex_peak_mib"], s["sdpa_peak_mib"],
+                               f"{s['module']['error']:.1e}" if "error" in s.get("module", {})
+                               else s.get("module", {}).get("failed", "-")]
+                              for s in flex["sizes"]])
+                     + f"\n\nError: relative to a float64 attention; tolerance "
+                       f"{flex['tolerance']}.")
+    for problem in figures.get("unreadable", []):
+        lines.append(f"(not summarised: {problem})")
+    return "\n\n".join(lines) + "\n"
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("out", type=Path, help="the OUT folder of tools/gpu_checks.sh")
+    parser.add_argument("out", type=Path, nargs="?",
+                        help="the OUT folder of tools/gpu_checks.sh (with --first: its WORK)")
     parser.add_argument("--skip-steps", type=int, default=4,
                         help="training steps left out of the medians (warm-up, compile; "
                              "default 4, one read of the losses)")
+    parser.add_argument("--first", action="store_true",
+                        help="the summary of the first part (OUT is its WORK folder)")
+    parser.add_argument("--summary-json", type=Path,
+                        help="--first: also write its figures here as JSON")
+    parser.add_argument("--machine", action="store_true",
+                        help="print what this machine is as JSON, and nothing else")
     args = parser.parse_args(argv)
-    if not args.out.is_dir():
+    if args.machine:
+        print(json.dumps(machine_info(), indent=1))
+        return 0
+    if args.out is None or not args.out.is_dir():
         print(f"gpu_report: no folder {args.out}", file=sys.stderr)
         return 2
+    if args.first:
+        figures = first_figures(args.out)
+        if args.summary_json:
+            args.summary_json.write_text(json.dumps(figures, indent=1))
+        sys.stdout.write(first_summary(figures))
+        return 0
     sys.stdout.write(report(args.out, args.skip_steps))
     return 0
 

@@ -1,16 +1,18 @@
-"""Where the online step's time goes, per stage and per decoder layer part, at each query
+"""Where the node's step spends its time, per stage and per decoder layer part, at each query
 budget of the ladder (network/budget.py) and of fixed smaller query sets (every layer on fewer
-queries), and what a smaller budget saves: milliseconds
-(medians, the budgets taking turns step by step in one process, so a busy machine slows them
-alike), ATen ops and FLOPs per part of the decoder.
+queries), and what a smaller budget saves: milliseconds (the node's step, ``OnlinePredictor``,
+one per budget, timed and recorded by its marks as ``odg bench`` does: medians, the budgets
+taking turns step by step in one process, so a busy machine slows them alike), ATen ops and
+FLOPs per part of the decoder.
 
     OMP_NUM_THREADS=1 python -m tools.profile_budget --presets odg_cpu odg_t odg_l \
         --iters 3 --out profile.json
 
 Random weights (timing only; ``--checkpoint`` for a trained model of the first preset); the
 budget heads are marked trained so that every budget runs. The backbone does not depend on
-the budget: it is timed once per step. FLOPs: torch's counter (matrix products, convolutions,
-attention) plus bilinear grid sampling at 8 FLOPs per channel and point.
+the budget: its median is over every budget's steps. FLOPs: torch's counter (matrix
+products, convolutions, attention) plus bilinear grid sampling at 8 FLOPs per channel and
+point.
 """
 from __future__ import annotations
 
@@ -23,17 +25,15 @@ import sys
 import torch
 from torch.utils._python_dispatch import TorchDispatchMode
 from torch.utils.flop_counter import flop_registry, shape_wrapper
-from tqdm import tqdm
 
-from odg_ros.bench.step import LAYER_PARTS, DecoderHooks, StageTimer, layer_table
+from odg_ros.bench.step import (Variant, node_inputs, node_predictor, node_settings,
+                                stage_summary, take_turns)
 from odg_ros.bench.sweep import query_budget
-from odg_ros.rig import online_inputs
 from odg_ros.config import load_preset
 from odg_ros.network import ODG
 from odg_ros.network.budget import budget_ladder
 from odg_ros.network.checkpoint import load_model
-from odg_ros.network.feature_ring import FeatureRing
-from odg_ros.network.postprocess import box_list, occupancy_grid
+from odg_ros.online.marks import LAYER_PARTS
 from odg_ros.train.census import Census, CensusMode
 
 aten = torch.ops.aten
@@ -41,7 +41,8 @@ aten = torch.ops.aten
 PART_FILES = {"das_attention.py": "attention", "sampling.py": "sampling",
               "mixing.py": "mixing", "gaussian_heads.py": "heads", "box_head.py": "heads",
               "budget.py": "budget", "decoder.py": "other", "queries.py": "other",
-              "grid_range.py": "other", "odg.py": "other", "feature_ring.py": "other"}
+              "grid_range.py": "other", "odg.py": "other"}
+OUTSIDE = "outside the decoder"      # backbone, ring, grid, boxes, visibility: not in totals
 PART_NAMES = {"points": "heads", "boxes": "heads", "box_position": "position"}
 FIXED_SETS = (0.6, 0.35)           # fractions of the queries of the fixed smaller sets timed
 
@@ -56,24 +57,26 @@ FLOPS = {**flop_registry, aten.grid_sampler_2d: shape_wrapper(grid_sample_flops)
 
 class PartFlops(TorchDispatchMode):
     """FLOPs per decoder part: torch's formulas, attributed to the part whose forward is
-    running (forward hooks on every layer part and on the budget heads set ``part``)."""
+    running (forward hooks on the decoder, every layer part and the budget heads set
+    ``part``; outside the decoder: OUTSIDE)."""
 
-    def __init__(self, model):
+    def __init__(self, decoder):
         super().__init__()
-        self.flops, self.part, self.handles = collections.Counter(), "other", []
-        for layer in model.decoder.layers:
+        self.flops, self.part, self.handles = collections.Counter(), OUTSIDE, []
+        self._hook(decoder, "other", after=OUTSIDE)
+        for layer in decoder.layers:
             for name in LAYER_PARTS:
                 if getattr(layer, name, None) is not None:
                     self._hook(getattr(layer, name), PART_NAMES.get(name, name))
-        for head in model.decoder.budget_heads.children():
+        for head in decoder.budget_heads.children():
             self._hook(head, "budget")
 
-    def _hook(self, module, name):
+    def _hook(self, module, name, after="other"):
         def pre(*_):
             self.part = name
 
         def post(*_):
-            self.part = "other"
+            self.part = after
         self.handles += [module.register_forward_pre_hook(pre),
                          module.register_forward_hook(post)]
 
@@ -91,12 +94,12 @@ class PartFlops(TorchDispatchMode):
         return super().__exit__(*exc)
 
 
-def flops_by_part(model, run) -> dict[str, float]:
-    """GFLOPs of ``run()`` per decoder part."""
-    with PartFlops(model) as counter:
+def flops_by_part(decoder, run) -> dict[str, float]:
+    """GFLOPs of ``run()`` per part of ``decoder``; ``total``: the decoder's."""
+    with PartFlops(decoder) as counter:
         run()
     parts = dict(counter.flops)
-    parts["total"] = sum(counter.flops.values())
+    parts["total"] = sum(v for k, v in counter.flops.items() if k != OUTSIDE)
     return {k: round(v / 1e9, 4) for k, v in parts.items()}
 
 
@@ -107,77 +110,62 @@ def ops_by_part(run) -> dict[str, float]:
     parts = collections.Counter()
     for (_, line), n in census.ops.items():
         file = line.split(":")[0].split("/")[-1]
-        parts[PART_FILES.get(file, "other")] += n
-    parts["total"] = sum(census.ops.values())
+        parts[PART_FILES.get(file, OUTSIDE)] += n
+    parts["total"] = sum(n for part, n in parts.items() if part != OUTSIDE)
     parts["host_syncs"] = sum(census.syncs.values())
     return dict(parts)
 
 
 def profile_preset(cfg, model, iters: int, warmup: int, progress: bool = True) -> dict:
+    """Long because it builds, runs and tabulates every budget's step in one place."""
     model.decoder.budget_heads.set_trained(True)
     budgets = budget_ladder(cfg)
-    images, ego2img, ego_warp, time_delta = online_inputs(cfg, cfg.num_frames, "cpu")
-    ring = FeatureRing(cfg.num_frames, cfg.num_groups)
-    with torch.no_grad():
-        current = model.extract_features(images)
-    for _ in range(cfg.num_frames):
-        ring.push(current)
-    timers = {b.name: StageTimer("cpu") for b in budgets}
+    settings = node_settings()
+    variants = {b.name: Variant(b.name, "eager", settings["precision"], node_predictor(
+        model, cfg, "cpu", {**settings, "query_budget": b}, mode="eager")) for b in budgets}
     # the alternative a budget must beat: a model with fewer queries in every layer
-    fixed = {f"q{round(100 * f)}": query_budget(model, cfg, f)[0] for f in FIXED_SETS}
-    timers.update({name: StageTimer("cpu") for name in fixed})
-    backbone = []
-
-    @torch.no_grad()
-    def decode(budget):
-        return model.decode_ring(ring, ego2img, ego_warp, time_delta, budget=budget)
-
-    def step(budget, timer):
-        with timer.stage("decoder"):
-            output = decode(budget)
-        with torch.no_grad(), timer.stage("postprocess"):
-            occupancy_grid(output, cfg)
-            box_list(output, cfg)
-
-    for i in tqdm(range(warmup + iters), desc=cfg.name, disable=not progress):
-        start = StageTimer("cpu")
-        with torch.no_grad(), start.stage("backbone"):
-            ring.push(model.extract_features(images))
-        if i >= warmup:
-            backbone.append(start.medians()["backbone"])
-        for budget in budgets:
-            timer = timers[budget.name] if i >= warmup else StageTimer("cpu")
-            with DecoderHooks(model, timer):
-                step(budget, timer)
-        for name, smaller in fixed.items():
-            timer = timers[name] if i >= warmup else StageTimer("cpu")
-            with torch.no_grad(), timer.stage("decoder"):
-                smaller.decode_ring(ring, ego2img, ego_warp, time_delta)
-    rows = []
-    full = None
+    fixed = [f"q{round(100 * f)}" for f in FIXED_SETS]
+    for name, fraction in zip(fixed, FIXED_SETS):
+        smaller, smaller_cfg = query_budget(model, cfg, fraction)
+        variants[name] = Variant(name, "eager", settings["precision"], node_predictor(
+            smaller, smaller_cfg, "cpu", {**settings, "query_budget": "full"}, mode="eager"))
+    sets = node_inputs(cfg, warmup + 2 * iters)
+    take_turns(variants, sets, warmup, iters, cfg, progress=progress)
+    rows, full = [], None
     for budget in budgets:
-        medians = timers[budget.name].medians()
-        layers = layer_table(medians, cfg.num_layers)
-        def run():
-            decode(budget)
-        flops, ops = flops_by_part(model, run), ops_by_part(run)
+        variant = variants[budget.name]
+        medians = variant.recorder.medians()
+        stages = stage_summary(medians, cfg.num_layers)
+
+        predictor = variant.predictor
+
+        @torch.no_grad()        # not inference mode: there linear, conv2d, attention reach a
+        def run():              # dispatch mode whole, and torch's FLOP formulas miss them
+            predictor.online_step(torch.from_numpy(sets[0][0]), predictor._packed,
+                                  predictor.budget)
+        decoder = predictor.online_step.model.decoder
+        flops, ops = flops_by_part(decoder, run), ops_by_part(run)
         row = {"budget": budget.name, "static": budget.static, "dynamic": budget.dynamic,
                "queries_refined": budget.static + budget.dynamic,
+               "step_ms": round(statistics.median(variant.times["step"]), 2),
                "decoder_ms": round(medians["decoder"], 2),
-               "postprocess_ms": round(medians["postprocess"], 2),
-               "decoder_layers_ms": layers, "budget_ms": budget_parts(medians),
-               "gflops": flops, "ops": ops}
+               "postprocess_ms": stages["latency_ms"]["postprocess"],
+               "decoder_layers_ms": stages["decoder_layers_ms"],
+               "budget_ms": budget_parts(medians), "gflops": flops, "ops": ops}
         full = full or row
         row["decoder_vs_full"] = round(row["decoder_ms"] / full["decoder_ms"], 3)
         row["gflops_vs_full"] = round(flops["total"] / full["gflops"]["total"], 3)
         rows.append(row)
-    fixed_rows = [{"fixed_set": name, "decoder_ms": round(timers[name].medians()["decoder"], 2)}
+    fixed_rows = [{"fixed_set": name,
+                   "decoder_ms": round(variants[name].recorder.medians()["decoder"], 2)}
                   for name in fixed]
     for row in fixed_rows:
         row["decoder_vs_full"] = round(row["decoder_ms"] / full["decoder_ms"], 3)
+    backbone = [variants[b.name].recorder.medians()["backbone"] for b in budgets]
     return {"preset": cfg.name, "queries": cfg.num_queries, "frames": cfg.num_frames,
             "input": [cfg.num_cams, 3, *cfg.image_size], "threads": torch.get_num_threads(),
             "iters": iters, "backbone_ms": round(statistics.median(backbone), 2),
+            "settings": {k: v for k, v in settings.items() if k != "query_budget"},
             "budgets": rows, "fixed_sets": fixed_rows}
 
 

@@ -1,3 +1,4 @@
-"""``odg bench`` and ``odg ablation``: the online step timed per stage and per decoder layer,
-the fast paths against the plain ones, the node's step per execution mode, the speed-against-
-error sweep with its plot, and the ablation table. Tools: nothing in the library imports them."""
+"""``odg bench`` and ``odg ablation``: the node's own step timed per camera set, per execution
+mode and precision, per stage and per decoder layer (from the step's marks), the
+speed-against-error sweep over configurations of that step with its plot, and the ablation
+table. Tools: nothing in the library imports them."""

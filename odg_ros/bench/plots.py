@@ -4,6 +4,26 @@ from __future__ import annotations
 
 import numpy as np
 
+# the least span of a plot's axis: FPS from 0 always; a score axis at least this many points
+# (two configurations 0.001 FPS or 0.01 mIoU apart must not fill a whole axis)
+SCORE_SPAN = 2.0
+
+
+def axis_limits(values, least_span: float, from_zero: bool = False,
+                margin: float = 0.12) -> tuple[float, float]:
+    """(low, high) of an axis showing ``values``: spanning at least ``least_span`` (centred
+    on the values), or from 0 where ``from_zero``, with a ``margin`` of the span beyond;
+    never below 0 for values that are not (scores, rates)."""
+    values = [v for v in values if v is not None and np.isfinite(v)]
+    low, high = (min(values), max(values)) if values else (0.0, 1.0)
+    if from_zero:
+        low = min(low, 0.0)
+        return low, low + max(high - low, least_span) * (1 + margin)
+    span = max(high - low, least_span)
+    middle = (low + high) / 2
+    bottom = middle - span * (0.5 + margin)
+    return max(bottom, 0.0) if low >= 0 else bottom, middle + span * (0.5 + margin)
+
 
 def plot_sweep(report: dict, path) -> None:
     """PNG: FPS against mIoU and against RayIoU (Pareto front as a line), and the latency
@@ -58,50 +78,59 @@ def _plot_speed_against(ax, metric: str, report: dict, ok: list[dict], colours: 
         if on_front:
             xs.append(r["fps"])
             ys.append(value)
-    ax.margins(x=0.12, y=0.12)
+    ax.set_xlim(*axis_limits([r["fps"] for r in ok], 1e-3, from_zero=True))
+    ax.set_ylim(*axis_limits([r["scores"].get(metric) for r in ok], SCORE_SPAN))
     if xs:
         order = np.argsort(xs)
         ax.plot(np.array(xs)[order], np.array(ys)[order], "--", color="tab:red",
                 label="Pareto front", zorder=2)
     ax.legend(loc="best", fontsize=7, ncol=2)
-    ax.set_xlabel("FPS (online step: backbone + decoder + post-processing)")
+    ax.set_xlabel("FPS (the node's step per camera set)")
     ax.set_ylabel(f"{metric} (%)")
     ax.grid(alpha=0.3)
     ax.set_title(f"FPS vs {metric} ({meta['samples']} samples)", fontsize=9)
 
 
+def latency_segments(r: dict) -> dict[str, float]:
+    """One configuration's step (ms) split for the bars: backbone, each decoder layer, the
+    decoder outside the layers, post-processing (grid, padding, boxes, visibility) and the
+    rest of the step (host: packing, copies, results into Python); a step without marks
+    (compiled, graphs) as its device part and the rest."""
+    lat = r["latency_ms"]
+    if "decoder" not in lat:
+        return {"device step (no marks)": lat["model"],
+                "host": max(lat["step"] - lat["model"], 0.0)}
+    segments = {"backbone": lat["backbone"]}
+    segments.update({f"layer{row['layer']}": row["total"] for row in r["decoder_layers_ms"]})
+    segments["decoder outside layers"] = lat.get("decoder_outside_layers", lat["decoder"]) \
+        if r["decoder_layers_ms"] else lat["decoder"]
+    segments["postprocess"] = lat["postprocess"]
+    segments["host"] = max(lat["step"] - lat["backbone"] - lat["decoder"]
+                           - lat["postprocess"], 0.0)
+    return segments
+
+
 def _plot_latency_split(ax, ok: list[dict]) -> None:
-    """Stacked bars: backbone, decoder layer by layer, decoder outside layers, postprocess."""
+    """Stacked bars of ``latency_segments``: one colour per segment, in the order of the step."""
     import matplotlib.pyplot as plt
 
     names = [r["config"]["name"] for r in ok]
-    left = np.zeros(len(ok))
-    segments = [("backbone", "tab:gray")]
+    split = [latency_segments(r) for r in ok]
     num_layers = max((len(r["decoder_layers_ms"]) for r in ok), default=0)
     cmap = plt.get_cmap("viridis")
-    for i in range(num_layers):
-        segments.append((f"layer{i + 1}", cmap(i / max(1, num_layers - 1))))
-    segments += [("decoder outside layers", "tab:orange"), ("postprocess", "tab:brown")]
-    for label, colour in segments:
-        widths = []
-        for r in ok:
-            lat = r["latency_ms"]
-            if label == "backbone":
-                widths.append(lat["backbone"])
-            elif label == "postprocess":
-                widths.append(lat["postprocess"])
-            elif label == "decoder outside layers":
-                widths.append(lat.get("decoder_outside_layers",
-                                      lat["decoder"] if not r["decoder_layers_ms"] else 0.0))
-            else:
-                index = int(label[5:])
-                row = next((x for x in r["decoder_layers_ms"] if x["layer"] == index), None)
-                widths.append(row["total"] if row else 0.0)
-        widths = np.maximum(np.array(widths), 0.0)
+    colours = {"backbone": "tab:gray", "device step (no marks)": "tab:purple",
+               **{f"layer{i + 1}": cmap(i / max(1, num_layers - 1)) for i in range(num_layers)},
+               "decoder outside layers": "tab:orange", "postprocess": "tab:brown",
+               "host": "tab:olive"}
+    left = np.zeros(len(ok))
+    for label, colour in colours.items():
+        widths = np.array([segments.get(label, 0.0) for segments in split])
+        if not widths.any():
+            continue
         ax.barh(names, widths, left=left, color=colour, label=label, height=0.7)
         left += widths
     ax.invert_yaxis()
-    ax.set_xlabel("median latency per online step (ms)")
+    ax.set_xlabel("median ms per step (split: the step's marks, eager steps)")
     ax.legend(fontsize=7, ncol=5, loc="upper center", bbox_to_anchor=(0.5, -0.12))
     ax.grid(axis="x", alpha=0.3)
     ax.set_title("where the time goes (decoder per layer)", fontsize=9)

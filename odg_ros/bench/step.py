@@ -1,12 +1,24 @@
-"""Latency of one online step: backbone on the newest frame, decoder over K cached frames,
-post-processing; per decoder layer and per part of a layer; peak memory; the fast paths
-against the plain path they replace.
+"""``odg bench``: the node's own step, timed per camera set.
 
-Timing: medians over repeated steps after warm-up; on CUDA with events (no host sync inside
-a step; one synchronise after it). Peak memory: on CUDA ``torch.cuda.max_memory_allocated``
-over the timed steps; on CPU the process's peak resident set size (``ru_maxrss``), which
-includes the interpreter, torch and the weights (the sweep runs every configuration in a
-fresh process so each gets its own figure).
+What is timed is ``OnlinePredictor.step``, the call the node makes per camera set: the host
+packs the geometry and uploads the images, ``OnlineStep`` runs (backbone on the newest set,
+decoder over the feature ring, grid with padding, ranked boxes, visibility), the results come
+back. It runs at the node's settings (config/odg_node.schema.yaml: precision, compile,
+query_budget, visibility, history) unless a variant says otherwise. Several variants
+(execution modes x precisions) take turns set by set over one stream of camera sets, so a
+busy machine slows them alike.
+
+Per stage and per decoder layer: the step's own marks (online/marks.py), recorded on steps
+of their own (as many as the timed ones, taking turns with them) of eager variants; the step
+times (and FPS) come from the timed steps, with nothing recording. A compiled or
+graph-replayed step has no marks inside: it is timed whole. Medians throughout. On CUDA the
+marks are CUDA events, read after the step.
+
+Each variant's grid (labels and confidence) and boxes are compared with an eager fp32 step
+of the same model on the same sets (one of the variants, or an untimed extra).
+
+Peak memory: on CUDA ``torch.cuda.max_memory_allocated``; on CPU the process's peak resident
+set size (``ru_maxrss``: interpreter, torch, weights and every variant together).
 """
 from __future__ import annotations
 
@@ -14,7 +26,6 @@ import resource
 import statistics
 import sys
 import time
-from contextlib import contextmanager, nullcontext
 
 import numpy as np
 import torch
@@ -22,100 +33,50 @@ from tqdm import tqdm
 
 from ..config import ModelConfig
 from ..network import ODG
-from ..network.feature_ring import FeatureRing
-from ..network.postprocess import box_list, occupancy_grid
-from ..network.precision import PRECISIONS, precision_context  # noqa: F401 (re-exported)
-from ..rig import online_inputs, ring_ego2img
+from ..online.marks import LAYER_PARTS, STEP_STAGES, DecoderMarks, MarkRecorder
+from ..online.predictor import OnlinePredictor, resolve_mode
+from ..rig import ring_ego2img
 
-STAGES = ("backbone", "decoder", "postprocess", "total")
-# the parts of a decoder layer, in execution order (attributes of decoder.DecoderLayer)
-LAYER_PARTS = ("position", "box_position", "attention", "sampling", "mixing", "ffn", "points",
-               "boxes")
-
-
-class StageTimer:
-    """Wall-clock per stage; on CUDA with events so no host sync sits inside a stage.
-    Stages may nest (``total`` around the others) and be opened and closed by hooks."""
-
-    def __init__(self, device):
-        self.cuda = torch.device(device).type == "cuda"
-        self.times: dict[str, list[float]] = {}
-        self._pending = []
-        self._open = {}
-
-    def start(self, name: str) -> None:
-        if self.cuda:
-            event = torch.cuda.Event(enable_timing=True)
-            event.record()
-            self._open[name] = event
-        else:
-            self._open[name] = time.perf_counter()
-
-    def stop(self, name: str) -> None:
-        begin = self._open.pop(name)
-        if self.cuda:
-            end = torch.cuda.Event(enable_timing=True)
-            end.record()
-            self._pending.append((name, begin, end))
-        else:
-            self.times.setdefault(name, []).append((time.perf_counter() - begin) * 1e3)
-
-    @contextmanager
-    def stage(self, name: str):
-        self.start(name)
-        yield
-        self.stop(name)
-
-    def flush(self):
-        if self._pending:
-            torch.cuda.synchronize()
-            for name, start, end in self._pending:
-                self.times.setdefault(name, []).append(start.elapsed_time(end))
-            self._pending.clear()
-
-    def medians(self) -> dict[str, float]:
-        self.flush()
-        return {k: statistics.median(v) for k, v in self.times.items()}
+# the node's parameters that shape its step and history (their defaults: the schema's)
+NODE_SETTINGS = ("precision", "compile", "query_budget", "visibility", "history_interval",
+                 "history_max_gap")
+HOST_STAGES = ("step", "upload", "model", "download")
+POSTPROCESS = ("grid", "padding", "boxes", "visibility")
+BOX_MATCH_M = 2.0              # boxes of two runs farther apart than this are not one box
 
 
-class DecoderHooks:
-    """Times every decoder layer (``layer1`` ..) and its parts (``layer1.sampling`` ..) with
-    forward hooks into a ``StageTimer``; ``with DecoderHooks(model, timer):`` installs them.
-    Under a query budget also the skip layer (``skip_layer``, ``skip_layer.attention`` ..)
-    and the keep-scores (``keep_static``, ``keep_dynamic``; network/budget.py).
-    The decoder time outside the layers (history layout without a ring, queries, Phi MLPs)
-    is the decoder stage minus the layers (``decoder_outside_layers``)."""
+def node_settings(**overrides) -> dict:
+    """The node's defaults for NODE_SETTINGS (config/odg_node.schema.yaml), with the given
+    ones (None: the default) put in."""
+    from ..online.parameters import load_schema
+    schema = load_schema()
+    settings = {name: schema[name].default for name in NODE_SETTINGS}
+    settings.update({k: v for k, v in overrides.items() if v is not None})
+    unknown = set(settings) - set(NODE_SETTINGS)
+    if unknown:
+        raise ValueError(f"unknown node settings {sorted(unknown)}")
+    return settings
 
-    def __init__(self, model: ODG, timer: StageTimer):
-        self.model, self.timer, self.handles = model, timer, []
 
-    def _hook(self, module, name):
-        def pre(*_):
-            self.timer.start(name)
+def node_predictor(model, cfg: ModelConfig, device, settings: dict, mode: str | None = None,
+                   precision: str | None = None, frames: int | None = None,
+                   compiled_step=None) -> OnlinePredictor:
+    """An ``OnlinePredictor`` built as the node builds it (ros/node.py) from ``settings``;
+    ``mode`` / ``precision`` replace the settings' compile / precision."""
+    return OnlinePredictor(model, cfg, device, max_gap=float(settings["history_max_gap"]),
+                           num_frames=frames, min_interval=float(settings["history_interval"]),
+                           precision=precision or settings["precision"],
+                           compile=mode or settings["compile"], compiled_step=compiled_step,
+                           visibility=bool(settings["visibility"]),
+                           query_budget=settings["query_budget"])
 
-        def post(*_):
-            self.timer.stop(name)
-        self.handles += [module.register_forward_pre_hook(pre), module.register_forward_hook(post)]
 
-    def __enter__(self):
-        for index, layer in enumerate(self.model.decoder.layers):
-            self._hook(layer, f"layer{index + 1}")
-            for part in LAYER_PARTS:
-                if getattr(layer, part, None) is not None:
-                    self._hook(getattr(layer, part), f"layer{index + 1}.{part}")
-        heads = self.model.decoder.budget_heads
-        self._hook(heads.skip_layer, "skip_layer")
-        for part in LAYER_PARTS:
-            if getattr(heads.skip_layer, part, None) is not None:
-                self._hook(getattr(heads.skip_layer, part), f"skip_layer.{part}")
-        self._hook(heads.static_score, "keep_static")
-        self._hook(heads.dynamic_score, "keep_dynamic")
-        return self
-
-    def __exit__(self, *exc):
-        for handle in self.handles:
-            handle.remove()
-        self.handles.clear()
+def peak_memory_mb(device) -> tuple[float, str]:
+    """(peak MB, how it was measured) -- see the module docstring."""
+    if torch.device(device).type == "cuda":
+        return torch.cuda.max_memory_allocated(device) / 2 ** 20, "torch.cuda.max_memory_allocated"
+    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss  # KiB on Linux, bytes on macOS
+    return (rss / 2 ** 20 if sys.platform == "darwin" else rss / 2 ** 10), "process ru_maxrss"
 
 
 def layer_table(medians: dict[str, float], num_layers: int) -> list[dict]:
@@ -132,163 +93,22 @@ def layer_table(medians: dict[str, float], num_layers: int) -> list[dict]:
     return rows
 
 
-def peak_memory_mb(device) -> tuple[float, str]:
-    """(peak MB, how it was measured) -- see the module docstring."""
-    if torch.device(device).type == "cuda":
-        return torch.cuda.max_memory_allocated(device) / 2 ** 20, "torch.cuda.max_memory_allocated"
-    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss  # KiB on Linux, bytes on macOS
-    return (rss / 2 ** 20 if sys.platform == "darwin" else rss / 2 ** 10), "process ru_maxrss"
-
-
-class TimedOnlineStep:
-    """One online step as the node runs it: the backbone on the newest camera set, its
-    features written into the ring (``ring=True``, ``ODG.decode_ring``) or kept in a list
-    (``ODG.decode``), the decoder over the cached history, then the grid and the box list.
-
-    ``prime(history)`` fills the cache with the older frames' features (untimed), newest
-    first, as earlier steps would have; ``__call__`` runs and times the step, at the query
-    ``budget`` set on it (network/budget.py; None: every query).
-    """
-
-    def __init__(self, model: ODG, cfg: ModelConfig, device, ring: bool = True,
-                 precision: str = "fp32"):
-        self.model, self.cfg, self.device = model, cfg, torch.device(device)
-        self.ring = FeatureRing(cfg.num_frames, cfg.num_groups) if ring else None
-        self.precision = precision
-        self.history: list[list[torch.Tensor]] = []
-        self.budget = None
-
-    @torch.no_grad()
-    def prime(self, history_features: list[list[torch.Tensor]]) -> None:
-        """history_features: older frames, newest first (each L levels [1, N, C, h, w])."""
-        self.history = list(history_features)
-        if self.ring is not None:
-            self.ring.clear()
-            for feats in reversed(self.history):      # oldest first, like the node
-                self.ring.push(feats)
-
-    @torch.no_grad()
-    def features(self, images: torch.Tensor) -> list[torch.Tensor]:
-        with precision_context(self.precision, self.device):
-            return self.model.extract_features(images)
-
-    @torch.no_grad()
-    def __call__(self, images, ego2img, ego_warp, time_delta, timer: StageTimer):
-        """images [1, N, 3, H, W] of the newest set; geometry [1, T, ...] of the T frames
-        (newest first) -> (output, grid labels [1, X, Y, Z], box list)."""
-        with precision_context(self.precision, self.device), timer.stage("total"):
-            with timer.stage("backbone"):
-                current = self.model.extract_features(images)
-                if self.ring is not None:
-                    self.ring.push(current)
-            with timer.stage("decoder"):
-                if self.ring is not None:
-                    output = self.model.decode_ring(self.ring, ego2img, ego_warp, time_delta,
-                                                    budget=self.budget)
-                else:
-                    output = self.model.decode([current] + self.history, ego2img, ego_warp,
-                                               time_delta, budget=self.budget)
-            with timer.stage("postprocess"):
-                grid, _ = occupancy_grid(output, self.cfg)
-                boxes = box_list(output, self.cfg)
-        return output, grid, boxes
-
-
-def summarise(timer: StageTimer, num_layers: int) -> dict:
-    medians = timer.medians()
-    latency = {k: round(medians[k], 3) for k in STAGES if k in medians}
+def stage_summary(medians: dict[str, float], num_layers: int) -> dict:
+    """Marks' medians -> {"latency_ms": the step's stages, ``postprocess`` (grid, padding,
+    boxes, visibility together) and ``decoder_outside_layers`` (queries, Phi MLPs, the
+    budget's keep-scores), "decoder_layers_ms": ``layer_table``, "budget_ms": the skip layer
+    and keep-score marks}; empty where nothing was marked (a compiled step)."""
+    latency = {k: round(medians[k], 3) for k in STEP_STAGES if k in medians}
+    if not latency:
+        return {"latency_ms": {}, "decoder_layers_ms": [], "budget_ms": {}}
+    latency["postprocess"] = round(sum(medians.get(k, 0.0) for k in POSTPROCESS), 3)
     layers = layer_table(medians, num_layers)
     if layers and "decoder" in medians:
         latency["decoder_outside_layers"] = round(
             medians["decoder"] - sum(r["total"] for r in layers), 3)
-    return {"latency_ms": latency, "decoder_layers_ms": layers,
-            "fps": round(1000.0 / medians["total"], 3) if "total" in medians else None}
-
-
-@torch.no_grad()
-def bench_online_step(cfg: ModelConfig, device="cpu", frames: int | None = None, iters: int = 5,
-                      warmup: int = 1, progress: bool = True, model: ODG | None = None,
-                      ring: bool = True, precision: str = "fp32",
-                      layers: bool = True) -> dict:
-    """Random inputs at the preset's resolution; random weights unless ``model`` is given."""
-    frames = frames or cfg.num_frames
-    if not 1 <= frames <= cfg.num_frames:
-        raise ValueError(f"--frames must be in 1..{cfg.num_frames} for {cfg.name}")
-    model = (model or ODG(cfg)).to(device).eval()
-    images, ego2img, ego_warp, time_delta = online_inputs(cfg, frames, device)
-    step = TimedOnlineStep(model, cfg, device, ring=ring, precision=precision)
-    cached = step.features(images)  # stands in for the k-1 cached history frames
-    cuda = torch.device(device).type == "cuda"
-    timer = StageTimer(device)
-    for i in tqdm(range(warmup + iters), desc=f"bench {cfg.name}", disable=not progress):
-        if i == warmup:
-            timer = StageTimer(device)
-            if cuda:
-                torch.cuda.reset_peak_memory_stats(device)
-        step.prime([cached] * (frames - 1))
-        with DecoderHooks(model, timer) if layers else nullcontext():
-            step(images, ego2img, ego_warp, time_delta, timer)
-        timer.flush()
-    memory, method = peak_memory_mb(device)
-    return {"preset": cfg.name, "device": str(device), "frames": frames, "iters": iters,
-            "input": [cfg.num_cams, 3, *cfg.image_size], "threads": torch.get_num_threads(),
-            "torch": torch.__version__, "precision": precision, "ring": ring,
-            "fast_sampling": bool(model.fast_sampling),
-            **summarise(timer, cfg.num_layers),
-            "peak_memory_mb": round(memory, 1), "memory_method": method}
-
-
-FAST_PATH_VARIANTS = {
-    # name: (fast_sampling, ring, precision)
-    "plain": (False, False, "fp32"),
-    "camera_rows": (True, False, "fp32"),
-    "camera_rows+ring": (True, True, "fp32"),
-    "camera_rows+ring+bf16": (True, True, "bf16"),
-}
-
-
-@torch.no_grad()
-def bench_fast_paths(cfg: ModelConfig, device="cpu", iters: int = 5, warmup: int = 1,
-                     variants=tuple(FAST_PATH_VARIANTS), progress: bool = True) -> dict:
-    """Each fast path against the plain path, interleaved step by step (a busy machine slows
-    all variants alike), on one random-weights model and input; with the largest difference
-    of the last layer's outputs from the plain path's."""
-    torch.manual_seed(0)
-    model = ODG(cfg).to(device).eval()
-    images, ego2img, ego_warp, time_delta = online_inputs(cfg, cfg.num_frames, device)
-    steps, timers, outputs = {}, {}, {}
-    for name in variants:
-        fast, ring, precision = FAST_PATH_VARIANTS[name]
-        model.fast_sampling = fast
-        steps[name] = TimedOnlineStep(model, cfg, device, ring=ring, precision=precision)
-        timers[name] = StageTimer(device)
-    history = None
-    for i in tqdm(range(warmup + iters), desc=f"fast paths {cfg.name}", disable=not progress):
-        for name in variants:
-            step = steps[name]
-            model.fast_sampling = FAST_PATH_VARIANTS[name][0]
-            if history is None:
-                history = [step.features(images)] * (cfg.num_frames - 1)
-            if i == warmup:
-                timers[name] = StageTimer(device)
-            step.prime(history)
-            outputs[name], _, _ = step(images, ego2img, ego_warp, time_delta, timers[name])
-            timers[name].flush()
-    model.fast_sampling = True
-    reference = outputs[variants[0]].last
-    result = {"preset": cfg.name, "device": str(device), "iters": iters,
-              "threads": torch.get_num_threads(), "reference": variants[0], "variants": {}}
-    for name in variants:
-        last = outputs[name].last
-        medians = timers[name].medians()
-        result["variants"][name] = {
-            "latency_ms": {k: round(medians[k], 3) for k in STAGES},
-            "speedup_total": round(timers[variants[0]].medians()["total"] / medians["total"], 3),
-            "max_abs_diff": {"means": float((last.means.float() - reference.means.float())
-                                            .abs().max()),
-                             "logits": float((last.logits.float() - reference.logits.float())
-                                             .abs().max())}}
-    return result
+    budget = {name: round(ms, 3) for name, ms in medians.items()
+              if name.startswith(("skip_layer", "keep_"))}
+    return {"latency_ms": latency, "decoder_layers_ms": layers, "budget_ms": budget}
 
 
 def node_inputs(cfg: ModelConfig, num_sets: int, seed: int = 0):
@@ -307,16 +127,16 @@ def node_inputs(cfg: ModelConfig, num_sets: int, seed: int = 0):
     return sets
 
 
-def data_camera_sets(infos_path, cfg: ModelConfig, num_sets: int):
-    """The first ``num_sets`` keyframes of the first scene of an infos file as the node feeds
-    its predictor (network-input uint8 images, ego2img, pose, stamp), 0.5 s apart."""
+def data_camera_sets(infos_path, cfg: ModelConfig, num_sets: int | None = None):
+    """The keyframes of the first scene of an infos file (the first ``num_sets``) as the
+    node feeds its predictor (network-input uint8 images, ego2img, pose, stamp), 0.5 s
+    apart."""
     from ..data.dataset import OccDataset
     dataset = OccDataset(infos_path, cfg)
+    if not dataset.infos:
+        raise ValueError(f"{infos_path}: no keyframes")
     scene = dataset.infos[0]["scene_token"]
     infos = [info for info in dataset.infos if info["scene_token"] == scene][:num_sets]
-    if len(infos) < num_sets:
-        raise ValueError(f"{infos_path}: its first scene has {len(infos)} keyframes, "
-                         f"{num_sets} asked for")
     sets = []
     for info in infos:
         pose = np.asarray(info["ego_pose"], dtype=np.float64)
@@ -327,100 +147,167 @@ def data_camera_sets(infos_path, cfg: ModelConfig, num_sets: int):
     return sets
 
 
-def output_differences(output, reference, cfg: ModelConfig) -> dict:
-    """The last decoder layer of ``output`` against ``reference``'s: max |logit difference|,
-    and for the boxes valid in either, whether the valid sets agree and the largest centre
-    (m), size (m) and score differences among the boxes valid in both (matched by query)."""
-    from ..network.postprocess import decode_box_code
-    a, b = output.last, reference.last
-    result = {"logits": float((a.logits.float() - b.logits.float()).abs().max())}
-    if a.boxes is None:
-        return result
-    score_a = a.box_logits.float().sigmoid().amax(-1)
-    score_b = b.box_logits.float().sigmoid().amax(-1)
-    valid_a = score_a > cfg.box_score_threshold
-    valid_b = score_b > cfg.box_score_threshold
-    both = valid_a & valid_b
-    box_a, box_b = decode_box_code(a.boxes.float()), decode_box_code(b.boxes.float())
-    gap = (box_a - box_b).abs()
+def prediction_differences(prediction, reference, cfg: ModelConfig) -> dict:
+    """One set's ``Prediction`` against ``reference``'s (both what the node publishes): the
+    share of voxels with the same label, of the voxels occupied in either, the largest
+    confidence difference (0..255), and the boxes: matched one to one by centre distance
+    (same class, at most BOX_MATCH_M apart; scipy's Hungarian solver), how many are left
+    unmatched and the largest centre (m), size (m) and score differences of the matched."""
+    from scipy.optimize import linear_sum_assignment
+    grid, ref = prediction.grid, reference.grid
+    occupied = (grid != cfg.num_classes) | (ref != cfg.num_classes)
+    result = {"grid_agreement": float((grid == ref).mean()),
+              "occupied_agreement": float((grid[occupied] == ref[occupied]).mean())
+              if occupied.any() else 1.0,
+              "confidence": int(np.abs(prediction.confidence.astype(np.int16)
+                                       - reference.confidence).max()),
+              "boxes_valid": len(reference.boxes)}
+    a, b = prediction.boxes, reference.boxes
+    pairs = []
+    if a and b:
+        centres = [np.array([box["center"] for box in boxes]) for boxes in (a, b)]
+        cost = np.linalg.norm(centres[0][:, None] - centres[1][None], axis=-1)
+        cost[np.not_equal.outer([x["label"] for x in a], [x["label"] for x in b])] = 1e6
+        pairs = [(i, j) for i, j in zip(*linear_sum_assignment(cost))
+                 if cost[i, j] <= BOX_MATCH_M]
 
-    def largest(t):
-        return float(t[both].max()) if both.any() else 0.0
-    result.update(boxes_valid=int(valid_b.sum()), boxes_valid_mismatch=int((valid_a ^ valid_b)
-                                                                         .sum()),
-                  box_centre_m=largest(gap[..., :3].amax(-1)),
-                  box_size_m=largest(gap[..., 3:6].amax(-1)),
-                  box_score=largest((score_a - score_b).abs()))
+    def largest(values):
+        return float(max(values, default=0.0))
+    result.update(
+        boxes_unmatched=len(a) + len(b) - 2 * len(pairs),
+        box_centre_m=largest(np.linalg.norm(np.subtract(a[i]["center"], b[j]["center"]))
+                             for i, j in pairs),
+        box_size_m=largest(np.abs(np.subtract(a[i]["size"], b[j]["size"])).max()
+                           for i, j in pairs),
+        box_score=largest(abs(a[i]["score"] - b[j]["score"]) for i, j in pairs))
     return result
 
 
-def bench_node_step(cfg: ModelConfig, device="cpu", modes=("eager", "compiled"),
-                    iters: int = 5, warmup: int = 1, precisions=("fp32",),
-                    model: ODG | None = None, progress: bool = True, sets=None,
-                    compiled_step=None) -> dict:
-    """``OnlinePredictor.step`` (what the node runs per camera set: upload, the device step,
-    download) for each execution mode and precision, interleaved set by set over one stream of
-    sets (``sets``: the node's inputs, default ``node_inputs``, random); the history fills as
-    in the node. Everything is compared with the first variant's: the grid (all voxels, and
-    the voxels occupied in either), and the last layer's logits and boxes
-    (``output_differences``). A variant is named by its mode, plus its precision where
-    several are asked for. ``compiled_step``: a .pt2 of ``odg export --aoti`` that the
-    compiled and graphs variants run instead of compiling."""
-    from ..online.predictor import OnlinePredictor
+class Variant:
+    """One execution mode and precision of the node's step: its predictor, its step times
+    (``times``: ms per host stage, steps without marks) and marks (``recorder``)."""
+
+    def __init__(self, name, mode, precision, predictor):
+        self.name, self.mode, self.precision, self.predictor = name, mode, precision, predictor
+        self.times = {stage: [] for stage in HOST_STAGES}
+        self.recorder = MarkRecorder(predictor.device)
+        self.differences: list[dict] = []
+
+    def step(self, camera_set, marks: bool = False, timed: bool = True):
+        """One ``predictor.step``, timed whole; with ``marks``, recorded by the step's marks
+        and the decoder layers' instead (not timed: the recording costs a little), or not at
+        all in a mode without marks."""
+        if marks and self.mode == "eager":
+            decoder = self.predictor.online_step.model.decoder
+            with self.recorder, DecoderMarks(decoder, self.recorder):
+                prediction = self.predictor.step(*camera_set)
+            self.recorder.flush()
+            return prediction
+        start = time.perf_counter()
+        prediction = self.predictor.step(*camera_set)
+        if timed and not marks:
+            self.times["step"].append((time.perf_counter() - start) * 1e3)
+            for stage, seconds in prediction.timings.items():
+                self.times[stage].append(seconds * 1e3)
+        return prediction
+
+    def result(self, cfg: ModelConfig, reference_ms: float | None = None) -> dict:
+        """Medians, FPS, the stages, and with ``reference_ms`` (another variant's step) the
+        speed-up against it."""
+        latency = {k: round(statistics.median(v), 3) for k, v in self.times.items() if v}
+        stages = stage_summary(self.recorder.medians(), cfg.num_layers)
+        entry = {"mode": self.mode, "precision": self.precision,
+                 "latency_ms": {**latency, **stages["latency_ms"]},
+                 "fps": round(1e3 / latency["step"], 3),
+                 "startup_s": round(self.predictor.startup_seconds, 2),
+                 "stages": "marks" if stages["latency_ms"] else
+                 f"whole step only: no marks inside a {self.mode} step",
+                 "decoder_layers_ms": stages["decoder_layers_ms"],
+                 "budget_ms": stages["budget_ms"]}
+        if reference_ms is not None:
+            entry["speedup"] = round(reference_ms / latency["step"], 3)
+        if self.differences:
+            entry["grid_agreement_min"] = min(d["grid_agreement"] for d in self.differences)
+            entry["occupied_agreement_min"] = min(d["occupied_agreement"]
+                                                  for d in self.differences)
+            entry["max_difference"] = {k: max(d[k] for d in self.differences)
+                                       for k in self.differences[0]
+                                       if not k.endswith("agreement")}
+        return entry
+
+
+@torch.no_grad()
+def take_turns(variants: dict[str, Variant], sets, warmup: int, iters: int, cfg: ModelConfig,
+               reference: Variant | None = None, progress: bool = True) -> int:
+    """``warmup`` untimed steps, then ``iters`` timed steps taking turns with as many recorded
+    by the marks (where a variant is eager), the variants one after the other on each camera
+    set (``sets`` taken in turn, from the first again when they run out: the history
+    restarts there, as when a bag loops); each variant's result compared with
+    ``reference``'s (another variant, or one stepped here untimed). -> steps per variant."""
+    marked = any(v.mode == "eager" for v in variants.values())
+    schedule = ["warmup"] * warmup + (["timed", "marks"] if marked else ["timed"]) * iters
+    extra = reference is not None and reference not in variants.values()
+    for i, kind in enumerate(tqdm(schedule, desc=f"node step {cfg.name}",
+                                  disable=not progress)):
+        camera_set = sets[i % len(sets)]
+        results = {name: v.step(camera_set, kind == "marks", kind != "warmup")
+                   for name, v in variants.items()}
+        if reference is None:
+            continue
+        expected = reference.step(camera_set, timed=False) if extra else \
+            results[reference.name]
+        for name, v in variants.items():
+            v.differences.append(prediction_differences(results[name], expected, cfg))
+    return len(schedule)
+
+
+@torch.no_grad()
+def bench_node_step(cfg: ModelConfig, device="cpu", modes=None, iters: int = 5,
+                    warmup: int = 1, precisions=None, model: ODG | None = None,
+                    progress: bool = True, sets=None, compiled_step=None,
+                    frames: int | None = None, settings: dict | None = None) -> dict:
+    """The node's step (module docstring) per variant: ``modes`` (None: the node's compile
+    setting) x ``precisions`` (None: the node's), named by the mode, and the precision where
+    several are asked for; ``take_turns`` runs them. ``sets``: camera sets as the node feeds
+    them (default ``node_inputs``, random); ``settings``: ``node_settings()`` by default;
+    ``frames``: history length (None: the model's); ``compiled_step``: a .pt2 of ``odg
+    export --aoti`` that the compiled and graphs variants run instead of compiling."""
+    settings = settings or node_settings()
+    modes = tuple(modes or (settings["compile"],))
+    precisions = tuple(precisions or (settings["precision"],))
     model = (model or ODG(cfg)).to(device).eval()
-    variants = {(mode if len(precisions) == 1 else f"{mode}-{precision}"): (mode, precision)
-                for precision in precisions for mode in modes}
-    predictors = {name: OnlinePredictor(model, cfg, device, max_gap=1.0, precision=precision,
-                                        compile=mode,
-                                        compiled_step=None if mode == "eager" else compiled_step)
-                  for name, (mode, precision) in variants.items()}
-    sets = sets if sets is not None else node_inputs(cfg, warmup + iters)
-    times = {name: {"step": [], "upload": [], "model": [], "download": []} for name in variants}
-    agreement = {name: [] for name in variants}
-    occupied_agreement = {name: [] for name in variants}
-    differences = {name: [] for name in variants}
-    for i, camera_set in enumerate(tqdm(sets, desc=f"node step {cfg.name}",
-                                        disable=not progress)):
-        results, outputs = {}, {}
-        for name in variants:
-            start = time.perf_counter()
-            results[name] = predictors[name].step(*camera_set)
-            if i >= warmup:
-                times[name]["step"].append((time.perf_counter() - start) * 1e3)
-                for stage, seconds in results[name].timings.items():
-                    times[name][stage].append(seconds * 1e3)
-            if len(precisions) > 1:          # untimed: the decoder again, for its raw output
-                with torch.inference_mode():
-                    outputs[name] = predictors[name]._raw_output()
-        first_name = next(iter(variants))
-        first = results[first_name].grid
-        for name in variants:
-            grid = results[name].grid
-            agreement[name].append(float((grid == first).mean()))
-            occupied = (grid != cfg.num_classes) | (first != cfg.num_classes)
-            occupied_agreement[name].append(float((grid[occupied] == first[occupied]).mean())
-                                            if occupied.any() else 1.0)
-            if outputs:
-                differences[name].append(output_differences(outputs[name],
-                                                             outputs[first_name], cfg))
-    step_times = {name: statistics.median(t["step"]) for name, t in times.items()}
-    reference = step_times[first_name]
-    result = {"preset": cfg.name, "device": str(device), "iters": iters,
-              "threads": torch.get_num_threads(), "torch": torch.__version__,
-              "precisions": list(precisions), "input": [cfg.num_cams, 3, *cfg.image_size],
-              "frames": cfg.num_frames, "sets": len(sets), "reference": first_name,
-              "modes": {}}
-    for name, (mode, precision) in variants.items():
-        entry = {"mode": mode, "precision": precision,
-                 "latency_ms": {k: round(statistics.median(v), 3) for k, v in
-                                times[name].items()},
-                 "fps": round(1e3 / step_times[name], 2),
-                 "speedup": round(reference / step_times[name], 3),
-                 "startup_s": round(predictors[name].startup_seconds, 2),
-                 "grid_agreement_min": min(agreement[name]),
-                 "occupied_agreement_min": min(occupied_agreement[name])}
-        if differences[name]:
-            entry["max_difference"] = {key: max(d[key] for d in differences[name])
-                                       for key in differences[name][0]}
-        result["modes"][name] = entry
-    return result
+    if frames is not None and not 1 <= frames <= cfg.num_frames:
+        raise ValueError(f"--frames must be in 1..{cfg.num_frames} for {cfg.name}")
+    variants = {}
+    for precision in precisions:
+        for requested in modes:
+            mode = resolve_mode(requested, device,
+                                compiled_step is not None and requested != "eager")
+            name = mode if len(precisions) == 1 else f"{mode}-{precision}"
+            predictor = node_predictor(model, cfg, device, settings, mode, precision, frames,
+                                       None if mode == "eager" else compiled_step)
+            variants[name] = Variant(name, mode, precision, predictor)
+    reference = next((v for v in variants.values()
+                      if (v.mode, v.precision) == ("eager", "fp32")), None)
+    extra = reference is None      # an untimed eager fp32 step: what the variants are against
+    if extra:
+        reference = Variant("eager-fp32", "eager", "fp32",
+                            node_predictor(model, cfg, device, settings, "eager", "fp32",
+                                           frames))
+    if torch.device(device).type == "cuda":
+        torch.cuda.reset_peak_memory_stats(device)
+    sets = sets or node_inputs(cfg, warmup + 2 * iters)
+    steps = take_turns(variants, sets, warmup, iters, cfg, reference, progress)
+    memory, method = peak_memory_mb(device)
+    first = next(iter(variants.values()))
+    reference_ms = statistics.median(first.times["step"])
+    return {"preset": cfg.name, "device": str(device), "iters": iters, "warmup": warmup,
+            "threads": torch.get_num_threads(), "torch": torch.__version__,
+            "input": [cfg.num_cams, 3, *cfg.image_size],
+            "frames": frames or cfg.num_frames, "steps": steps,
+            "distinct_sets": min(len(sets), steps),
+            "settings": {**settings, "padding": bool(cfg.occupancy_padding)},
+            "precisions": list(precisions), "speedup_against": first.name,
+            "reference": reference.name + (" (untimed)" if extra else ""),
+            "modes": {name: v.result(cfg, reference_ms) for name, v in variants.items()},
+            "peak_memory_mb": round(memory, 1), "memory_method": method}

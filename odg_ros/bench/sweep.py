@@ -1,39 +1,43 @@
 """``odg bench --sweep``: speed against error, in one run, on one device.
 
-For each configuration (history length, query budget, precision, sampling path) the online
-step of the node runs over ``limit`` samples spread evenly over a split: the older frames'
-features are computed first (the node has them cached), then the step -- backbone on the
-newest set, decoder over the cached history, grid + boxes -- is timed ``repeats`` times per
-sample after ``warmup`` steps, and its grid is scored (mIoU with the camera mask, RayIoU,
-mIoU over the moving classes) and its boxes (mAP, ``metrics.detection``). The
-configurations take turns step by step in one process (a random order each round), so a
+Every configuration is a configuration of the node's step: an ``OnlinePredictor`` (history
+length, query budget, precision, execution mode, visibility; or a model with fewer learned
+queries, or another model) whose ``step`` is timed and scored over ``limit`` samples spread
+evenly over a split. Per sample the predictor starts afresh and steps through the sample's
+history frames (the dataset's, oldest first: untimed), then through the sample's own camera
+set, timed ``repeats`` times (history again before each), plus once recorded by the step's
+marks (online/marks.py: stages, decoder layers; eager configurations only, as ``odg bench``).
+Its grid is scored (mIoU with the camera mask, RayIoU, mIoU over the moving classes) and its
+boxes (mAP, ``metrics.detection``; every box ranked by score, as ``odg eval`` scores them).
+The configurations take turns step by step in one process (a random order each round), so a
 shared machine that gets busier during the sweep slows all of them alike. Reported per
-configuration: median latency per stage, per decoder layer and per part of a layer, FPS, peak
-memory, the scores, and the same on the quietest and the busiest quarter of the samples
-(fewest / most occupied GT voxels in the camera mask), so adaptive inference can be judged
-where it should help.
+configuration: median step time (what FPS is of) and its host and device parts, the stages
+and decoder layers from the marks, the compile / capture time, peak memory, the scores, and
+the same on the quietest and the busiest quarter of the samples (fewest / most occupied GT
+voxels in the camera mask), so adaptive inference can be judged where it should help.
 
 Peak memory: every configuration also runs alone in a fresh process (``isolate``: model,
-first sample, its history, warm-up + 1 step) and reports its peak resident set size
-(``ru_maxrss``: interpreter + torch + weights + data + inference) on CPU, or
+first sample, warm-up + 1 step) and reports its peak resident set size (``ru_maxrss``:
+interpreter + torch + weights + data + inference) on CPU, or
 ``torch.cuda.max_memory_allocated`` on CUDA.
 
 Configurations derived from one checkpoint need no retraining: the history length is an
-input, and a query budget keeps an evenly spaced subset of the learned queries (their
-decoder weights are shared). Writes ``<out>/bench_<device>.json`` and ``.png`` (FPS
-against mIoU and RayIoU with the Pareto front, and the latency breakdown).
+input, a query budget ranks the queries by the shipped keep-scores, and a smaller query set
+keeps an evenly spaced subset of the learned queries (their decoder weights are shared).
+Writes ``<out>/bench_<device>.json`` and ``.png`` (FPS against mIoU and RayIoU with the Pareto
+front, and the latency breakdown).
 """
 from __future__ import annotations
 
 import dataclasses
 import datetime
 import json
+import math
 import multiprocessing
 import os
 import platform
 import subprocess
 import traceback
-from contextlib import nullcontext
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -41,55 +45,59 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from ..network.budget import output_needs
-from .step import DecoderHooks, TimedOnlineStep, StageTimer, peak_memory_mb, summarise
-from ..train.evaluate import add_box_sample, dynamic_class_miou
+from ..network.precision import PRECISIONS
+from ..online.step import MODES
+from ..train.evaluate import add_box_list, dynamic_class_miou
+from .step import Variant, node_predictor, node_settings, peak_memory_mb
 
 SUBSETS = ("all", "quiet", "busy")
 
 
 @dataclass(frozen=True)
 class SweepConfig:
-    """One point of the sweep. frames: history length k incl. the current set (None: the
-    model's); queries: fraction of the learned queries kept; precision: fp32 | bf16 | fp16
-    (autocast); ring: cached history in a ``FeatureRing`` (else re-laid out every step);
-    fast_sampling: camera-rows sampling (else the plain 3-D path); compile: torch.compile
-    the decoder (per-layer timing is then off: hooks would break the graph); cuda_graphs:
-    compiled with mode "reduce-overhead", which replays the decoder's kernels as CUDA graphs
-    (CUDA only: one launch instead of thousands of small ones); model: another
+    """One point of the sweep: a configuration of the node's step. frames: history length k
+    incl. the current set (None: the model's); budget: the node's query_budget, "auto" or a
+    fraction as text ("0.6"; network/budget.py: needs a checkpoint with trained budget heads,
+    except random weights, which time it only), None: every query refined; precision: the
+    node's precision (fp32 | bf16 | fp16); compile: the node's execution mode (eager |
+    compiled | graphs, CUDA only); visibility: the node's visibility; queries: a model with
+    this fraction of the learned queries, evenly spaced (``query_budget``); model: another
     checkpoint path or preset name (a preset: random weights, timing only) instead of the
-    sweep's own model; budget: the node's query_budget, "auto" or a fraction as text
-    ("0.6"; network/budget.py: the learned keep-score chooses the refined queries; needs a
-    checkpoint with trained budget heads, except random weights, which time it only), None:
-    every query refined."""
+    sweep's own model."""
 
     name: str
     frames: int | None = None
-    queries: float = 1.0
-    precision: str = "fp32"
-    ring: bool = True
-    fast_sampling: bool = True
-    compile: bool = False
-    cuda_graphs: bool = False
-    model: str | None = None
     budget: str | None = None
-
-    @property
-    def compiled(self) -> bool:
-        return self.compile or self.cuda_graphs
+    precision: str = "fp32"
+    compile: str = "eager"
+    visibility: bool = True
+    queries: float = 1.0
+    model: str | None = None
 
     def __post_init__(self):
         if not 0 < self.queries <= 1:
             raise ValueError(f"{self.name}: queries must be a fraction in (0, 1]")
         if self.frames is not None and self.frames < 1:
             raise ValueError(f"{self.name}: frames must be >= 1")
+        if self.compile not in MODES:
+            raise ValueError(f"{self.name}: compile {self.compile!r}, expected one of {MODES}")
+        if self.precision not in PRECISIONS:
+            raise ValueError(f"{self.name}: precision {self.precision!r}, expected one of "
+                             f"{PRECISIONS}")
+
+    def describe(self) -> str:
+        """The name and the fields that differ from the defaults."""
+        defaults = SweepConfig("")
+        fields = [f"{f.name}={getattr(self, f.name)}" for f in dataclasses.fields(self)
+                  if f.name != "name" and getattr(self, f.name) != getattr(defaults, f.name)]
+        return f"{self.name:<18} {' '.join(fields)}".rstrip()
 
 
 def default_configs(num_frames: int, device: str = "cpu") -> list[SweepConfig]:
     """History 1, 2, .., k; the learned query budgets (auto and the ladder's two smaller
     rungs: they need trained budget heads, as the shipped checkpoint has); fixed smaller
-    query sets 1/2 and 1/4 (the tiny variants); bf16 autocast; the plain path; on CUDA also
-    fp16, torch.compile and CUDA graphs."""
+    query sets 1/2 and 1/4 (the tiny variants); bf16; on CUDA also fp16, the compiled step
+    and the step replayed as a CUDA graph (the node's default there)."""
     k = num_frames
     histories = sorted({h for h in (1, 2, 4, 8) if h < k})
     configs = [SweepConfig(f"full-h{k}", frames=k)]
@@ -98,15 +106,14 @@ def default_configs(num_frames: int, device: str = "cpu") -> list[SweepConfig]:
                 for name in ("auto", "0.6", "0.35")]
     configs += [SweepConfig(f"q50-h{k}", frames=k, queries=0.5),
                 SweepConfig(f"q25-h{k}", frames=k, queries=0.25),
-                SweepConfig(f"bf16-h{k}", frames=k, precision="bf16"),
-                SweepConfig(f"plain-h{k}", frames=k, ring=False, fast_sampling=False)]
+                SweepConfig(f"bf16-h{k}", frames=k, precision="bf16")]
     if torch.device(device).type == "cuda":
         configs += [SweepConfig(f"fp16-h{k}", frames=k, precision="fp16"),
-                    SweepConfig(f"compile-h{k}", frames=k, compile=True),
-                    SweepConfig(f"compile-bf16-h{k}", frames=k, compile=True,
+                    SweepConfig(f"compiled-h{k}", frames=k, compile="compiled"),
+                    SweepConfig(f"compiled-bf16-h{k}", frames=k, compile="compiled",
                                 precision="bf16"),
-                    SweepConfig(f"graphs-h{k}", frames=k, cuda_graphs=True),
-                    SweepConfig(f"graphs-bf16-h{k}", frames=k, cuda_graphs=True,
+                    SweepConfig(f"graphs-h{k}", frames=k, compile="graphs"),
+                    SweepConfig(f"graphs-bf16-h{k}", frames=k, compile="graphs",
                                 precision="bf16")]
     return configs
 
@@ -156,13 +163,21 @@ def query_budget(model, cfg, fraction: float):
     state["queries.init_box"] = state["queries.init_box"][keep_d]
     smaller = ODG(new_cfg)
     smaller.load_state_dict(state)
-    smaller.fast_sampling = model.fast_sampling
     return smaller.to(next(model.parameters()).device).eval(), new_cfg
 
 
 def is_checkpoint(model: str) -> bool:
     """A ``SweepConfig.model`` names a checkpoint file, or a preset (name or YAML path)."""
     return Path(model).is_file() and Path(model).suffix not in (".yaml", ".yml")
+
+
+def model_config(checkpoint, preset: str | None):
+    """The ModelConfig of ``checkpoint`` (its weights are not built), else of ``preset``."""
+    from ..config import ModelConfig, load_preset
+    if checkpoint is None:
+        return load_preset(preset)
+    payload = torch.load(checkpoint, map_location="cpu", weights_only=False)
+    return ModelConfig(**payload["config"])
 
 
 def prepare_model(checkpoint, preset: str, device: str, config: SweepConfig):
@@ -178,14 +193,26 @@ def prepare_model(checkpoint, preset: str, device: str, config: SweepConfig):
                          f"{cfg.num_frames}")
     if config.queries < 1:
         model, cfg = query_budget(model, cfg, config.queries)
-    if config.cuda_graphs and torch.device(device).type != "cuda":
+    if config.compile == "graphs" and torch.device(device).type != "cuda":
         raise ValueError(f"{config.name}: CUDA graphs need a CUDA device, not {device}")
-    model.fast_sampling = config.fast_sampling
-    model = model.to(device).eval()
-    if config.compiled:
-        model.decoder = torch.compile(
-            model.decoder, mode="reduce-overhead" if config.cuda_graphs else "default")
-    return model, cfg
+    return model.to(device).eval(), cfg
+
+
+def sample_camera_sets(sample: dict):
+    """A dataset sample's frames as the node would have fed them: (the history frames'
+    camera sets, oldest first, then the sample's own), each (uint8 images [N, H, W, 3],
+    ego2img [N, 4, 4], pose, stamp). The poses are the ego warps inverted (frame 0 at the
+    origin), so the predictor's warps are the sample's; a frame the dataset repeats (a scene's
+    start) is fed once: the step repeats the oldest frame for the missing ones alike."""
+    images, ego2img = sample["images"].numpy(), sample["ego2img"].double().numpy()
+    warps = sample["ego_warp"].double().numpy()
+    stamps = 1000.0 - sample["time_delta"].double().numpy()
+    sets = []
+    for t in reversed(range(len(stamps))):
+        if sets and stamps[t] <= sets[-1][3]:
+            continue
+        sets.append((images[t], ego2img[t], np.linalg.inv(warps[t]), float(stamps[t])))
+    return sets[:-1], sets[-1]
 
 
 # ------------------------------------------------------------------------ the split
@@ -227,90 +254,79 @@ def quiet_and_busy(load: list[dict]) -> tuple[list[int], list[int]]:
 
 # ------------------------------------------------------------------------ measuring
 class ConfigRun:
-    """One configuration during the measurement: its model, online step, timers, scores."""
+    """One configuration during the measurement: its node step (``step.Variant``), the
+    current sample's camera sets, the timings per sample, the scores."""
 
     def __init__(self, config: SweepConfig, job: dict):
         from ..metrics.detection import DetectionScore
         from ..metrics.score import OccScore
 
         self.config, self.device = config, job["device"]
-        self.model, self.cfg = prepare_model(job["checkpoint"], job["preset"], self.device,
-                                             config)
+        model, self.cfg = prepare_model(job["checkpoint"], job["preset"], self.device, config)
         self.frames = config.frames or self.cfg.num_frames
         self.random_weights = (config.model is None and job["checkpoint"] is None) or (
             config.model is not None and not is_checkpoint(config.model))
-        self.step = TimedOnlineStep(self.model, self.cfg, self.device, ring=config.ring,
-                                    precision=config.precision)
+        if config.budget is not None and self.random_weights:
+            model.decoder.budget_heads.set_trained(True)   # timing only: any ranking will do
+        # the history is the dataset's (sample_camera_sets): kept as it comes; every box
+        # ranked, none cut by the score threshold (mAP ranks them, as odg eval does)
+        settings = node_settings(precision=config.precision, compile=config.compile,
+                                 query_budget=config.budget or "full",
+                                 visibility=config.visibility, history_interval=0.0,
+                                 history_max_gap=math.inf)
+        predictor = node_predictor(model, self.cfg.replace(box_score_threshold=0.0),
+                                   self.device, settings, frames=self.frames)
+        self.variant = Variant(config.name, predictor.mode, config.precision, predictor)
         self.scores = {name: OccScore(job["dataset"], rayiou=job.get("rayiou", True))
                        for name in SUBSETS}
         self.box_scores = {name: DetectionScore() for name in SUBSETS} \
             if self.cfg.dynamic_queries else None
-        self.budgets = self.policy = None
-        if config.budget is not None:
-            from ..online.predictor import resolve_budget
-            if self.random_weights:         # timing only: any ranking costs a budget alike
-                self.model.decoder.budget_heads.set_trained(True)
-            self.budgets, self.policy = resolve_budget(config.budget, self.model, self.cfg)
-        self.timer, self.per_sample, self.error = StageTimer(self.device), [], None
-        self.history = self.sample_timer = self.output = self.grid = None
+        self.per_sample, self.error = [], None
+        self.sample = self.history = self.current = self.prediction = None
 
-    def begin_sample(self, batch) -> None:
-        """The older frames' features (the node has them cached): untimed."""
-        images = batch["images"]
-        self.batch = batch
-        self.history = [self.step.features(images[:, t]) for t in range(1, images.shape[1])]
-        self.sample_timer = StageTimer(self.device)
-        if self.budgets is not None:     # auto: chosen from the sample before (the policy's)
-            self.step.budget = self.policy.budget if self.policy else self.budgets[0]
+    def begin_sample(self, sample: dict) -> None:
+        self.sample, self.prediction = sample, None
+        self.history, self.current = sample_camera_sets(sample)
+        self.first_timed = len(self.variant.times["step"])
 
-    def run_step(self, timer: StageTimer | None = None) -> None:
-        b = self.batch
-        self.step.prime(self.history)
-        timer = timer or self.sample_timer
-        with DecoderHooks(self.model, timer) if not self.config.compiled else nullcontext():
-            output, self.grid, _ = self.step(b["images"][:, 0], b["ego2img"], b["ego_warp"],
-                                             b["time_delta"], timer)
-        timer.flush()
-        # scored in end_sample, after the other configurations' steps: a compiled decoder's
-        # outputs may be CUDA-graph buffers by then overwritten (seen on an H100: graphs-h4
-        # box mAP 0.76 against 18.54; the grid, computed in the step, was right)
-        self.output = output.cloned() if self.config.compiled else output
+    def run_step(self, kind: str = "timed") -> None:
+        """The sample's step after its history (untimed); ``kind``: timed, marks (recorded
+        by the marks) or warmup."""
+        predictor = self.variant.predictor
+        predictor.reset()
+        for camera_set in self.history:
+            predictor.step(*camera_set)
+        prediction = self.variant.step(self.current, kind == "marks", kind != "warmup")
+        if kind == "timed" and self.prediction is None:
+            self.prediction = prediction
 
     def end_sample(self, index: int, members: dict, origins) -> None:
-        for name, values in self.sample_timer.times.items():
-            self.timer.times.setdefault(name, []).extend(values)
-        medians = self.sample_timer.medians()
-        last = self.output.last
-        budget = self.step.budget
-        refined = 1.0 if budget is None else budget.refined_fraction(self.cfg)
-        if self.policy is not None:
-            self.policy.update(*output_needs(self.output, self.model, self.cfg))
-        self.per_sample.append({"index": index, "token": self.batch["token"][0],
-                                "total_ms": round(medians["total"], 3),
-                                "decoder_ms": round(medians["decoder"], 3),
-                                "queries_last_layer": int(last.means.shape[1]),
-                                "refined_fraction": round(refined, 4),
-                                "gaussians_last_layer": int(last.means.shape[1]
-                                                            * last.means.shape[2])})
+        times = {k: v[self.first_timed:] for k, v in self.variant.times.items()}
+        p, sample = self.prediction, self.sample
+        self.per_sample.append({"index": index, "token": sample["token"],
+                                "step_ms": round(float(np.median(times["step"])), 3),
+                                "model_ms": round(float(np.median(times["model"])), 3),
+                                "query_budget": p.query_budget,
+                                "refined_fraction": round(p.refined_fraction, 4)})
         if self.box_scores is not None:
             for name in SUBSETS:
                 if index in members[name]:
-                    add_box_sample(self.box_scores[name], self.output, self.batch, self.cfg)
-        if self.batch["has_occ"][0]:
-            pred = self.grid[0].cpu().numpy()
-            gt = self.batch["occ_semantics"][0].cpu().numpy()
-            mask = self.batch["occ_mask_camera"][0].cpu().numpy().astype(bool)
+                    add_box_list(self.box_scores[name], p.boxes, sample["gt_boxes"],
+                                 sample["gt_labels"], self.cfg)
+        if sample["has_occ"]:
+            gt = sample["occ_semantics"].numpy()
+            mask = sample["occ_mask_camera"].numpy().astype(bool)
             ray_origins = origins(index) if origins is not None else None
             for name in SUBSETS:
                 if index in members[name]:
-                    self.scores[name].add(pred, gt, mask, ray_origins)
-        self.history = self.batch = self.output = self.grid = None
+                    self.scores[name].add(p.grid, gt, mask, ray_origins)
+        self.sample = self.history = self.current = self.prediction = None
 
     def result(self, members: dict) -> dict:
         out = {"config": dataclasses.asdict(self.config), "model": self.cfg.name,
                "random_weights": self.random_weights,
                "queries": self.cfg.num_queries, "frames": self.frames,
-               **summarise(self.timer, self.cfg.num_layers), "per_sample": self.per_sample}
+               **self.variant.result(self.cfg), "per_sample": self.per_sample}
         for name in SUBSETS:
             out["scores" if name == "all" else name] = subset_result(
                 self.scores[name], self.box_scores[name] if self.box_scores else None,
@@ -318,16 +334,32 @@ class ConfigRun:
         return out
 
 
+def _rounds(runs: list[ConfigRun], kinds: list[str], order, progress) -> None:
+    """Each kind of step in turn; in each, the runs in a new random order (no configuration
+    always follows the same one: the one before leaves caches and the allocator in its own
+    state). A configuration that fails stops there, the others go on."""
+    for kind in kinds:
+        active = [run for run in runs if run.error is None]
+        if kind == "marks":                      # a compiled step has no marks to record
+            active = [run for run in active if run.variant.mode == "eager"]
+        for position in order.permutation(len(active)):
+            run = active[position]
+            try:
+                run.run_step(kind)
+            except Exception as error:
+                run.error = failure(run.config, error)
+            if kind == "timed":
+                progress.update()
+
+
 @torch.no_grad()
 def measure_interleaved(configs: list[SweepConfig], job: dict) -> list[dict]:
     """Time and score every configuration in one process, interleaved: for each sample and
     repeat the configurations take turns (in a random order), so a machine that gets
     busier or quieter during the sweep slows every configuration alike."""
-    from ..data.batch import collate, to_device
     from ..data.dataset import OccDataset
     from ..metrics.rayiou import LidarOrigins
 
-    device = job["device"]
     members = {"all": set(job["indices"]), "quiet": set(job["quiet"]),
                "busy": set(job["busy"])}
     runs, results = [], {}
@@ -338,41 +370,28 @@ def measure_interleaved(configs: list[SweepConfig], job: dict) -> list[dict]:
             results[config.name] = failure(config, error)
     datasets = {}
     origins = None
-    # a new random order every round: no configuration always follows the same one (the
-    # one before leaves caches and the allocator in its own state)
     order = np.random.default_rng(0)
     progress = tqdm(total=len(job["indices"]) * job["repeats"] * len(runs),
                     desc="sweep (interleaved steps)", disable=not job.get("progress", True))
     for sample_number, index in enumerate(job["indices"]):
-        batches = {}
+        samples = {}
         for run in runs:
             if run.error is not None:
                 continue
             try:
-                if run.frames not in batches:
+                if run.frames not in samples:
                     if run.frames not in datasets:
                         datasets[run.frames] = OccDataset(
                             job["data"], run.cfg.replace(num_frames=run.frames),
                             occ_root=job["occ_root"])
                         origins = origins or (LidarOrigins(datasets[run.frames].infos)
                                               if job.get("rayiou", True) else None)
-                    batches[run.frames] = to_device(
-                        collate([datasets[run.frames][index]]), device)
-                run.begin_sample(batches[run.frames])
-                if sample_number == 0:
-                    for _ in range(job["warmup"]):
-                        run.run_step(StageTimer(device))
+                    samples[run.frames] = datasets[run.frames][index]
+                run.begin_sample(samples[run.frames])
             except Exception as error:
                 run.error = failure(run.config, error)
-        for repeat in range(job["repeats"]):
-            active = [run for run in runs if run.error is None]
-            for position in order.permutation(len(active)):
-                run = active[position]
-                try:
-                    run.run_step()
-                except Exception as error:
-                    run.error = failure(run.config, error)
-                progress.update()
+        warmup = ["warmup"] * job["warmup"] if sample_number == 0 else []
+        _rounds(runs, warmup + ["timed"] * job["repeats"] + ["marks"], order, progress)
         for run in runs:
             if run.error is None:
                 run.end_sample(index, members, origins)
@@ -389,9 +408,8 @@ def failure(config: SweepConfig, error: Exception) -> dict:
 
 @torch.no_grad()
 def probe_memory(job: dict) -> dict:
-    """Peak memory of one configuration: model, the first sample, its cached history,
-    ``warmup`` + 1 steps -- run in a fresh process (``isolate``) so the figure is its own."""
-    from ..data.batch import collate, to_device
+    """Peak memory of one configuration: model, the first sample, ``warmup`` + 1 steps
+    after its history -- run in a fresh process (``isolate``) so the figure is its own."""
     from ..data.dataset import OccDataset
 
     if job.get("threads"):
@@ -402,9 +420,9 @@ def probe_memory(job: dict) -> dict:
         after_load, _ = peak_memory_mb("cpu")
         dataset = OccDataset(job["data"], run.cfg.replace(num_frames=run.frames),
                              occ_root=job["occ_root"])
-        run.begin_sample(to_device(collate([dataset[job["indices"][0]]]), job["device"]))
+        run.begin_sample(dataset[job["indices"][0]])
         for _ in range(job["warmup"] + 1):
-            run.run_step(StageTimer(job["device"]))
+            run.run_step("warmup")
     except Exception as error:
         return failure(config, error)
     memory, method = peak_memory_mb(job["device"])
@@ -417,11 +435,9 @@ def subset_result(score, box_score, per_sample, members) -> dict:
     rows = [r for r in per_sample if r["index"] in members]
     out = {"samples": len(rows)}
     if rows:
-        out["latency_ms"] = round(float(np.median([r["total_ms"] for r in rows])), 3)
-        out["decoder_ms"] = round(float(np.median([r["decoder_ms"] for r in rows])), 3)
-        out["queries_last_layer"] = round(float(np.mean([r["queries_last_layer"]
-                                                          for r in rows])), 1)
-        out["refined_fraction"] = round(float(np.mean([r.get("refined_fraction", 1.0)
+        out["latency_ms"] = round(float(np.median([r["step_ms"] for r in rows])), 3)
+        out["model_ms"] = round(float(np.median([r["model_ms"] for r in rows])), 3)
+        out["refined_fraction"] = round(float(np.mean([r["refined_fraction"]
                                                         for r in rows])), 4)
     if score.miou.samples:
         res = score.result()
@@ -505,19 +521,13 @@ def run_sweep(data, checkpoint=None, preset: str = "odg_cpu", device: str = "cpu
     """Measure every configuration; write ``<out>/bench_<cpu|cuda>.json`` and ``.png`` when
     ``out`` is given. checkpoint None: random weights of ``preset`` (scores meaningless,
     flagged in the JSON and on the plot)."""
-    from ..config import load_preset
     from ..data.dataset import load_infos_file
 
     if torch.device(device).type == "cuda" and not torch.cuda.is_available():
         raise SystemExit("odg bench --sweep: --device cuda but CUDA is not available here")
     if limit < 1 or repeats < 1 or warmup < 0:
         raise ValueError("limit and repeats must be >= 1, warmup >= 0")
-    if checkpoint is None:
-        cfg = load_preset(preset)
-    else:
-        from ..config import ModelConfig
-        payload = torch.load(checkpoint, map_location="cpu", weights_only=False)
-        cfg = ModelConfig(**payload["config"])
+    cfg = model_config(checkpoint, preset)
     configs = configs or default_configs(cfg.num_frames, device)
     isolate = True if isolate is None else isolate
     infos = load_infos_file(data)
@@ -576,12 +586,15 @@ def sweep_meta(device, threads, checkpoint, cfg, data, indices, repeats, warmup,
             "memory_method": ("torch.cuda.max_memory_allocated" if torch.device(device).type
                               == "cuda" else "ru_maxrss (interpreter, torch, weights, data "
                               "and inference together)")
-            + (" of a fresh process per configuration (model, first sample, its history, "
-               "warm-up + 1 step)" if isolate else
+            + (" of a fresh process per configuration (model, first sample, warm-up + 1 "
+               "step after its history)" if isolate else
                " of this process: a RUNNING MAXIMUM over the configurations, not their own"),
-            "latency": "median over samples x repeats of the online step (backbone on the "
-                       "newest set, decoder over the cached history, grid + boxes); the "
-                       "configurations take turns step by step in one process"}
+            "latency": "the node's step (OnlinePredictor.step: upload, backbone on the "
+                       "newest set, decoder over the feature ring, grid with padding, boxes, "
+                       "visibility, download), median over samples x repeats, each after "
+                       "the sample's history; stages and decoder layers from the step's marks "
+                       "on steps of their own (eager configurations); the configurations "
+                       "take turns step by step in one process"}
 
 
 def write_sweep(report: dict, out: Path, device) -> list[str]:
@@ -597,26 +610,32 @@ def write_sweep(report: dict, out: Path, device) -> list[str]:
 
 # ------------------------------------------------------------------------ report
 def format_sweep_table(report: dict) -> str:
-    lines = [f"{'config':<16} {'FPS':>6} {'total':>8} {'backbone':>8} {'decoder':>8} "
-             f"{'post':>6} {'mem MB':>7} {'mIoU':>6} {'RayIoU':>6} {'mIoU_dyn':>8} {'box mAP':>7} "
-             f"{'quiet ms':>8} {'busy ms':>8} {'Q last':>6} {'refined':>7}"]
+    lines = [f"{'config':<18} {'FPS':>6} {'step':>7} {'model':>7} {'backbone':>8} "
+             f"{'decoder':>7} {'post':>6} {'mem MB':>7} {'mIoU':>6} {'RayIoU':>6} "
+             f"{'mIoU_dyn':>8} {'box mAP':>7} {'quiet ms':>8} {'busy ms':>8} {'queries':>7} "
+             f"{'refined':>7} {'start s':>7}"]
     cell = lambda v, f="{:.2f}": "-" if v is None else f.format(v)  # noqa: E731
     for r in report["configs"]:
         name = r["config"]["name"]
         if "error" in r:
-            lines.append(f"{name:<16} FAILED: {r['error']}")
+            lines.append(f"{name:<18} FAILED: {r['error']}")
             continue
         lat, s = r["latency_ms"], r["scores"]
         lines.append(
-            f"{name:<16} {cell(r['fps']):>6} {cell(lat['total'], '{:.1f}'):>8} "
-            f"{cell(lat['backbone'], '{:.1f}'):>8} {cell(lat['decoder'], '{:.1f}'):>8} "
-            f"{cell(lat['postprocess'], '{:.1f}'):>6} {cell(r['peak_memory_mb'], '{:.0f}'):>7} "
+            f"{name:<18} {cell(r['fps']):>6} {cell(lat['step'], '{:.1f}'):>7} "
+            f"{cell(lat['model'], '{:.1f}'):>7} {cell(lat.get('backbone'), '{:.1f}'):>8} "
+            f"{cell(lat.get('decoder'), '{:.1f}'):>7} "
+            f"{cell(lat.get('postprocess'), '{:.1f}'):>6} "
+            f"{cell(r['peak_memory_mb'], '{:.0f}'):>7} "
             f"{cell(s.get('mIoU')):>6} {cell(s.get('RayIoU')):>6} "
             f"{cell(s.get('mIoU_dynamic')):>8} {cell(s.get('box_mAP')):>7} "
             f"{cell(r['quiet'].get('latency_ms'), '{:.1f}'):>8} "
-            f"{cell(r['busy'].get('latency_ms'), '{:.1f}'):>8} "
-            f"{cell(s.get('queries_last_layer'), '{:.0f}'):>6} "
-            f"{cell(s.get('refined_fraction'), '{:.0%}'):>7}")
+            f"{cell(r['busy'].get('latency_ms'), '{:.1f}'):>8} {r['queries']:>7} "
+            f"{cell(s.get('refined_fraction'), '{:.0%}'):>7} "
+            f"{cell(r['startup_s'], '{:.1f}'):>7}")
+    lines.append("step: the node's whole step per camera set (FPS = 1000 / step); model: its "
+                 "device part; backbone, decoder, post: the step's marks (eager rows; - where "
+                 "a compiled or graph-replayed step has none)")
     for metric, names in report["pareto"].items():
         lines.append(f"Pareto front (FPS, {metric}): {', '.join(names)}")
     return "\n".join(lines)

@@ -14,7 +14,7 @@ import sys
 
 SUBCOMMANDS = {
     "info": "model size, Gaussians per layer, FLOPs of a preset",
-    "bench": "latency of one online step per stage (and the speed-vs-error sweep)",
+    "bench": "the node's step per camera set, per stage (and the speed-vs-error sweep)",
     "synth": "generate the synthetic driving world (nuScenes + Occ3D layout)",
     "prepare": "build the infos index from a nuScenes-format dataroot + Occ3D GT",
     "score": "mIoU / RayIoU of saved predictions against the GT",

@@ -1,12 +1,12 @@
-"""``odg bench``: latency of the online step, the fast paths, and the speed-vs-error sweep.
+"""``odg bench``: the node's own step per camera set, and its speed against error.
 
-    odg bench --preset NAME [--device cpu|cuda] [--frames K] [--iters N] [--json]
-              [--checkpoint CKPT] [--precision fp32|bf16|fp16] [--no-ring]
-    odg bench --compile eager,compiled[,graphs] --preset NAME [--precision fp32,bf16]
-              [--data INFOS] [--compiled-step FILE.pt2]
-                                                the node's step in each execution mode
-    odg bench --fast-paths --preset NAME        each fast path against the plain path
-    odg bench --sweep --data INFOS [--checkpoint CKPT] --out DIR [--limit N] [--configs ...]
+    odg bench [--checkpoint CKPT | --preset NAME] [--device cpu|cuda] [--frames K]
+              [--iters N] [--compile MODES] [--precision P[,P]] [--query-budget B]
+              [--no-visibility] [--data INFOS] [--compiled-step FILE.pt2] [--json]
+    odg bench --sweep --data INFOS [--checkpoint CKPT] [--out DIR] [--limit N] [--configs ...]
+
+Both time ``OnlinePredictor.step``, what the node runs per camera set (odg_ros/bench/step.py,
+odg_ros/bench/sweep.py), at the node's settings unless an option says otherwise.
 """
 from __future__ import annotations
 
@@ -15,71 +15,122 @@ import sys
 
 import torch
 
-from ..bench.step import (PRECISIONS, bench_fast_paths, bench_node_step, bench_online_step,
-                         data_camera_sets)
-from ..config import load_preset
-from ..network.precision import resolve_device, slow_precision_warning
 from .common import (UserError, device, existing_file, infos_file, nonnegative_int,
                      positive_int, preset)
 
+SWEEP_OUT = "bench_results"
+
+
+EPILOG = """\
+What is timed: OnlinePredictor.step, the node's own step per camera set (geometry packed and
+images uploaded, backbone on the newest set, decoder over the feature ring, grid with
+padding, ranked boxes, visibility, results back), at the node's settings
+(config/odg_node.schema.yaml) unless an option above says otherwise. FPS = 1000 / step ms;
+"model" is its device part, the node's stage_model_ms. Stages and decoder layers come from
+marks inside that step, recorded on steps of their own of an eager variant; a compiled or
+graph-replayed step has no marks inside and is timed whole. Each variant's grid, confidence
+and boxes are compared with an eager fp32 step on the same camera sets."""
+
 
 def add_arguments(parser):
-    parser.add_argument("--preset", type=preset, default="odg_t",
-                        help="model preset (ignored where --checkpoint gives the model)")
+    parser.epilog = EPILOG
+    parser.add_argument("--checkpoint", default=None, type=existing_file,
+                        help="weights (default: the shipped model/odg_cpu.pt, as the node)")
+    parser.add_argument("--preset", type=preset, default=None,
+                        help="random weights of this preset instead of a checkpoint (timing "
+                             "only; default: none, the checkpoint's model)")
     parser.add_argument("--device", type=device, default="cpu",
                         help="cpu, cuda, cuda:N or auto")
     parser.add_argument("--frames", type=positive_int, default=None,
-                        help="history frames K incl. the current one (default: the preset's)")
+                        help="history frames K incl. the current one (default: the model's)")
     parser.add_argument("--iters", type=positive_int, default=None,
-                        help="timed iterations, median (default 5; --sweep: 3 per sample)")
+                        help="timed steps, median (default 5, and as many recorded by the "
+                             "step's marks; --sweep: 3 per sample)")
     parser.add_argument("--warmup", type=nonnegative_int, default=1, help="untimed steps first")
     parser.add_argument("--threads", type=positive_int, default=None,
                         help="torch CPU threads (default: torch's choice)")
     parser.add_argument("--json", action="store_true", help="print JSON only")
-    parser.add_argument("--checkpoint", default=None, type=existing_file,
-                        help="weights (default: random weights of --preset)")
-    parser.add_argument("--precision", default="fp32",
-                        help=f"one of {', '.join(PRECISIONS)} (fp16 only on CUDA); with "
-                             "--compile a comma-separated list, each against the first "
-                             "(the node's step stores bf16 / fp16 weights, the others autocast)")
-    parser.add_argument("--no-ring", action="store_true",
-                        help="re-lay out the cached history every step (no FeatureRing)")
     parser.add_argument("--compile", default=None, metavar="MODES",
-                        help="time the node's own step (OnlinePredictor.step) in these "
-                             "comma-separated execution modes (eager, compiled, graphs), "
-                             "interleaved; the first is the reference (default: not timed by mode)")
+                        help="execution modes of the step, comma-separated (auto, eager, "
+                             "compiled, graphs), taking turns set by set; the first is what "
+                             "speed-ups are against (default: the node's compile setting, "
+                             "auto: graphs on CUDA, eager on the CPU)")
+    parser.add_argument("--precision", default=None,
+                        help="fp32, bf16 or fp16 (CUDA), or a comma-separated list: a variant "
+                             "each (default: the node's precision setting, fp32)")
+    parser.add_argument("--query-budget", default=None, metavar="BUDGET",
+                        help="full, auto or a fraction of the queries (default: the node's "
+                             "query_budget setting, full)")
+    parser.add_argument("--no-visibility", action="store_true",
+                        help="the step without the voxels the cameras observe (the node's "
+                             "visibility false)")
     parser.add_argument("--compiled-step", default=None, type=existing_file, metavar="FILE",
-                        help="--compile: the compiled and graphs modes run this .pt2 of odg "
-                             "export --aoti instead of compiling (default: compile)")
-    parser.add_argument("--fast-paths", action="store_true",
-                        help="compare each fast path with the plain path (random weights)")
-    parser.add_argument("--sweep", action="store_true",
-                        help="speed vs error over configurations on a split "
-                             "(odg_ros/bench/sweep.py)")
+                        help="the compiled and graphs modes run this .pt2 of odg export "
+                             "--aoti instead of compiling (default: compile)")
     parser.add_argument("--data", default=None, type=infos_file,
-                        help="--sweep: infos of the split (required there); --compile: feed "
-                             "the first scene's keyframes instead of random images "
-                             "(default: none)")
+                        help="feed the first scene's keyframes (default: random images); "
+                             "--sweep: the split to score (required there)")
+    parser.add_argument("--sweep", action="store_true",
+                        help="speed against error over configurations of the step on a "
+                             "split (odg_ros/bench/sweep.py)")
     parser.add_argument("--occ-root", default=None,
                         help="--sweep: GT root (default: the infos' occ_root)")
-    parser.add_argument("--out", default="docs/results",
-                        help="--sweep: folder for the JSON and PNG")
+    parser.add_argument("--out", default=SWEEP_OUT,
+                        help="--sweep: folder for bench_<device>.json and .png")
     parser.add_argument("--limit", type=positive_int, default=8,
                         help="--sweep: N samples spread evenly over the split")
     parser.add_argument("--configs", default=None,
                         help="--sweep: comma-separated names of default configurations (default: "
-                             "all of them), or a "
-                             "JSON file with a list of sweep.SweepConfig fields, e.g. "
-                             '[{"name": "odg_t", "model": "odg_t"}] (a preset: random '
-                             "weights, timing only)")
+                             "all of them, see --list-configs), or a JSON file with a list of "
+                             'sweep.SweepConfig fields, e.g. [{"name": "odg_t", "model": '
+                             '"odg_t"}] (a preset: random weights, timing only)')
     parser.add_argument("--list-configs", action="store_true",
-                        help="--sweep: print the default configurations and exit")
+                        help="--sweep: print the default configurations of the model given "
+                             "and exit")
     parser.add_argument("--no-isolate", action="store_true",
                         help="--sweep: run every configuration in this process (CPU peak "
                              "memory is then the running maximum, not per configuration)")
 
 
+def weights_path(args) -> str:
+    """--checkpoint, or the shipped checkpoint (the node's default)."""
+    from ..resources import shipped_checkpoint
+    return args.checkpoint or str(shipped_checkpoint())
+
+
+def _load(args):
+    """-> (model, cfg, what the weights are) of --checkpoint / --preset / the shipped file."""
+    from ..network.checkpoint import load_model
+    if args.checkpoint and args.preset:
+        raise UserError("--checkpoint and --preset: give one (a preset means random weights)")
+    if args.preset:
+        model, cfg = load_model(None, preset=args.preset, device=args.device)
+        return model, cfg, f"random weights of {args.preset}"
+    path = weights_path(args)
+    model, cfg = load_model(path, device=args.device)
+    return model, cfg, path
+
+
+def _variants(args) -> tuple[tuple, tuple]:
+    from ..network.precision import PRECISIONS
+    from ..online.step import MODES
+    modes = tuple(m.strip() for m in (args.compile or "").split(",") if m.strip())
+    unknown = [m for m in modes if m not in ("auto",) + MODES]
+    if unknown or (args.compile is not None and not modes):
+        raise UserError(f"--compile: unknown mode(s) {unknown}; expected a comma-separated "
+                        f"list of auto, {', '.join(MODES)}")
+    if "graphs" in modes and torch.device(args.device).type != "cuda":
+        raise UserError("--compile graphs: CUDA graphs need --device cuda")
+    precisions = tuple(p.strip() for p in (args.precision or "").split(",") if p.strip())
+    unknown = [p for p in precisions if p not in PRECISIONS]
+    if unknown or (args.precision is not None and not precisions):
+        raise UserError(f"--precision {args.precision!r}: expected one of {PRECISIONS} or a "
+                        "comma-separated list of them")
+    return modes or None, precisions or None
+
+
 def run(args) -> int:
+    from ..network.precision import resolve_device
     args.device = resolve_device(args.device)
     # fixed shapes, as in the node: cuDNN's measured fastest algorithms (process-wide, so set
     # here where the benchmark starts, as the node's main does)
@@ -88,132 +139,118 @@ def run(args) -> int:
         torch.set_num_threads(args.threads)
     if args.iters is None:
         args.iters = 3 if args.sweep else 5
-    precisions = tuple(p.strip() for p in args.precision.split(",") if p.strip())
-    unknown = [p for p in precisions if p not in PRECISIONS]
-    if unknown or not precisions or (len(precisions) > 1 and not args.compile):
-        raise UserError(f"--precision {args.precision!r}: expected one of {PRECISIONS} "
-                        f"(a comma-separated list with --compile)")
-    args.precisions = precisions
     if args.sweep:
         return run_sweep_command(args)
-    if args.compile:
-        return run_compile_command(args)
-    if args.fast_paths:
-        result = bench_fast_paths(load_preset(args.preset), args.device, args.iters,
-                                  args.warmup, progress=not args.json)
-        if args.json:
-            print(json.dumps(result, indent=2))
-            return 0
-        print(f"{result['preset']} on {result['device']} ({result['threads']} threads): "
-              f"median of {result['iters']} interleaved steps; max |difference| of the last "
-              f"layer from '{result['reference']}'")
-        print(f"  {'variant':<24}{'backbone':>9}{'decoder':>9}{'post':>7}{'total':>9}"
-              f"{'speedup':>8}  {'d means':>9} {'d logits':>9}")
-        for name, v in result["variants"].items():
-            lat, diff = v["latency_ms"], v["max_abs_diff"]
-            print(f"  {name:<24}{lat['backbone']:9.1f}{lat['decoder']:9.1f}"
-                  f"{lat['postprocess']:7.1f}{lat['total']:9.1f}{v['speedup_total']:8.2f}"
-                  f"  {diff['means']:9.2e} {diff['logits']:9.2e}")
-        return 0
-    from ..network.checkpoint import load_model
-    model, cfg = load_model(args.checkpoint, preset=args.preset, device=args.device)
-    result = bench_online_step(cfg, args.device, args.frames, args.iters, args.warmup,
-                               progress=not args.json, model=model, ring=not args.no_ring,
-                               precision=args.precisions[0])
-    result["weights"] = args.checkpoint or "random"
-    slow = slow_precision_warning(args.precisions[0], args.device)
-    if slow:
-        result["warning"] = slow
-        print(f"odg bench: {slow}", file=sys.stderr)
-    if args.json:
-        print(json.dumps(result, indent=2))
-        return 0
-    lat = result["latency_ms"]
-    print(f"{result['preset']} on {result['device']} ({result['threads']} threads), "
-          f"{result['frames']} frames, input {result['input']}, {result['precision']}, "
-          f"{'ring' if result['ring'] else 'no ring'}, weights {result['weights']}: "
-          f"median of {result['iters']}")
-    for stage in ("backbone", "decoder", "postprocess", "total"):
-        print(f"  {stage:<12} {lat[stage]:9.1f} ms")
-    print(f"  FPS          {result['fps']:9.2f}")
-    print(f"  peak memory  {result['peak_memory_mb']:9.0f} MB ({result['memory_method']})")
-    layers = result["decoder_layers_ms"]
-    if layers:
-        parts = [p for p in ("position", "box_position", "attention", "sampling", "mixing",
-                             "ffn", "points", "boxes") if any(p in r["parts"] for r in layers)]
-        print("  decoder per layer (ms): " + " ".join(f"{p:>9}" for p in parts)
-              + f" {'other':>7} {'total':>7}")
-        for r in layers:
-            print(f"    layer {r['layer']:<15}" + " ".join(
-                f"{r['parts'].get(p, 0.0):9.2f}" for p in parts)
-                + f" {r['other']:7.2f} {r['total']:7.2f}")
-        print(f"    outside the layers (history layout without a ring, Phi MLPs): "
-              f"{lat['decoder_outside_layers']:.2f}")
-    return 0
+    return run_step_command(args)
 
 
-def run_compile_command(args) -> int:
-    from ..network.checkpoint import load_model
-    from ..online.step import MODES
-    modes = tuple(m.strip() for m in args.compile.split(",") if m.strip())
-    unknown = [m for m in modes if m not in MODES]
-    if unknown or not modes:
-        raise UserError(f"--compile: unknown mode(s) {unknown}; expected a comma-separated "
-                        f"list of {MODES}")
-    if "graphs" in modes and args.device != "cuda":
-        raise UserError("--compile graphs: CUDA graphs need --device cuda")
-    model, cfg = load_model(args.checkpoint, preset=args.preset, device=args.device)
+def run_step_command(args) -> int:
+    from ..bench.step import bench_node_step, data_camera_sets, node_settings
+    from ..network.precision import slow_precision_warning
+    modes, precisions = _variants(args)
+    settings = node_settings(query_budget=args.query_budget,
+                             visibility=False if args.no_visibility else None)
+    model, cfg, weights = _load(args)
     sets = None
     if args.data:
         try:
-            sets = data_camera_sets(args.data, cfg, args.warmup + args.iters)
+            sets = data_camera_sets(args.data, cfg)
         except (ValueError, OSError) as error:
             raise UserError(f"--data {args.data}: {error}") from error
-    result = bench_node_step(cfg, args.device, modes, args.iters, args.warmup,
-                             args.precisions, model, progress=not args.json, sets=sets,
-                             compiled_step=args.compiled_step)
-    result["weights"] = args.checkpoint or "random"
+    result = bench_node_step(cfg, args.device, modes, args.iters, args.warmup, precisions,
+                             model, progress=not args.json, sets=sets,
+                             compiled_step=args.compiled_step, frames=args.frames,
+                             settings=settings)
+    result["weights"] = weights
     result["inputs"] = str(args.data) if args.data else "random"
+    for precision in result["precisions"]:
+        slow = slow_precision_warning(precision, args.device)
+        if slow:
+            result.setdefault("warnings", []).append(slow)
+            print(f"odg bench: {slow}", file=sys.stderr)
     if args.json:
         print(json.dumps(result, indent=2))
-        return 0
-    print(f"{result['preset']} on {result['device']} ({result['threads']} threads), "
-          f"{result['frames']} frames, input {result['input']}, weights {result['weights']}, "
-          f"images {result['inputs']}: the node's step, median of {result['iters']} "
-          f"interleaved sets; agreement and differences against '{result['reference']}' "
-          f"over all {result['sets']} sets")
-    print(f"  {'variant':<16}{'step ms':>9}{'model':>9}{'upload':>8}{'download':>9}{'FPS':>8}"
-          f"{'speedup':>8}{'start-up s':>11}{'grid =':>8}{'occ. =':>8}")
-    for name, r in result["modes"].items():
-        lat = r["latency_ms"]
-        print(f"  {name:<16}{lat['step']:9.1f}{lat['model']:9.1f}{lat['upload']:8.1f}"
-              f"{lat['download']:9.1f}{r['fps']:8.2f}{r['speedup']:8.2f}{r['startup_s']:11.1f}"
-              f"{r['grid_agreement_min']:8.4f}{r['occupied_agreement_min']:8.4f}")
-    for name, r in result["modes"].items():
-        if "max_difference" in r:
-            print(f"  {name:<16}max |difference|: " + ", ".join(
-                f"{key} {value:.3g}" for key, value in r["max_difference"].items()))
+    else:
+        print(format_step_result(result))
     return 0
 
 
+def format_step_result(result: dict) -> str:
+    s = result["settings"]
+    lines = [
+        f"{result['preset']} ({result['weights']}) on {result['device']} ({result['threads']} "
+        f"threads), {result['frames']} frames, input {result['input']}, images "
+        f"{result['inputs']}",
+        f"the node's step (OnlinePredictor.step) at query_budget {s['query_budget']}, "
+        f"visibility {'on' if s['visibility'] else 'off'}, padding "
+        f"{'on' if s['padding'] else 'off'}; median of {result['iters']} steps per variant "
+        f"after {result['warmup']} warm-up, the variants taking turns; grid and boxes "
+        f"against {result['reference']}",
+        f"  {'variant':<16}{'step ms':>9}{'model':>9}{'upload':>8}{'download':>9}{'FPS':>8}"
+        f"{'speedup':>8}{'start-up s':>11}{'grid =':>8}{'occ. =':>8}"]
+    for name, r in result["modes"].items():
+        lat = r["latency_ms"]
+        lines.append(f"  {name:<16}{lat['step']:9.1f}{lat['model']:9.1f}{lat['upload']:8.1f}"
+                     f"{lat['download']:9.1f}{r['fps']:8.2f}{r['speedup']:8.2f}"
+                     f"{r['startup_s']:11.1f}{r['grid_agreement_min']:8.4f}"
+                     f"{r['occupied_agreement_min']:8.4f}")
+    for name, r in result["modes"].items():
+        if name == result["reference"]:
+            continue
+        d = r["max_difference"]
+        lines.append(f"  {name:<16}largest differences: confidence {d['confidence']}/255, "
+                     f"boxes unmatched {d['boxes_unmatched']} (of {d['boxes_valid']}), box "
+                     f"centre {d['box_centre_m']:.3g} m, size {d['box_size_m']:.3g} m, score "
+                     f"{d['box_score']:.3g}")
+    for name, r in result["modes"].items():
+        lines += format_stages(name, r)
+    lines.append(f"  peak memory {result['peak_memory_mb']:.0f} MB ({result['memory_method']})")
+    return "\n".join(lines)
+
+
+def format_stages(name: str, r: dict) -> list[str]:
+    """The stages and decoder layers of one variant (from its marks), or why there are none."""
+    lat = r["latency_ms"]
+    if r["stages"] != "marks":
+        return [f"  {name}: {r['stages']} (stages: time an eager variant)"]
+    from ..online.marks import LAYER_PARTS, STEP_STAGES
+    lines = [f"  {name}, stages (ms, the step's marks, median over the recorded steps): "
+             + ", ".join(f"{k} {lat[k]:.1f}" for k in STEP_STAGES if k in lat)]
+    layers = r["decoder_layers_ms"]
+    if layers:
+        parts = [p for p in LAYER_PARTS if any(p in row["parts"] for row in layers)]
+        lines.append("    decoder per layer (ms): " + " ".join(f"{p:>9}" for p in parts)
+                     + f" {'other':>7} {'total':>7}")
+        for row in layers:
+            lines.append(f"      layer {row['layer']:<15}" + " ".join(
+                f"{row['parts'].get(p, 0.0):9.2f}" for p in parts)
+                + f" {row['other']:7.2f} {row['total']:7.2f}")
+        lines.append(f"      outside the layers (queries, Phi MLPs, keep-scores): "
+                     f"{lat['decoder_outside_layers']:.2f}")
+    return lines
+
+
 def run_sweep_command(args) -> int:
-    from ..bench.sweep import format_sweep_table, run_sweep, select_configs
-    if args.checkpoint is None:
-        cfg = load_preset(args.preset)
-    else:
-        from ..network.checkpoint import load_model
-        _, cfg = load_model(args.checkpoint)
-    configs = select_configs(args.configs, cfg.num_frames, args.device)
+    from ..bench.sweep import format_sweep_table, model_config, run_sweep, select_configs
+    if args.checkpoint and args.preset:
+        raise UserError("--checkpoint and --preset: give one (a preset means random weights)")
+    checkpoint = None if args.preset else weights_path(args)
+    weights = checkpoint or f"random weights of {args.preset}"
+    cfg = model_config(checkpoint, args.preset)
+    try:
+        configs = select_configs(args.configs, cfg.num_frames, args.device)
+    except ValueError as error:
+        raise UserError(f"--configs: {error}") from error
     if args.list_configs:
+        print(f"default configurations of {cfg.name} ({weights}):")
         for c in configs:
-            print(c)
+            print(f"  {c.describe()}")
         return 0
     if not args.data:
         raise UserError("--sweep needs --data INFOS")
-    if args.checkpoint is None:
-        print(f"odg bench --sweep: no --checkpoint, random weights of {args.preset}: the "
-              f"timings are real, the scores are not")
-    report = run_sweep(args.data, args.checkpoint, args.preset, args.device, configs,
+    if checkpoint is None:
+        print(f"odg bench --sweep: {weights}: the timings are real, the scores are not")
+    report = run_sweep(args.data, checkpoint, args.preset or cfg.name, args.device, configs,
                        limit=args.limit, repeats=args.iters, warmup=args.warmup,
                        threads=args.threads, isolate=False if args.no_isolate else None,
                        out=args.out, occ_root=args.occ_root, progress=not args.json)

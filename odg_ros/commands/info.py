@@ -1,4 +1,5 @@
-"""``odg info --preset NAME [--json]``: size and cost of a preset."""
+"""``odg info [--preset NAME] [--json]``: size and cost of a preset (default odg_cpu, as
+every command that takes one)."""
 from __future__ import annotations
 
 import json
@@ -12,8 +13,9 @@ from .common import preset
 
 
 def add_arguments(parser):
-    parser.add_argument("--preset", type=preset, default="odg_t",
-                        help=f"one of {', '.join(PRESET_NAMES)}, or a preset YAML file")
+    parser.add_argument("--preset", type=preset, default="odg_cpu",
+                        help=f"one of {', '.join(PRESET_NAMES)}, or a preset YAML file "
+                             "(default: odg_cpu, the shipped model's)")
     parser.add_argument("--json", action="store_true", help="print JSON only")
 
 

@@ -31,6 +31,9 @@ def add_arguments(parser):
     parser.add_argument("--image-size", type=positive_int, nargs=2, metavar=("H", "W"),
                         help="network input size (the counts do not depend on it; default: "
                              "the preset's)")
+    parser.add_argument("--frames", type=positive_int,
+                        help="frames per sample, the current one included (the waits do not "
+                             "depend on it; default: the preset's)")
     parser.add_argument("--batch-size", type=positive_int, default=1, help="samples per step")
     parser.add_argument("--renderer", choices=("torch", "gsplat"), default="torch",
                         help="the render loss's renderer: ours, or gsplat's (with --cuda-paths "
@@ -50,6 +53,8 @@ def add_arguments(parser):
 def run(args) -> int:
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     overrides = {"image_size": tuple(args.image_size)} if args.image_size else {}
+    if args.frames:
+        overrides["num_frames"] = args.frames
     cfg = load_preset(args.preset, **overrides)
     trainer = Trainer(cfg, args.data, TrainOptions(
         out_dir=Path(tempfile.mkdtemp()), epochs=1, workers=0, progress=False,

@@ -19,7 +19,8 @@ view, frame and group: no Python loop, no 5-D blow-up):
   channels-last memory: the cameras stacked along the image rows, each below one zero row.
   A 2-D bilinear read there equals the per-camera read with zero padding, borders included
   (the zero row stands in for the padding above a camera and below the one before it), and
-  on CPU it is several times faster than the 3-D read (``odg bench --fast-paths``).
+  on CPU it is several times faster than the 3-D read. The node's step (the feature ring)
+  always reads camera rows; the plain layout stays as the tests' reference.
 Either layout may hold F distinct frames in any order (a ring buffer of cached history, or a
 history still filling up); ``frame_index`` [T] says which of them each time step reads.
 """

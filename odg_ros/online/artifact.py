@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 import torch
 from torch import nn
+from torch.export.pt2_archive.constants import AOTINDUCTOR_DIR
 
 from .step import OnlineStep
 
@@ -133,6 +134,11 @@ def load_artifact(path, expected: dict, for_cuda_graph: bool = False):
     which conflicts with a CUDA graph capture (torch's note on ``run_single_threaded``); its
     kernels run on the current stream, as the capture needs."""
     check_signature(read_signature(path), expected, path)
+    with zipfile.ZipFile(path) as archive:   # read_signature opened it: a valid archive
+        code = [n for n in archive.namelist() if f"/{AOTINDUCTOR_DIR}" in n]
+    if not code:   # torch 2.11's loader crashes the process on a package without a model
+        raise StaleArtifact(f"compiled step {path} does not load: it holds no compiled "
+                            "model (not written by odg export --aoti)")
     try:
         return torch._inductor.aoti_load_package(str(path),
                                                  run_single_threaded=for_cuda_graph)

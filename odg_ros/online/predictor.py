@@ -15,17 +15,16 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 import torch
 
 from ..config import ModelConfig
 from ..geometry import invert_projections
-from ..network.outputs import ODGOutput
 from ..network.postprocess import box_dicts
 from ..network.precision import precision_context
-from ..network.budget import budget_ladder, budget_of
+from ..network.budget import QueryBudget, budget_ladder, budget_of
 from .budget_policy import BudgetPolicy
 from .history import Frame, FrameHistory, history_geometry
 from .step import MODES, OnlineStep
@@ -55,7 +54,6 @@ class Prediction:
     history_reset: str | None = None
     query_budget: str = "full"
     refined_fraction: float = 1.0
-    output: ODGOutput | None = field(default=None, repr=False)
     observed: np.ndarray | None = None
 
 
@@ -101,12 +99,15 @@ class CudaGraphStep:
 
 
 def resolve_budget(query_budget, model, cfg):
-    """query_budget "full" | "auto" | a fraction in (0, 1] -> (the budgets the step runs,
-    None standing for the full one; the ``BudgetPolicy`` of "auto" or None)."""
+    """query_budget "full" | "auto" | a fraction in (0, 1] | one ``QueryBudget`` (a rung of
+    the ladder, tools/profile_budget.py) -> (the budgets the step runs, None standing for the
+    full one; the ``BudgetPolicy`` of "auto" or None)."""
     if query_budget in ("full", None):
         return [None], None
     heads = model.decoder.budget_heads
-    if query_budget == "auto":
+    if isinstance(query_budget, QueryBudget):
+        ladder, policy = [query_budget], None
+    elif query_budget == "auto":
         ladder = budget_ladder(cfg)
         policy = BudgetPolicy(ladder)
     else:
@@ -129,7 +130,7 @@ class OnlinePredictor:
 
     def __init__(self, model: torch.nn.Module, cfg: ModelConfig, device: str | torch.device,
                  max_gap: float = 1.0, num_frames: int | None = None,
-                 keep_output: bool = False, min_interval: float = 0.0,
+                 min_interval: float = 0.0,
                  precision: str = "fp32", compile: str = "eager", compiled_step=None,
                  visibility: bool = True, query_budget="full"):
         """num_frames: history length k (current set included), at most cfg.num_frames
@@ -157,7 +158,6 @@ class OnlinePredictor:
         self.cfg = cfg
         self.device = torch.device(device)
         self.history = FrameHistory(k, max_gap)
-        self.keep_output = keep_output   # tests compare the raw network output
         self.min_interval = float(min_interval)
         precision_context(precision, self.device)      # an unknown / unusable one fails here
         self.precision = precision
@@ -334,7 +334,6 @@ class OnlinePredictor:
                           boxes=boxes, timings=timings, num_frames=len(frames),
                           history_reset=reset, query_budget=self._budget_name(budget),
                           refined_fraction=self._refined_fraction(budget),
-                          output=self._raw_output(budget) if self.keep_output else None,
                           observed=observed.reshape(X, Y, Z).astype(bool)
                           if self.visibility else None)
 
@@ -349,12 +348,3 @@ class OnlinePredictor:
             self._host_outputs[budget] = [torch.empty_like(o, device="cpu").pin_memory()
                                           for o in outputs]
         return self._host_outputs[budget]
-
-    def _raw_output(self, budget=None) -> ODGOutput:
-        """The decoder's full output over the ring as the step just saw it (tests)."""
-        ego2img, warps, deltas, frame_index, _ = self.layout.unpack(self._packed)
-        with precision_context(self.precision, self.device):
-            return self.online_step.model._decode_stored(self.ring.all_levels(), ego2img, warps,
-                                                         deltas, frame_index, False,
-                                                         budget=budget)
-

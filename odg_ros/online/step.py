@@ -33,6 +33,7 @@ from ..network.padding import pad_occupancy
 from ..network.postprocess import ranked_boxes, voxelise
 from ..network.precision import half_dtype, precision_context, with_half_matrix_weights
 from ..preprocess import IMAGENET_MEAN, IMAGENET_STD
+from .marks import mark
 from .visibility import Visibility
 
 MODES = ("eager", "compiled", "graphs")
@@ -136,9 +137,10 @@ class OnlineStep(nn.Module):
         ``budget`` (network/budget.py) also the queries its keep-scores call needed [2]
         (static, dynamic), from which the host picks the next step's budget."""
         ego2img, ego_warp, time_delta, frame_index, slot = self.layout.unpack(packed)
-        x = ((images.float() / 255.0 - self.mean) / self.std).movedim(-1, -3)
-        self.ring.write_slot(self.features(x), slot)
-        with precision_context(self.precision, self.device):
+        with mark("backbone"):          # marks.py: the stage times of odg bench
+            x = ((images.float() / 255.0 - self.mean) / self.std).movedim(-1, -3)
+            self.ring.write_slot(self.features(x), slot)
+        with precision_context(self.precision, self.device), mark("decoder"):
             output = self.model._decode_stored(self.ring.all_levels(), ego2img, ego_warp,
                                                time_delta, frame_index, False, budget=budget)
         results = self._results(output, packed)
@@ -151,21 +153,25 @@ class OnlineStep(nn.Module):
     def _results(self, output, packed):
         """The grid and the ranked boxes of ``output`` (see ``forward``)."""
         layer = output.last
-        labels, confidence = voxelise(layer.means, layer.logits, self.cfg, self.free_label)
+        with mark("grid"):
+            labels, confidence = voxelise(layer.means, layer.logits, self.cfg, self.free_label)
         if self.cfg.occupancy_padding:      # static shapes too: filters over the whole grid
             grid = (1, *self.cfg.grid_shape)
-            labels, confidence = (t.flatten(1) for t in pad_occupancy(
-                labels.view(grid), confidence.view(grid), self.free_label,
-                self.cfg.score_threshold))
+            with mark("padding"):
+                labels, confidence = (t.flatten(1) for t in pad_occupancy(
+                    labels.view(grid), confidence.view(grid), self.free_label,
+                    self.cfg.score_threshold))
         if layer.boxes is None:                        # a model without dynamic queries
             empty = layer.means.new_zeros(1, 0)
             boxes, score = layer.means.new_zeros(1, 0, 9), empty
             label, valid = empty.long(), empty.bool()
         else:
-            boxes, score, label, valid = ranked_boxes(layer.boxes, layer.box_logits,
-                                                      self.cfg.box_score_threshold)
+            with mark("boxes"):
+                boxes, score, label, valid = ranked_boxes(layer.boxes, layer.box_logits,
+                                                          self.cfg.box_score_threshold)
         if self.visibility is None:
             observed = labels.new_zeros(0)
         else:
-            observed = self.visibility(labels[0], *self.layout.current_view(packed))
+            with mark("visibility"):
+                observed = self.visibility(labels[0], *self.layout.current_view(packed))
         return labels[0], confidence[0], boxes[0], score[0], label[0], valid[0], observed

@@ -20,14 +20,17 @@ How it stays fast and bounded without a CUDA kernel (details in _composite): onl
 requested pixels are evaluated. Pixels are binned into 16x16 tiles and each splat is paired
 only with the tiles its alpha >= 1/255 box touches, so only (splat, pixel) pairs in touched
 tiles are ever formed, never a dense Gaussians x pixels tensor. Splats go front to back in
-depth batches of ~1M candidate pairs; candidates are tested without autograd, survivors get
-T from a float64 segmented cumulative sum of log(1 - alpha), and pixels that reached the
-early stop leave the later batches. The weighted sums are CSR sparse x dense products.
-The host waits for the device once for the projection's candidates, once for every size
-and input check before compositing (visible splats, tile pairs, and the first depth batch's
-bounds from a summed-area table of pixels per tile, in one copy), once per depth batch (one
-compaction: the pairs above alpha 1/255 before the early stop) and once more per later batch
-(its bounds); never for the bookkeeping of which pixels are still active.
+depth batches: a first one of the front quarter of the candidate pairs (at least ~1M), then
+batches as large as a share of the device's memory allows (later_batch_candidates: one at training sizes); candidates are
+tested without autograd, survivors get T from a float64 segmented cumulative sum of
+log(1 - alpha), and pixels that reached the early stop leave the later batches (in a dense
+scene the first batch stops most of them). The weighted sums are CSR sparse x dense
+products. The host waits for the device once for the projection's candidates, once for
+every size and input check before compositing (visible splats, tile pairs, and the first
+depth batch's bounds from a summed-area table of pixels per tile, in one copy) and once per
+depth batch (one read: the count of its kept pairs, those above alpha 1/255 before the early
+stop, with the next batch's bounds); never for the bookkeeping of which pixels are still
+active. So a render call waits 3 times at training sizes, whatever the image and the batch.
 Memory is O(contributing pairs) plus one batch of candidates. render_scenes draws several
 independent scenes (the render loss: every decoder layer of every sample) in one such pass, so
 those reads are paid once for all of them.
@@ -41,6 +44,7 @@ pixel. The one difference is deliberate: gsplat caps alpha at 0.999, we cap it a
 from __future__ import annotations
 
 import math
+import os
 import warnings
 from typing import NamedTuple, Sequence
 
@@ -58,7 +62,16 @@ TRANSMITTANCE_MIN = 1e-4         # a pixel is done once T would reach this (excl
 # and gsplat do (T <= 1e-4: stop).
 STOP_LOG_MARGIN = 1e-7
 TILE_SIZE = 16                   # pixel tile edge for culling (as gsplat)
-CANDIDATE_CHUNK = 1_000_000      # candidate (splat, pixel) pairs per depth batch
+# The first depth batch: the front FIRST_BATCH_SHARE of all candidate (splat, pixel) pairs,
+# at least CANDIDATE_CHUNK of them. It stops most pixels of a dense scene early; the later
+# batches, of the pixels still active, are as large as the device's memory allows
+# (later_batch_candidates), so that their number, and the host's waits, do not grow with
+# the image or the batch.
+CANDIDATE_CHUNK = 1_000_000
+FIRST_BATCH_SHARE = 0.25
+LATER_CANDIDATE_CHUNK = None     # candidates per later batch; None: sized from the memory
+BATCH_MEMORY_SHARE = 0.1         # of the device's memory a later batch may use
+BYTES_PER_CANDIDATE = 200        # a batch's working memory per candidate pair, at most
 CHECK_CSR = False                # the CSR matrices are valid by construction (a test checks)
 
 
@@ -273,8 +286,11 @@ def _visible_splats(candidates: Splats, visible: torch.Tensor, grid: "_TileGrid"
     pairs_before = torch.cat([zero, torch.cumsum(pairs_of_splat, 0)])      # before splat i
     tiles_before = torch.cat([zero, torch.cumsum(tiles_of_splat, 0)])
     num_visible = visible.sum()
-    # as each later batch: whole splats up to CANDIDATE_CHUNK candidates, at least one
-    last = torch.minimum(torch.searchsorted(pairs_before[1:], zero + CANDIDATE_CHUNK,
+    # whole splats up to a share of all candidates (at least CANDIDATE_CHUNK), at least one:
+    # the same front share of every scene whatever their number
+    first_batch = torch.clamp_min((pairs_before[-1:] * FIRST_BATCH_SHARE).long(),
+                                  CANDIDATE_CHUNK)
+    last = torch.minimum(torch.searchsorted(pairs_before[1:], first_batch,
                                             right=True).clamp_min(1), num_visible)
     read = torch.cat([num_visible[None], tiles_before[-1:], candidates.overflow[None], last,
                       tiles_before.index_select(0, last), pairs_before.index_select(0, last)]
@@ -313,16 +329,17 @@ def _composite(splats: Splats, pixel_uv: torch.Tensor, pixel_camera: torch.Tenso
     binned: grid.bin_pixels of every pixel; boxes, num_tile_pairs and first_batch: from
     _visible_splats. Returns weight [M] (differentiable), pixel [M], splat [M] (long).
 
-    Splats are processed front to back in depth batches of whole splats (about
-    CANDIDATE_CHUNK candidate pairs each). Within a batch: splat -> tiles its alpha box
+    Splats are processed front to back in depth batches of whole splats (a quarter of the
+    candidate pairs, at least CANDIDATE_CHUNK, in the first; later_batch_candidates in
+    each later one). Within a batch: splat -> tiles its alpha box
     touches -> the still-active requested pixels in those tiles -> pairs sorted by (pixel,
     depth) -> without autograd, the exact alpha test and T from the pixel's running log
     transmittance plus an exclusive segmented cumsum of log(1 - alpha), in float64 (a global
     cumsum minus its value at each pixel's first pair; float64 so the subtraction of large
     running sums loses nothing; pairs below alpha 1/255 add 0). A pair is kept while it
     contributes and T (1 - alpha) > 1e-4; T only decreases, so the kept pairs are a prefix
-    of the contributing ones as in the sequential early stop, and one compaction keeps
-    them. T is then computed again, differentiably, on the kept pairs alone. A pixel that
+    of the contributing ones as in the sequential early stop, and one compaction (its size
+    read with the next batch's bounds) keeps them. T is then computed again, differentiably, on the kept pairs alone. A pixel that
     stopped takes no part in later batches (this is what keeps dense scenes cheap).
     """
     device = pixel_uv.device
@@ -338,15 +355,25 @@ def _composite(splats: Splats, pixel_uv: torch.Tensor, pixel_camera: torch.Tenso
         pixels_by_tile, tile_count, tile_first = binned
         first = 0                                       # first splat of the batch
         bounds = (0, *first_batch)                      # known from the first read
+        later = later_batch_candidates(device)
         while first < len(splats):
             with torch.no_grad():
-                if bounds is None:
-                    bounds = _next_batch_bounds(grid, tile_count, splats, boxes, first,
-                                                splat_first_st)
-                pair_splat, pair_pixel, stops, last = _kept_pairs_of_batch(
+                pair_splat, pair_pixel, kept, stops, last = _pairs_of_batch(
                     params, pixel_uv, num_pixels, st_splat, st_tile,
                     (pixels_by_tile, tile_count, tile_first), bounds, log_t)
-                bounds = None
+                next_bounds = []
+                if last < len(splats):
+                    # Pixels that stopped leave the later batches, and the next batch's
+                    # bounds come in the same read as this batch's kept count.
+                    active &= stops == 0
+                    pixels_by_tile, tile_count, tile_first = grid.bin_pixels(
+                        pixel_uv, pixel_camera, active)
+                    next_bounds = [_next_batch_bounds(grid, tile_count, splats, boxes, last,
+                                                      splat_first_st, later)]
+                read = torch.cat([kept.sum()[None]] + next_bounds).tolist()   # the one wait
+                kept = _compacted(kept, read[0])
+                pair_splat, pair_pixel = (x.index_select(0, kept) for x in (pair_splat, pair_pixel))
+                bounds = read[1:]
             first = last
             if pair_splat.shape[0]:
                 # The kept pairs of a pixel are a prefix of its contributing pairs, so T from
@@ -359,12 +386,6 @@ def _composite(splats: Splats, pixel_uv: torch.Tensor, pixel_camera: torch.Tenso
                 pair_pixels.append(pair_pixel)
                 pair_splats.append(pair_splat)
                 log_t = log_t.index_add(0, pair_pixel, log_one_minus)
-            if first < len(splats):
-                # Pixels that stopped leave the later batches. Whether any did is not read:
-                # re-binning costs a sort of the pixels on the device, a read a wait.
-                active &= stops == 0
-                pixels_by_tile, tile_count, tile_first = grid.bin_pixels(
-                    pixel_uv, pixel_camera, active)
     if not weights:
         empty = torch.zeros(0, dtype=torch.long, device=device)
         return params[:0, 0] * 0, empty, empty
@@ -372,26 +393,27 @@ def _composite(splats: Splats, pixel_uv: torch.Tensor, pixel_camera: torch.Tenso
 
 
 def _next_batch_bounds(grid: "_TileGrid", tile_count: torch.Tensor, splats: Splats, boxes,
-                       first: int, splat_first_st: torch.Tensor) -> list:
+                       first: int, splat_first_st: torch.Tensor, candidates: int):
     """The next depth batch from splat ``first``: whole splats while the active pixels under
-    their boxes add up to at most CANDIDATE_CHUNK (at least one splat). Its bounds in the
-    (splat, tile) list, its end and its candidate count, read in one copy."""
+    their boxes add up to at most ``candidates`` (at least one splat). Its bounds in the
+    (splat, tile) list, its end and its candidate count [4], on the device (read with the
+    batch before)."""
     through = torch.cumsum(_pixels_in_boxes(grid, tile_count, splats.camera[first:],
                                             *(edge[first:] for edge in boxes)), 0)
-    count = torch.searchsorted(through, through.new_full((1,), CANDIDATE_CHUNK),
+    count = torch.searchsorted(through, through.new_full((1,), candidates),
                                right=True).clamp_min(1)
     return torch.cat([splat_first_st[first:first + 1],
                       splat_first_st.index_select(0, first + count),
                       first + count,
-                      through.index_select(0, count - 1)]).tolist()
+                      through.index_select(0, count - 1)])
 
 
-def _kept_pairs_of_batch(params: torch.Tensor, pixel_uv: torch.Tensor, num_pixels: int,
-                         st_splat: torch.Tensor, st_tile: torch.Tensor, binned, bounds,
-                         log_t: torch.Tensor):
+def _pairs_of_batch(params: torch.Tensor, pixel_uv: torch.Tensor, num_pixels: int,
+                    st_splat: torch.Tensor, st_tile: torch.Tensor, binned, bounds,
+                    log_t: torch.Tensor):
     """One depth batch, without autograd: its candidate (splat, pixel) pairs sorted by
-    (pixel, depth), the exact alpha test and the early stop -> the kept pairs' splat and
-    pixel, the stopped pairs per pixel and the batch's end."""
+    (pixel, depth), the exact alpha test and the early stop -> the pairs' splat and pixel,
+    which of them are kept, the stopped pairs per pixel and the batch's end."""
     pixels_by_tile, tile_count, tile_first = binned
     a, b, last, num_candidates = bounds
     pair_splat, pair_pixel = _candidate_pairs(st_splat[a:b], st_tile[a:b], pixels_by_tile,
@@ -406,9 +428,17 @@ def _kept_pairs_of_batch(params: torch.Tensor, pixel_uv: torch.Tensor, num_pixel
     log_one_minus = torch.log1p(-torch.where(contributes, alpha, 0).double())
     include = (_log_transmittance(log_one_minus, pair_pixel, log_t)
                + log_one_minus > math.log(TRANSMITTANCE_MIN) + STOP_LOG_MARGIN)
-    kept = (include & contributes).nonzero(as_tuple=True)[0]     # the one wait
     stops = _counts(pair_pixel, num_pixels, ~include)
-    return pair_splat.index_select(0, kept), pair_pixel.index_select(0, kept), stops, last
+    return pair_splat, pair_pixel, include & contributes, stops, last
+
+
+def _compacted(mask: torch.Tensor, count: int) -> torch.Tensor:
+    """The positions of the ``count`` true entries of ``mask``, in order, without waiting
+    for the device (``nonzero`` would read the count itself)."""
+    slot = torch.where(mask, torch.cumsum(mask, 0) - 1, count)   # false ones: a spare slot
+    out = torch.empty(count + 1, dtype=torch.long, device=mask.device)
+    out.scatter_(0, slot, torch.arange(mask.shape[0], device=mask.device))
+    return out[:count]
 
 
 def _log_transmittance(log_one_minus: torch.Tensor, pair_pixel: torch.Tensor,
@@ -556,6 +586,19 @@ def _csr(rows, cols, vals, shape):
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta")
         return torch.sparse_csr_tensor(crow, cols, vals, shape, check_invariants=CHECK_CSR)
+
+
+def later_batch_candidates(device) -> int:
+    """Candidate pairs per depth batch after the first: BATCH_MEMORY_SHARE of the device's
+    memory (the GPU's, or the host's for the CPU), at least CANDIDATE_CHUNK."""
+    if LATER_CANDIDATE_CHUNK is not None:
+        return LATER_CANDIDATE_CHUNK
+    device = torch.device(device)
+    if device.type == "cuda":
+        memory = torch.cuda.get_device_properties(device).total_memory
+    else:
+        memory = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    return max(CANDIDATE_CHUNK, int(BATCH_MEMORY_SHARE * memory / BYTES_PER_CANDIDATE))
 
 
 def _check_inputs(means, scales, rotations, opacities, features, cam_from_ego, intrinsics,

@@ -467,7 +467,9 @@ def force_cuda_paths(trainer, renderer: str = "torch") -> None:
     if renderer == "gsplat":
         from ..render.gsplat_backend import render_scenes_gsplat
         trainer.criterion.renderer = render_scenes_gsplat
-    elif renderer != "torch":
+    elif renderer == "torch":
+        trainer.criterion.renderer = None          # ours (the criterion's default)
+    else:
         raise ValueError(f"renderer must be torch or gsplat, got {renderer!r}")
 
 

@@ -29,17 +29,23 @@ def dynamic_class_miou(result: dict, dynamic=DYNAMIC_OCC_CLASSES) -> float | Non
 
 
 def add_box_sample(score: DetectionScore, output, batch, cfg) -> None:
-    """All of the sample's predicted boxes (no score threshold: AP ranks them) whose centre
-    lies inside the grid's x-y range, against its GT boxes (the dataset keeps those inside)."""
-    boxes = box_list(output, cfg, score_threshold=0.0)[0]
+    """All of the sample's predicted boxes (no score threshold: AP ranks them) against its GT
+    boxes (``add_box_list``)."""
+    add_box_list(score, box_list(output, cfg, score_threshold=0.0)[0], batch["gt_boxes"][0],
+                 batch["gt_labels"][0], cfg)
+
+
+def add_box_list(score: DetectionScore, boxes: list[dict], gt_boxes, gt_labels, cfg) -> None:
+    """Predicted boxes (``box_dicts``) whose centre lies inside the grid's x-y range, against
+    the GT boxes (tensors; the dataset keeps those inside)."""
     # the GT's layout (cx, cy, cz, w, l, h, yaw, vx, vy): the TP errors need all of it
     pred = np.array([[*b["center"], *b["size"], b["yaw"], *b["velocity"]] for b in boxes],
                     dtype=np.float64).reshape(-1, 9)
     labels = np.array([b["label"] for b in boxes], dtype=np.int64)
     scores = np.array([b["score"] for b in boxes], dtype=np.float64)
     keep = inside_bev_range(pred[:, :3], cfg.pc_range)
-    score.add(pred[keep], labels[keep], scores[keep], batch["gt_boxes"][0].cpu().numpy(),
-              batch["gt_labels"][0].cpu().numpy())
+    score.add(pred[keep], labels[keep], scores[keep], gt_boxes.cpu().numpy(),
+              gt_labels.cpu().numpy())
 
 
 def predicted_grid(output, cfg) -> np.ndarray:

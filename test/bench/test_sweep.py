@@ -1,20 +1,18 @@
 """``odg bench --sweep`` (odg_ros/bench/sweep.py): the Pareto front on hand-made numbers,
-query budgets, and a whole sweep of a tiny random-weights checkpoint on a tiny hand-made
-world (JSON keys, PNG, scores equal to ``evaluate``)."""
-import dataclasses
+query budgets, the plots' axes, and a whole sweep of a tiny random-weights checkpoint on a
+tiny hand-made world (JSON keys, PNG, scores equal to ``evaluate``)."""
 import json
 
 import numpy as np
 import pytest
 import torch
 
-from odg_ros.bench.step import LAYER_PARTS, bench_online_step
+from odg_ros.bench.plots import axis_limits
 from odg_ros.network import ODG
 from odg_ros.network.checkpoint import load_model
-from odg_ros.data.batch import collate, to_device
 from odg_ros.data.dataset import OccDataset
-from odg_ros.bench.sweep import (ConfigRun, SweepConfig, pareto_front, prepare_model,
-                                 query_budget, quiet_and_busy, run_sweep, select_configs,
+from odg_ros.bench.sweep import (SweepConfig, pareto_front, prepare_model, query_budget,
+                                 quiet_and_busy, run_sweep, sample_camera_sets, select_configs,
                                  spread_indices)
 from odg_ros.train.evaluate import evaluate
 
@@ -67,10 +65,10 @@ def test_select_configs_by_name_and_from_json(tmp_path):
     defaults = select_configs(None, 4)
     names = [c.name for c in defaults]
     assert names[:3] == ["full-h4", "full-h1", "full-h2"]
-    assert {"q50-h4", "q25-h4", "bf16-h4", "plain-h4"} <= set(names)
+    assert {"q50-h4", "q25-h4", "bf16-h4"} <= set(names)
     assert {(c.name, c.budget) for c in defaults if c.budget} == {
         ("budget-auto-h4", "auto"), ("budget-0.6-h4", "0.6"), ("budget-0.35-h4", "0.35")}
-    assert not any("fp16" in n or "compile" in n for n in names)   # CUDA only
+    assert not any("fp16" in n or "compiled" in n or "graphs" in n for n in names)  # CUDA
     assert [c.name for c in select_configs("q25-h4,full-h1", 4)] == ["q25-h4", "full-h1"]
     with pytest.raises(ValueError, match="unknown configurations"):
         select_configs("full-h9", 4)
@@ -80,21 +78,48 @@ def test_select_configs_by_name_and_from_json(tmp_path):
     path.write_text(json.dumps([{"name": "bad", "speed": 3}]))
     with pytest.raises(ValueError, match="unknown keys"):
         select_configs(str(path), 4)
-    with pytest.raises(ValueError):
-        SweepConfig("x", queries=0.0)
+    for bad in ({"queries": 0.0}, {"compile": "reduce-overhead"}, {"precision": "fp8"}):
+        with pytest.raises(ValueError):
+            SweepConfig("x", **bad)
+    assert SweepConfig("b", frames=2, budget="auto").describe().split() == [
+        "b", "frames=2", "budget=auto"]
 
 
-def test_cuda_sweeps_compile_the_decoder_and_replay_it_as_cuda_graphs(tmp_path, monkeypatch):
-    names = [c.name for c in select_configs(None, 4, device="cuda")]
-    assert {"fp16-h4", "compile-h4", "compile-bf16-h4", "graphs-h4", "graphs-bf16-h4"} <= set(names)
+def test_list_configs_names_those_of_the_model_given_and_out_spares_shipped_results(
+        tmp_path, capsys):
+    from odg_ros.commands import build_parser, main
     checkpoint = write_tiny_checkpoint(tmp_path / "tiny.pt", image_size=(32, 88), num_frames=3)
-    modes = []
-    monkeypatch.setattr(torch, "compile", lambda module, mode=None: modes.append(mode) or module)
-    prepare_model(checkpoint, "odg_cpu", "cpu", SweepConfig("c", compile=True))
-    assert modes == ["default"]
+    for argv, frames in ((["--checkpoint", str(checkpoint)], 3), ([], 4),   # shipped odg_cpu
+                         (["--preset", "odg_t"], 8)):
+        assert main(["bench", "--sweep", "--list-configs"] + argv) == 0
+        lines = capsys.readouterr().out.splitlines()
+        names = [line.split()[0] for line in lines[1:]]
+        assert names[0] == f"full-h{frames}" and f"bf16-h{frames}" in names, lines
+        assert all(not n.endswith(f"-h{k}") for n in names for k in (3, 4, 8) if k > frames)
+    _, parser = build_parser("bench")
+    out = parser.parse_args(["--sweep"]).out
+    assert out == "bench_results" and not out.startswith("docs")
+
+
+def test_cuda_sweeps_run_the_compiled_step_and_its_cuda_graphs(tmp_path):
+    names = [c.name for c in select_configs(None, 4, device="cuda")]
+    assert {"fp16-h4", "compiled-h4", "compiled-bf16-h4", "graphs-h4",
+            "graphs-bf16-h4"} <= set(names)
+    checkpoint = write_tiny_checkpoint(tmp_path / "tiny.pt", image_size=(32, 88), num_frames=3)
     with pytest.raises(ValueError, match="g: CUDA graphs need a CUDA device, not cpu"):
-        prepare_model(checkpoint, "odg_cpu", "cpu", SweepConfig("g", cuda_graphs=True))
-    assert modes == ["default"]
+        prepare_model(checkpoint, "odg_cpu", "cpu", SweepConfig("g", compile="graphs"))
+
+
+def test_plot_axes_never_collapse_onto_a_sliver():
+    """Two configurations 0.001 FPS apart (the sweep of 2026-11-27: 2.5450-2.5460) get an FPS
+    axis from 0, and scores 0.01 apart a score axis of at least SCORE_SPAN points."""
+    low, high = axis_limits([2.5450, 2.5460], 1e-3, from_zero=True)
+    assert low == 0.0 and 2.546 < high < 3.0
+    low, high = axis_limits([18.32, 18.33], 2.0)
+    assert high - low >= 2.0 and low < 18.32 and high > 18.33
+    assert axis_limits([10.0, 30.0], 2.0) == pytest.approx((7.6, 32.4))
+    assert axis_limits([None, float("nan")], 2.0, from_zero=True)[0] == 0.0
+    assert axis_limits([0.0, 0.0], 2.0)[0] == 0.0 and axis_limits([-1.0, 0.0], 2.0)[0] < -1
 
 
 # ------------------------------------------------------------------------ model variants
@@ -116,18 +141,23 @@ def test_query_budget_keeps_evenly_spaced_learned_queries():
     assert (tiny_c.num_dynamic, tiny_c.num_static) == (1, 1)
 
 
-def test_bench_online_step_reports_layers_parts_and_memory():
-    cfg = tiny_cfg()
-    r = bench_online_step(cfg, iters=2, warmup=1, progress=False)
-    assert set(r["latency_ms"]) >= {"backbone", "decoder", "postprocess", "total"}
-    assert len(r["decoder_layers_ms"]) == cfg.num_layers
-    for row in r["decoder_layers_ms"]:
-        assert set(row["parts"]) <= set(LAYER_PARTS) and {"attention", "sampling",
-                                                           "mixing"} <= set(row["parts"])
-        assert row["total"] >= sum(row["parts"].values()) - 1e-6
-    assert sum(r["total"] for r in r["decoder_layers_ms"]) <= r["latency_ms"]["decoder"]
-    assert r["peak_memory_mb"] > 50 and r["memory_method"] == "process ru_maxrss"
-    assert r["fps"] > 0
+def test_a_sample_is_fed_as_the_node_would_have_fed_its_frames(tmp_path):
+    """Oldest frame first, stamps increasing by the time deltas, poses whose warps are the
+    sample's; a frame the dataset repeats at a scene's start is fed once."""
+    from odg_ros.geometry import ego_warp
+    root = tmp_path / "world"
+    data = write_tiny_split(root, 3)
+    dataset = OccDataset(str(data), tiny_cfg())
+    history, current = sample_camera_sets(dataset[2])            # 3 distinct frames
+    assert len(history) == 2 and history[0][3] < history[1][3] < current[3]
+    sample = dataset[2]
+    for t, camera_set in enumerate([current] + history[::-1]):
+        np.testing.assert_array_equal(camera_set[0], sample["images"][t].numpy())
+        np.testing.assert_allclose(ego_warp(current[2], camera_set[2]),
+                                   sample["ego_warp"][t].double().numpy(), atol=1e-6)
+        assert current[3] - camera_set[3] == pytest.approx(float(sample["time_delta"][t]))
+    history, current = sample_camera_sets(dataset[0])            # the scene's first keyframe
+    assert history == [] and current[3] == 1000.0
 
 
 # ------------------------------------------------------------------------ a whole sweep
@@ -154,23 +184,27 @@ def test_sweep_writes_json_and_png_with_every_measure(tiny_split, tmp_path):
     assert [c["config"]["name"] for c in saved["configs"]] == ["full-h3", "q50-h2"]
     for c in saved["configs"]:
         assert "error" not in c, c.get("traceback")
-        assert set(c["latency_ms"]) >= {"backbone", "decoder", "postprocess", "total"}
+        assert set(c["latency_ms"]) >= {"step", "upload", "model", "download", "backbone",
+                                        "decoder", "grid", "boxes", "visibility", "postprocess"}
+        assert c["stages"] == "marks" and c["mode"] == "eager"
         assert len(c["decoder_layers_ms"]) == 6 and c["fps"] > 0 and c["peak_memory_mb"] > 0
+        assert c["fps"] == pytest.approx(1e3 / c["latency_ms"]["step"], rel=1e-3)
         for key in ("mIoU", "RayIoU", "mIoU_dynamic", "IoU_geometry", "latency_ms", "box_mAP"):
             assert key in c["scores"]
         assert c["quiet"]["samples"] == 1 and c["busy"]["samples"] == 1
         assert len(c["per_sample"]) == 2
     full, budget = saved["configs"]
     assert full["frames"] == 3 and budget["frames"] == 2 and budget["queries"] == 13
-    assert budget["scores"]["queries_last_layer"] == 13
-    assert full["scores"]["queries_last_layer"] == 26
+    assert full["queries"] == 26
     assert set(saved["pareto"]) == {"mIoU", "RayIoU"} and saved["pareto"]["mIoU"]
     assert report["files"] == [str(tmp_path / "bench_cpu.json"), str(png)]
 
 
 def test_sweep_scores_equal_offline_evaluation(tiny_split):
-    """The sweep scores the timed online step (cached history); it must match ``evaluate``
-    (the offline model over all frames) on the same samples."""
+    """The sweep scores the node's step after each sample's history; it must match
+    ``evaluate`` (the offline model over all frames) on the same samples: the same grids
+    (float noise between the folded, channels-last step and the plain model may move a
+    voxel), the same boxes (``odg eval`` scores every box, so the step keeps them all)."""
     data, checkpoint = tiny_split
     report = run_sweep(data, checkpoint, configs=[SweepConfig("full-h2", frames=2)], limit=3,
                        repeats=1, warmup=0, isolate=False, progress=False)
@@ -178,8 +212,8 @@ def test_sweep_scores_equal_offline_evaluation(tiny_split):
     expected = evaluate(model, cfg, str(data), limit=3, frames=2, progress=False)
     got = report["configs"][0]["scores"]
     for key in ("mIoU", "RayIoU", "IoU_geometry"):
-        assert got[key] == expected[key], key
-    assert got["box_mAP"] == expected["boxes"]["mAP"]
+        assert got[key] == pytest.approx(expected[key], abs=0.01), key
+    assert got["box_mAP"] == pytest.approx(expected["boxes"]["mAP"], abs=0.01)
 
 
 def test_sweep_in_a_fresh_process_reports_its_own_peak_memory(tiny_split):
@@ -231,52 +265,6 @@ def test_random_weights_time_a_query_budget(tiny_split, tmp_path):
     assert row["scores"]["refined_fraction"] == pytest.approx(expected, abs=1e-4)
 
 
-class GraphReplayStandIn(torch.nn.Module):
-    """What a decoder compiled into CUDA graphs looks like to its caller, on a CPU: each call
-    copies its outputs into static buffers of one pool shared by every compiled module, so
-    the next call of any of them overwrites what this one returned."""
-    pool: dict = {}
-
-    def __init__(self, module, mode=None):
-        super().__init__()
-        self.inner = module
-
-    def forward(self, *args, **kwargs):
-        layers, keep_scores = self.inner(*args, **kwargs)   # the decoder's outputs
-        for i, layer in enumerate(layers):
-            for field in dataclasses.fields(layer):
-                value = getattr(layer, field.name)
-                if isinstance(value, torch.Tensor):
-                    key = (i, field.name, value.shape, value.dtype)
-                    static = self.pool.setdefault(key, torch.empty_like(value))
-                    setattr(layer, field.name, static.copy_(value))
-        return layers, keep_scores
-
-
-def test_a_compiled_step_keeps_its_output_while_other_configurations_run(tiny_split,
-                                                                         monkeypatch):
-    """The sweep scores a sample's boxes after every configuration has stepped; a compiled
-    configuration's output must still be its own then (on an H100 the CUDA-graph configs'
-    box mAP read 0.76 and 3.50 against 18.54 before their outputs were copied)."""
-    data, checkpoint = tiny_split
-    job = {"device": "cpu", "checkpoint": checkpoint, "preset": "odg_cpu",
-           "dataset": "nuscenes", "rayiou": False}
-    reference = ConfigRun(SweepConfig("eager-h2", frames=2), job)
-    monkeypatch.setattr(torch, "compile", GraphReplayStandIn)
-    monkeypatch.setattr(GraphReplayStandIn, "pool", {})
-    runs = [ConfigRun(SweepConfig(f"graphs-h{k}", frames=k, compile=True), job) for k in (2, 1)]
-    for run in [reference] + runs:
-        dataset = OccDataset(str(data), run.cfg.replace(num_frames=run.frames))
-        run.begin_sample(to_device(collate([dataset[2]]), "cpu"))
-        run.run_step()
-    ours, expected = runs[0].output.last, reference.output.last
-    overwritten = GraphReplayStandIn.pool[(len(runs[0].output.layers) - 1, "means",
-                                           ours.means.shape, ours.means.dtype)]
-    assert not torch.equal(overwritten, expected.means)   # the one-frame step replayed last
-    for name in ("means", "logits", "boxes", "box_logits"):
-        torch.testing.assert_close(getattr(ours, name), getattr(expected, name), msg=name)
-
-
 def test_a_failing_configuration_is_reported_not_fatal(tiny_split):
     data, checkpoint = tiny_split
     report = run_sweep(data, checkpoint, configs=[SweepConfig("ok", frames=1),
@@ -312,7 +300,7 @@ def test_query_budget_rows_say_how_many_queries_they_refined(tiny_split, tmp_pat
     assert 0 < rows["auto"]["scores"]["refined_fraction"] <= 1.0
     expected = evaluate(model, cfg, str(data), limit=3, frames=3, progress=False, budget=half)
     for key in ("mIoU", "RayIoU", "IoU_geometry"):
-        assert rows["half"]["scores"][key] == expected[key], key
+        assert rows["half"]["scores"][key] == pytest.approx(expected[key], abs=0.01), key
     report = run_sweep(data, untrained, configs=configs[:2], limit=1, repeats=1, warmup=0,
                        isolate=False, progress=False)
     assert "error" not in report["configs"][0]

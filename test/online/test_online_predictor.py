@@ -8,7 +8,7 @@ from testing.helpers import assert_layers_close, published_grid
 from odg_ros.geometry import ego_warp
 from odg_ros.online.predictor import OnlinePredictor
 from odg_ros.preprocess import normalize
-from testing.online import make_model, make_sets
+from testing.online import make_model, make_sets, raw_output
 
 
 def offline(model, sets, index, num_frames):
@@ -27,13 +27,13 @@ def offline(model, sets, index, num_frames):
 def test_online_equals_offline_over_a_sequence():
     model, cfg = make_model()
     sets = make_sets(cfg, 4)
-    predictor = OnlinePredictor(model, cfg, "cpu", max_gap=1.0, keep_output=True)
+    predictor = OnlinePredictor(model, cfg, "cpu", max_gap=1.0)
     from odg_ros.network.postprocess import box_list
     for i, s in enumerate(sets):
         online = predictor.step(*s)
         assert online.num_frames == min(i + 1, cfg.num_frames)
         reference = offline(model, sets, i, cfg.num_frames)
-        assert_layers_close(online.output.layers, reference.layers, 1e-4)
+        assert_layers_close(raw_output(predictor).layers, reference.layers, 1e-4)
         grid, confidence = published_grid(reference, cfg)
         occupied = (online.grid != 17).sum()
         assert occupied > 50                                     # a real comparison
@@ -52,14 +52,14 @@ def test_online_equals_offline_over_a_sequence():
 def test_history_reset_on_time_jump_gives_a_single_frame():
     model, cfg = make_model()
     sets = make_sets(cfg, 4)
-    predictor = OnlinePredictor(model, cfg, "cpu", max_gap=1.0, keep_output=True)
+    predictor = OnlinePredictor(model, cfg, "cpu", max_gap=1.0)
     for s in sets[:3]:
         predictor.step(*s)
     # a set from the past (the bag looped): the decoder must see only that set
     looped = predictor.step(*sets[0])
     assert looped.num_frames == 1 and looped.history_reset == "time_backwards"
     reference = offline(model, sets, 0, 1)
-    torch.testing.assert_close(looped.output.last.means, reference.last.means,
+    torch.testing.assert_close(raw_output(predictor).last.means, reference.last.means,
                                atol=1e-4, rtol=1e-4)
     # a gap longer than max_gap
     images, ego2img, pose, stamp = sets[1]
@@ -81,7 +81,7 @@ def test_history_keeps_frames_spaced_like_training_whatever_the_camera_rate():
     provisional predecessor), and the result equals the offline model over those frames."""
     model, cfg = make_model()
     sets = make_sets(cfg, 6)
-    predictor = OnlinePredictor(model, cfg, "cpu", max_gap=1.0, keep_output=True,
+    predictor = OnlinePredictor(model, cfg, "cpu", max_gap=1.0,
                                 min_interval=0.9)
     kept_stamps = []
     for i, s in enumerate(sets):
@@ -92,7 +92,7 @@ def test_history_keeps_frames_spaced_like_training_whatever_the_camera_rate():
     assert kept_stamps[-1] == [12.5, 12.0, 11.0]  # set 5 current (provisional), 4, 2 kept
     chosen = [sets[2], sets[4], sets[5]]           # oldest first, as offline() indexes
     reference = offline(model, chosen, 2, 3)
-    torch.testing.assert_close(online.output.last.means, reference.last.means,
+    torch.testing.assert_close(raw_output(predictor).last.means, reference.last.means,
                                atol=1e-4, rtol=1e-4)
 
 
@@ -101,11 +101,11 @@ def test_bf16_predictor_stays_close_to_fp32_and_unknown_precision_fails():
     move by bf16 feature rounding only; the grid keeps almost every label."""
     model, cfg = make_model()
     sets = make_sets(cfg, 3)
-    full = OnlinePredictor(model, cfg, "cpu", keep_output=True)
-    half = OnlinePredictor(model, cfg, "cpu", keep_output=True, precision="bf16")
+    full = OnlinePredictor(model, cfg, "cpu")
+    half = OnlinePredictor(model, cfg, "cpu", precision="bf16")
     for s in sets:
         a, b = full.step(*s), half.step(*s)
-        means_a, means_b = a.output.last.means, b.output.last.means
+        means_a, means_b = raw_output(full).last.means, raw_output(half).last.means
         assert means_b.dtype == torch.float32 and torch.isfinite(means_b).all()
         assert (means_a - means_b).abs().max() < 0.05          # metres (measured ~0.005)
         assert (means_a - means_b).abs().mean() < 0.01

@@ -11,7 +11,7 @@ from odg_ros.network.postprocess import box_list, occupancy_grid
 from odg_ros.online.predictor import OnlinePredictor, resolve_mode
 from odg_ros.preprocess import normalize
 from testing.helpers import assert_layers_close, published_grid
-from testing.online import HostSyncCounter, make_model, make_sets
+from testing.online import HostSyncCounter, make_model, make_sets, raw_output
 
 from testing import reference_postprocess
 
@@ -40,13 +40,12 @@ def test_static_step_equals_the_dynamic_ring_at_every_fill_level(capacity):
     for the missing time steps. Raw decoder outputs, grid and boxes all agree."""
     model, cfg = make_model()
     sets = make_sets(cfg, 5)
-    predictor = OnlinePredictor(model, cfg, "cpu", max_gap=1.0, num_frames=capacity,
-                                keep_output=True)
+    predictor = OnlinePredictor(model, cfg, "cpu", max_gap=1.0, num_frames=capacity)
     reference = dynamic_ring_outputs(model, cfg, sets, capacity)
     for i, (s, expected) in enumerate(zip(sets, reference)):
         online = predictor.step(*s)
         assert online.num_frames == min(i + 1, capacity)
-        assert_layers_close(online.output.layers, expected.layers, 1e-5)
+        assert_layers_close(raw_output(predictor).layers, expected.layers, 1e-5)
         grid, confidence = published_grid(expected, cfg)
         assert (online.grid != cfg.num_classes).sum() > 50             # a real comparison
         np.testing.assert_array_equal(online.grid, grid[0].numpy())
@@ -178,20 +177,64 @@ def test_static_postprocess_equals_the_loop_postprocess(classes):
             assert sorted(map(str, a)) == sorted(map(str, b))    # ties in any order
 
 
-def test_bench_times_the_predictor_step_per_mode():
+def test_bench_times_the_predictor_step_and_its_stages_from_the_marks():
     from odg_ros.bench.step import bench_node_step
     model, cfg = make_model()
-    result = bench_node_step(cfg, "cpu", ("eager",), iters=1, warmup=1, model=model,
+    result = bench_node_step(cfg, "cpu", ("eager",), iters=2, warmup=1, model=model,
                              progress=False)
+    assert result["settings"]["visibility"] is True and result["steps"] == 5
     eager = result["modes"]["eager"]
-    assert set(eager["latency_ms"]) == {"step", "upload", "model", "download"}
-    assert eager["latency_ms"]["step"] >= eager["latency_ms"]["model"] > 0
+    lat = eager["latency_ms"]
+    assert {"step", "upload", "model", "download"} <= set(lat)
+    assert lat["step"] >= lat["model"] > 0
+    # the step's own stages, padding (the tiny model pads) and visibility included
+    assert eager["stages"] == "marks"
+    assert {"backbone", "decoder", "grid", "padding", "boxes", "visibility"} <= set(lat)
+    assert len(eager["decoder_layers_ms"]) == cfg.num_layers
+    for row in eager["decoder_layers_ms"]:
+        assert {"attention", "sampling", "mixing"} <= set(row["parts"])
+        assert row["total"] >= sum(row["parts"].values()) - 1e-6
+    assert sum(r["total"] for r in eager["decoder_layers_ms"]) <= lat["decoder"]
     assert eager["grid_agreement_min"] == 1.0 and eager["startup_s"] > 0
+    assert result["peak_memory_mb"] > 50 and result["memory_method"] == "process ru_maxrss"
 
 
-def test_bench_compares_precisions_on_the_keyframes_of_a_split(tmp_path, capsys):
+def test_without_a_recorder_the_marks_record_nothing():
+    """The node's step pays for its marks only while a recorder or a profiler is on."""
+    from odg_ros.online import marks
+    model, cfg = make_model()
+    predictor = OnlinePredictor(model, cfg, "cpu")
+    recorder = marks.MarkRecorder("cpu")
+    predictor.step(*make_sets(cfg, 1)[0])
+    assert recorder.times == {} and marks._recorder is None
+    assert marks.mark("decoder") is marks._NOTHING                 # no range, no timer
+    with recorder:
+        predictor.step(*make_sets(cfg, 2)[1])
+    assert set(recorder.times) == {"backbone", "decoder", "grid", "padding", "boxes",
+                                   "visibility"}
+    with torch.profiler.profile() as profile:
+        predictor.step(*make_sets(cfg, 3)[2])
+    assert {e.name for e in profile.events() if e.name.startswith(marks.PREFIX)} == {
+        "odg.backbone", "odg.decoder", "odg.grid", "odg.padding", "odg.boxes",
+        "odg.visibility"}
+    # traced by torch.compile (fullgraph) while both record: one graph, and no marks in it
+    graphs = []
+    compiled = OnlinePredictor(model, cfg, "cpu")
+    compiled._function = torch.compile(
+        compiled.online_step, backend=lambda gm, _: graphs.append(gm) or gm.forward,
+        fullgraph=True, dynamic=False)
+    recorder = marks.MarkRecorder("cpu")
+    with recorder, torch.profiler.profile() as profile:
+        compiled._warm_up()
+        compiled.step(*make_sets(cfg, 1)[0])
+    assert len(graphs) == 1 and recorder.times == {}
+    assert not [e.name for e in profile.events() if e.name.startswith(marks.PREFIX)]
+
+
+def test_bench_compares_each_variant_with_eager_fp32(tmp_path, capsys):
     """``odg bench --compile eager --precision fp32,bf16 --data INFOS``: both variants step
-    over the split's keyframes; bf16 is compared with fp32 (grid, logits, boxes)."""
+    over the split's keyframes; bf16's own grid, confidence and boxes are compared with
+    fp32's."""
     import json
     from testing.helpers import write_tiny_checkpoint, write_tiny_split
     from odg_ros.commands import main
@@ -201,14 +244,14 @@ def test_bench_compares_precisions_on_the_keyframes_of_a_split(tmp_path, capsys)
     assert main(["bench", "--compile", "eager", "--precision", "fp32,bf16", "--checkpoint",
                  str(checkpoint), "--data", str(infos), "--iters", "2", "--json"]) == 0
     result = json.loads(capsys.readouterr().out)
-    assert result["sets"] == 3 and result["reference"] == "eager-fp32"
+    assert result["distinct_sets"] == 3 and result["reference"] == "eager-fp32"
     fp32, bf16 = result["modes"]["eager-fp32"], result["modes"]["eager-bf16"]
-    assert fp32["max_difference"]["logits"] == 0 and fp32["occupied_agreement_min"] == 1
-    assert 0 < bf16["max_difference"]["logits"] < 1                    # bf16 rounding only
+    assert fp32["max_difference"]["confidence"] == 0 and fp32["occupied_agreement_min"] == 1
+    assert fp32["max_difference"]["boxes_unmatched"] == 0
+    assert 0 < bf16["max_difference"]["confidence"] < 128                 # bf16 rounding
     assert bf16["max_difference"]["boxes_valid"] > 0
+    assert bf16["max_difference"]["box_centre_m"] < 1.0
     assert 0.5 < bf16["occupied_agreement_min"] <= 1
-    assert main(["bench", "--precision", "fp32,bf16"]) == 2            # a list needs --compile
-    assert "--precision" in capsys.readouterr().err
 
 
 class WeightCastCounter(TorchDispatchMode):

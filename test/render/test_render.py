@@ -114,11 +114,13 @@ def test_tiles_and_depth_batches_do_not_change_result(monkeypatch, dense):
     configs = ((997, 2), (3001, 5), (10**9, 500))      # (candidates per batch, tile size)
     for chunk, tile_size in configs if dense else ((211, 3),) + configs:
         monkeypatch.setattr(splat_module, "CANDIDATE_CHUNK", chunk)
+        monkeypatch.setattr(splat_module, "LATER_CANDIDATE_CHUNK", chunk)
         other = render(scene, cam, k, pixels, tile_size=tile_size)
         for a, b in zip(base, other):
             torch.testing.assert_close(a, b, atol=1e-12, rtol=1e-12)
     # Gradients too: the running transmittance is carried across depth batches.
     monkeypatch.setattr(splat_module, "CANDIDATE_CHUNK", 997)
+    monkeypatch.setattr(splat_module, "LATER_CANDIDATE_CHUNK", 997)
     batched = backward_grads(scene, cam, k, pixels)
     monkeypatch.setattr(splat_module, "CANDIDATE_CHUNK", 10**9)
     single = backward_grads(scene, cam, k, pixels)
@@ -146,6 +148,7 @@ def test_render_scenes_equals_each_scene_alone(monkeypatch, chunk):
     """Three scenes of different sizes, each with its own two cameras and pixels, in one call:
     values and gradients as three render_cameras calls (in one depth batch and in many)."""
     monkeypatch.setattr(splat_module, "CANDIDATE_CHUNK", chunk)
+    monkeypatch.setattr(splat_module, "LATER_CANDIDATE_CHUNK", chunk)
     names = ("means", "scales", "rotations", "opacities", "features")
     scenes, cams, pixels = [], [], []
     for seed, (num_gaussians, num_pixels) in enumerate([(120, 90), (40, 60), (200, 30)]):
@@ -175,10 +178,11 @@ def test_render_scenes_equals_each_scene_alone(monkeypatch, chunk):
             torch.testing.assert_close(a, b, atol=1e-10, rtol=1e-9)
 
 
-def test_host_reads_per_call_one_plus_two_per_depth_batch(monkeypatch):
+def test_host_reads_per_call_two_plus_one_per_depth_batch(monkeypatch):
     """What makes the host wait for the device (counted as on CUDA): the projection's
-    candidates, one read of every size and check before compositing, and per depth batch
-    its compaction and (after the first) its bounds; the backward pass none."""
+    candidates, one read of every size and check before compositing, and one read per depth
+    batch (its kept pairs' count with the next batch's bounds); the backward pass none. The
+    later batches take what the memory allows: two batches whatever the first one's size."""
     from odg_ros.train.census import Census, CensusMode
     batches = []
     candidate_pairs = splat_module._candidate_pairs
@@ -190,8 +194,9 @@ def test_host_reads_per_call_one_plus_two_per_depth_batch(monkeypatch):
         scene, cam, k, pix = random_scene(30 + seed, 60, 40, dense=True)
         scenes.append([scene[n].clone().requires_grad_(True) for n in names])
         pixels.append([pix])
-    for chunk in (10**9, 300):
-        monkeypatch.setattr(splat_module, "CANDIDATE_CHUNK", chunk)
+    for first, later in ((10**9, None), (300, None), (300, 300)):
+        monkeypatch.setattr(splat_module, "CANDIDATE_CHUNK", first)
+        monkeypatch.setattr(splat_module, "LATER_CANDIDATE_CHUNK", later)
         batches.clear()
         census = Census()
         with CensusMode(census, None):
@@ -199,10 +204,9 @@ def test_host_reads_per_call_one_plus_two_per_depth_batch(monkeypatch):
                                     pixels, HW)
             sum(r[0].depth.sum() + r[0].alpha.sum() for r in results).backward()
         syncs = sum(census.syncs.values())
-        if chunk == 10**9:
-            assert len(batches) == 1 and syncs == 3, census.report()
-        else:
-            assert len(batches) > 3 and syncs <= 1 + 2 * len(batches), census.report()
+        assert syncs == 2 + len(batches), census.report()
+        assert len(batches) == {10**9: 1, 300: 2}[first] if later is None else \
+            len(batches) > 3, (first, later, len(batches))
 
 
 def test_tile_indices_are_valid_for_any_pixel_value():
@@ -258,6 +262,7 @@ def test_gradcheck_across_depth_batches_with_early_stop(monkeypatch):
     # 3.3e-4 after the 4th, 2.8e-5 .. 5.8e-5 after the 5th), far enough from 1e-4 that finite
     # differences do not cross the cut-off.
     monkeypatch.setattr(splat_module, "CANDIDATE_CHUNK", 1)
+    monkeypatch.setattr(splat_module, "LATER_CANDIDATE_CHUNK", 1)
     z = [3.0, 4.0, 5.0, 6.0, 7.0, 8.0, 9.0]
     scene, cam, k = simple_scene([[0.02 * i, -0.01 * i, d] for i, d in enumerate(z)],
                                  [[0.4, 0.35, 0.3]] * 7, opacities=[0.88] * 7)

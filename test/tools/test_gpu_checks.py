@@ -55,25 +55,100 @@ def test_every_command_line_of_every_part_parses(tmp_path):
     assert train and all("--backbone-weights" in line for line in train)
     bench = [line for line in lines if line[:2] == ["odg", "bench"] and "--compile" in line]
     assert any("eager,compiled,graphs" in line and "fp32,bf16" in line for line in bench)
-    assert "35 command lines, 0 refused" in result.stdout
+    assert "command lines, 0 refused" in result.stdout
 
 
-def test_the_first_part_is_one_call_of_the_first_questions(tmp_path):
-    """``first``: the node step in graphs mode against eager, fp32 and bf16; ODG-T trained at
-    batch 1 and 4 with our renderer; the sync-debug count of a training step at both batch
-    sizes; the backbone against a plain forward. No gsplat build (minutes of a 9-minute call)."""
-    result = gpu_checks("first", tmp_path, DEVICE="cpu", CHECK="parse")
+def first_part(tmp_path, script=None):
+    """CHECK=parse of the first part (of ``script``, a changed copy of the script if given)
+    -> (the result, the recorded lines)."""
+    command = ["bash", str(ROOT / "tools/gpu_checks.sh")]
+    if script is not None:
+        changed = tmp_path / "gpu_checks.sh"
+        changed.write_text(script.replace('cd "$(dirname "$0")/.."', f'cd "{ROOT}"'))
+        command = ["bash", str(changed)]
+    out = tmp_path / "out"
+    result = subprocess.run(command + ["first", str(out)],
+                            env=dict(os.environ, PYTHON=sys.executable, DEVICE="cpu",
+                                     CHECK="parse"),
+                            capture_output=True, text=True, timeout=300)
+    lines = [json.loads(line) for line in (out / "commands.jsonl").read_text().splitlines()]
+    return result, lines, out
+
+
+def test_the_first_part_is_one_bounded_call_of_what_is_new(tmp_path):
+    """``first``: the query budgets replayed as CUDA graphs (ODG-T and ODG-L), the training
+    step at the size users train (batch 1 and 4: waits and seconds), FlexAttention at ODG-T's
+    and ODG-L's sizes, ODG-T's node step compiled into one graph; nothing that runs on the
+    CPU only, no gsplat build. The check adds up the time limits of its checks: at most
+    7 minutes, and at most 8 files come back."""
+    result, lines, out = first_part(tmp_path)
     assert result.returncode == 0, result.stdout + result.stderr
-    lines = [json.loads(line) for line in (tmp_path / "commands.jsonl").read_text().splitlines()]
-    bench = [line for line in lines if line[:2] == ["odg", "bench"]]
-    assert len(bench) == 1 and "eager,graphs" in bench[0] and "fp32,bf16" in bench[0]
-    train = [line for line in lines if line[:2] == ["odg", "train"]]
-    assert [line[line.index("--batch-size") + 1] for line in train] == ["1", "4"]
-    assert all(line[line.index("--renderer") + 1] == "torch" for line in train)
-    waits = [line for line in lines if line[0] == "tools.sync_debug_step"]
-    assert [line[line.index("--batch-size") + 1] for line in waits] == ["1", "4"]
-    assert any(line[0] == "tools.bench_backbone" for line in lines)
+    commands = [line for line in lines if line[0] not in ("bound", "limit")]
+    budgets = [line for line in commands if line[0] == "tools.budget_graphs"]
+    assert len(budgets) == 1 and budgets[0][budgets[0].index("--preset") + 1:][:2] == \
+        ["odg_t", "odg_l"]
+    waits = [line for line in commands if line[0] == "tools.sync_debug_step"]
+    assert len(waits) == 1 and "--no-cpu-census" in waits[0]
+    assert waits[0][waits[0].index("--batch-size") + 1:][:2] == ["1", "4"]
+    assert waits[0][waits[0].index("--image-size") + 1:][:2] == ["256", "704"]
+    flex = [line for line in commands if line[0] == "tools.flex_attention_check"]
+    assert flex[0][flex[0].index("--queries") + 1:][:2] == ["600", "4800"]
+    bench = [line for line in commands if line[:2] == ["odg", "bench"]]
+    assert len(bench) == 1 and "eager,graphs" in bench[0] and "odg_t" in bench[0]
+    assert not [line for line in commands if line[0] == "pytest"]      # no CPU-only test
     assert "gsplat CUDA kernels" not in result.stdout
+    limit = [line for line in lines if line[0] == "limit"]
+    assert limit == [["limit", "first", "420", "8", limit[0][4]]] and int(limit[0][4]) <= 8
+    assert "part first: 8 time limits, wall time at most 420 s" in result.stdout
+    assert {p.name for p in out.iterdir()} == {"commands.jsonl", "gpu_checks.log",
+                                               "first.tar.gz", "summary.md", "summary.json"}
+
+
+def test_first_checks_that_do_not_fit_fail_the_parse_check(tmp_path):
+    """Planted: a check's limit raised past the part's 420 s."""
+    script = (ROOT / "tools/gpu_checks.sh").read_text()
+    assert 'bounded "training step, batch 1 and 4" 90 ' in script
+    result, _, _ = first_part(tmp_path, script.replace(
+        'bounded "training step, batch 1 and 4" 90 ', 'bounded "training step, batch 1 and 4" 150 '))
+    assert result.returncode == 1
+    assert "part first: its checks need 454 s, more than its 420 s" in result.stdout
+
+
+def test_first_summary_gives_the_figures_against_their_targets(tmp_path):
+    """tools/gpu_report.py --first on what the checks write: the node step's FPS, the decoder
+    at auto against full, the training step's seconds and waits, FlexAttention's errors."""
+    from tools.gpu_report import first_figures, first_summary
+    (tmp_path / "checks.jsonl").write_text(
+        json.dumps({"check": "machine", "status": "ok", "seconds": "3", "limit": "10"}) + "\n"
+        + json.dumps({"check": "node step", "status": "skipped (no time left)",
+                      "seconds": "0", "limit": "90"}) + "\n")
+    (tmp_path / "budgets.json").write_text(json.dumps([{
+        "preset": "odg_l", "predictors": {
+            "full": {"budgets": ["full"], "captures": 1, "grid_agreement_min": 1.0,
+                     "step_ms": {"full": 20.0}},
+            "auto": {"budgets": ["s4000-d800", "s2400-d400", "s1400-d200"], "captures": 3,
+                     "grid_agreement_min": 0.9999, "step_ms": {"s4000-d800": 20.5}}},
+        "decoder_ms": {"full": 12.0, "s4000-d800": 12.2},
+        "open_road": {"speedup": 1.6, "full_decoder_ms": 12.0, "auto_decoder_ms": 7.5,
+                      "refined": 0.56}}]))
+    (tmp_path / "training_step.json").write_text(json.dumps([{
+        "preset": "odg_t", "image_size": [256, 704], "frames": 8, "batch_size": 4,
+        "seconds_per_sample": 0.25, "sync_debug_waits": 7, "census_cuda_waits": 7.0}]))
+    (tmp_path / "flex_attention.json").write_text(json.dumps({"tolerance": 5e-3, "sizes": [{
+        "queries": 4800, "compile_s": 20.0, "flex_error": 2e-3, "sdpa_error": 2.1e-3,
+        "flex_ms": 0.5, "sdpa_ms": 3.0, "flex_peak_mib": 10.0, "sdpa_peak_mib": 700.0}]}))
+    (tmp_path / "node_step.json").write_text("{cut off")
+    figures = first_figures(tmp_path)
+    text = first_summary(figures)
+    assert "| node step | skipped (no time left) | 0 | 90 |" in text
+    assert "| odg_l decoder: full / auto on the open road | 1.60 | >= 1.5 (ODG-L) |" in text
+    assert "| odg_l step, full budget, graphs of the eager step | 50.0 |" in text
+    assert "| training step odg_t 256 x 704, 8 frames, batch 4 | 0.250 | s per sample | " \
+           "host waits: sync-debug 7, census 7 (target <= 8) |" in text
+    assert "| odg_l | auto | 3 | s4000-d800, s2400-d400, s1400-d200 | 0.9999 |" in text
+    assert "| 4800 | 20.0 | 2.0e-03 | 2.1e-03 | 0.5 | 3.0 |" in text
+    assert "(not summarised: node_step.json:" in text
+    assert json.loads(json.dumps(figures))["targets"]["open_road_decoder_speedup"] == 1.5
 
 
 def test_a_typo_in_a_command_line_fails_the_parse_check(tmp_path):
@@ -100,6 +175,7 @@ def test_report_tables_from_the_results_of_a_run(tmp_path):
     bench = bench_node_step(cfg, "cpu", ("eager",), iters=1, warmup=0, model=model,
                             progress=False, precisions=("fp32", "bf16"))
     (tmp_path / "node_tiny.json").write_text(json.dumps(bench))
+    (tmp_path / "bench.json").write_text(json.dumps({"tiny-fp32": bench}))
     seconds = [9.0] * 4 + [0.5, 0.7, 0.6, 0.6, 0.8, 0.8, 0.8, 0.8]   # one read every 4 steps
     rows = ["step,seconds,skipped_total"] + [f"{i + 1},{s},0" for i, s in enumerate(seconds)]
     (tmp_path / "train_odg_t_b4.csv").write_text("\n".join(rows) + "\n")
@@ -137,6 +213,7 @@ def test_report_tables_from_the_results_of_a_run(tmp_path):
         assert f"| tiny | {variant} | {cfg.image_size[0]} x {cfg.image_size[1]} |" in text
     assert "| tiny | eager-bf16 | " in text.split("Largest differences")[1]
     assert "(not summarised: demo.json: JSONDecodeError" in text
+    assert f"| tiny-fp32 (eager-fp32) | {cfg.image_size[0]} x {cfg.image_size[1]} |" in text
 
 
 def test_report_tables_of_the_first_h100_run_give_its_numbers():

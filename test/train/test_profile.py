@@ -86,3 +86,36 @@ def test_profile_command_prints_phases_and_lines(split, tmp_path, capsys):
     assert set(saved["waits_by_kind"]) == {"read", "download", "shape", "upload"}
     assert saved["renderer"] == "gsplat" and saved["waits_by_kind"]["read"] >= 2
     assert main(["profile", "train", "--data", str(tmp_path / "missing.pkl")]) == 2
+
+
+def test_renderer_waits_grow_with_neither_batch_nor_image(warm_trainer, split, tmp_path,
+                                                          monkeypatch):
+    """At the size users train (256 x 704, batch 4) the candidate pairs far outnumber the
+    first depth batch; here the first batch is made that small against these sizes' pairs
+    (FIRST_BATCH_SHARE 0, 2,000 candidates), so every step needs several depth batches. The
+    later batches are sized from the memory: the waits are the same at batch 1 and 4 and at
+    32 x 88 and 64 x 176 (with batches of the first one's size, as before, they grew)."""
+    from odg_ros.render import splat
+    monkeypatch.setattr(splat, "FIRST_BATCH_SHARE", 0.0)
+    monkeypatch.setattr(splat, "CANDIDATE_CHUNK", 2_000)
+    batches = []
+    candidate_pairs = splat._candidate_pairs
+    monkeypatch.setattr(splat, "_candidate_pairs",
+                        lambda *args: batches.append(1) or candidate_pairs(*args))
+    trainer, by_size = warm_trainer
+    larger = Trainer(load_preset("odg_t", image_size=(64, 176), num_frames=2), split,
+                     TrainOptions(out_dir=tmp_path, workers=0, progress=False, device="cpu",
+                                  render_pixels_per_camera=64,
+                                  backbone_weights=trainer.opts.backbone_weights, augment=True))
+    lidar_batch = collate([larger.dataset[2]])
+    census_of_steps(larger, [lidar_batch], cuda_paths=True, warm_up=True)   # the warm-up
+    waits = {}
+    for name, (t, batch) in {"32 x 88, batch 1": (trainer, by_size[1]),
+                             "32 x 88, batch 4": (trainer, by_size[4]),
+                             "64 x 176, batch 1": (larger, lidar_batch)}.items():
+        batches.clear()
+        census = census_of_steps(t, [batch], cuda_paths=True, warm_up=False)
+        assert len(batches) >= 2, (name, len(batches))      # the first batch is not all
+        waits[name] = census.per_step(census.syncs)
+    assert len(set(waits.values())) == 1 and max(waits.values()) <= MAX_WAITS["torch"] + 1, \
+        waits
