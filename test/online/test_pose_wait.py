@@ -101,9 +101,10 @@ def test_the_wait_runs_on_the_node_clock_and_on_the_steady_clock_while_that_stan
     steady = [0.0]
     waiting, data, clock = room(wait=1.0, steady=lambda: steady[0])
     waiting.put(Item(10.0))
-    steady[0] += 5.0                                # a paused bag: the sim clock stands still
+    steady[0] += 0.2
+    clock[0] += 0.9                                 # a replay at 4.5x: bag time counts
     assert waiting.get(timeout=0) is None
-    clock[0] += 1.0
+    clock[0] += 0.1
     assert waiting.get(timeout=0).expired
     sim_time_before_clock = WaitingSets(data.probe, 1.0, lambda: 0.0,
                                         steady=lambda: steady[0])
@@ -111,6 +112,34 @@ def test_the_wait_runs_on_the_node_clock_and_on_the_steady_clock_while_that_stan
     assert sim_time_before_clock.get(timeout=0) is None
     steady[0] += 1.0
     assert sim_time_before_clock.get(timeout=0).expired
+
+
+def test_a_set_never_waits_forever_when_the_node_clock_stops():
+    """A replay that ended (or paused): its /clock stands still and what the set waits for
+    does not come; the steady seconds waited since the clock stopped count."""
+    steady = [0.0]
+    waiting, data, clock = room(wait=1.0, steady=lambda: steady[0])
+    first, second = Item(10.0), Item(10.1)
+    waiting.put(first)
+    steady[0] += 0.5
+    clock[0] += 0.5                                 # the clock runs for half a second...
+    waiting.put(second)
+    for _ in range(9):                              # ...then stands still: 0.9 s, waiting
+        steady[0] += 0.1
+        assert waiting.get(timeout=0) is None
+    steady[0] += 0.1
+    assert waiting.get(timeout=0) is first and first.expired
+    assert first.waited == pytest.approx(1.0)
+    assert waiting.get(timeout=0) is second and second.expired and len(waiting) == 0
+    # the clock moving again: node time counts again, from where it is
+    third = Item(12.0)
+    clock[0] += 1.5
+    waiting.put(third)
+    steady[0] += 0.5
+    clock[0] += 0.5
+    assert waiting.get(timeout=0) is None
+    clock[0] += 0.5
+    assert waiting.get(timeout=0) is third and third.waited == pytest.approx(1.0)
 
 
 def test_wait_zero_never_waits():
