@@ -16,6 +16,7 @@ import sys
 
 import pytest
 
+from odg_ros.bench.soak import TARGET_RESTART_S, TARGET_RSS_GROWTH_MB
 from odg_ros.online.errors import BAD_INPUT_KINDS
 from testing.helpers import write_tiny_checkpoint
 
@@ -57,6 +58,10 @@ def test_a_short_soak_at_1x_and_4x(scenes, rclpy_module, tmp_path):
     # in the model as the node stops)
     assert 0 <= one["sets_completed"] - one["outputs"] - one["stale_sets_dropped"] <= 3, one
     assert one["rss"]["samples"] >= 40 and one["rss"]["peak_mb"] > 50
+    # the hour's bound, over the minute's second half
+    assert one["rss"]["growth_after_warmup_mb"] <= TARGET_RSS_GROWTH_MB, one["rss"]
+    print({r["rate"]: (r["rss"], r["latency_ms_wall"], r["resets"]["at_scene_changes"],
+                       r["outputs"], r["sets_completed"]) for r in (one, four)})
     assert set(four["inputs_refused"]) <= set(BAD_INPUT_KINDS)
 
 
@@ -75,9 +80,15 @@ def test_the_node_killed_mid_bag_and_started_again(scenes, rclpy_module, tmp_pat
     assert result.returncode == 0, result.stderr[-3000:]
     document = json.loads(next((tmp_path / "report").glob("*.json")).read_text())
     restarts = document["restarts"]["restarts"]
+    print(restarts)
     assert len(restarts) == 2, document["restarts"]
     for restart in restarts:
         assert restart["outputs"] >= 1 and restart["stale_outputs"] == 0, restart
         assert restart["outputs_not_checked"] < restart["outputs"], restart
         assert restart["errors"] == 0, restart
-        assert 0 < restart["up_after_s"] < restart["first_output_after_s"] < 120, restart
+        # up (its first report: Python, torch and the model loaded) -> its first output:
+        # the node's own recovery, within the target; the start-up before it is the
+        # machine's (4 s of imports alone on 2 busy shared cores)
+        assert 0 < restart["up_after_s"] < restart["first_output_after_s"] < 60, restart
+        assert restart["first_output_after_s"] - restart["up_after_s"] <= \
+            TARGET_RESTART_S, restart
