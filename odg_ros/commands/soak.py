@@ -6,8 +6,9 @@
 Each run starts a fresh odg_node process (use_sim_time) and plays the bags back to back in a
 loop with ``odg replay --clock --loop --rate RATE`` for MINUTES of wall time, watching the
 node as a planner would (outputs, /diagnostics, its resident memory). Written to --out: the
-dated report (``YYYY-MM-DD-soak.md``), its picture (``.png``) and every figure and record
-(``.json``); the node's logs to --logs. The runs are in a ROS domain of their own
+dated report (``YYYY-MM-DD-soak.md``), its picture (``.png``) and its figures (``.json``);
+to --logs: the node's logs and every record (``YYYY-MM-DD-soak-records.json``, kept as each
+run ends; ``--from-json`` writes the report again from it). The runs are in a ROS domain of their own
 (--domain-id) so that nothing else on the machine is heard.
 """
 from __future__ import annotations
@@ -65,8 +66,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "process's id, 1..100)")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
     parser.add_argument("--from-json", type=Path, default=None, metavar="JSON",
-                        help="write the report again from the records of an earlier soak's "
-                             "JSON (nothing is run)")
+                        help="write the report again from an earlier soak's records "
+                             "(LOGS/DATE-soak-records.json; nothing is run)")
 
 
 def run(args) -> int:
@@ -74,7 +75,11 @@ def run(args) -> int:
 
     if args.from_json is not None:
         document = json.loads(args.from_json.read_text())
-        context = {k: document[k] for k in ("command", "date", "bags", "logs", "machine")}
+        context = {k: document[k] for k in ("command", "date", "bags", "logs")}
+        # a soak cut short saved its records before it could describe the machine
+        machine = document["machine"]
+        context["machine"] = machine if "cpu" in machine else \
+            _machine(machine.get("load_average_before", [float("nan")] * 3))
         paths = write_report(document["records"], context, args.out,
                              args.warmup_minutes * 60, document.get("restart_record"))
         print("\n".join(f"wrote {p}" for p in paths))
@@ -110,12 +115,13 @@ def run(args) -> int:
     for rate, minutes in args.run or (RUNS if not args.restarts else []):
         records.append(_one_run(bags, float(rate), float(minutes), node_args, args, logs))
         # kept as they come: a long soak cut short still leaves its runs (--from-json)
-        _save(args.out, context, records)
+        _save(logs, context, records)
     if args.restarts > 0:
         restarts = _restarts(bags, node_args, args, logs)
-        _save(args.out, context, records, restarts)
+        _save(logs, context, records, restarts)
     context["machine"] = _machine(context["machine"]["load_average_before"])
     paths = write_report(records, context, args.out, args.warmup_minutes * 60, restarts)
+    paths.append(_save(logs, context, records, restarts))
     print("\n".join(f"wrote {p}" for p in paths))
     return 0
 
@@ -188,7 +194,7 @@ def _machine(load_before) -> dict:
 
 def _save(out: Path, context: dict, records: list[dict], restarts: dict | None = None):
     out.mkdir(parents=True, exist_ok=True)
-    path = out / f"{context['date']}-soak.json"
+    path = out / f"{context['date']}-soak-records.json"
     path.write_text(json.dumps(dict(context, records=records, restart_record=restarts),
                                default=str))
     return path
@@ -196,7 +202,7 @@ def _save(out: Path, context: dict, records: list[dict], restarts: dict | None =
 
 def write_report(records: list[dict], context: dict, out: Path, warmup_s: float,
                  restart_record: dict | None = None) -> list[Path]:
-    """The dated JSON (figures and records), PNG and Markdown report in ``out``."""
+    """The dated JSON (figures), PNG and Markdown report in ``out``."""
     from odg_ros.bench.soak import plot, summarize, summarize_restarts, verdicts
 
     summaries = [summarize(r, warmup_s) for r in records]
@@ -205,8 +211,7 @@ def write_report(records: list[dict], context: dict, out: Path, warmup_s: float,
     out.mkdir(parents=True, exist_ok=True)
     stem = out / f"{context['date']}-soak"
     picture = plot(records, stem.with_suffix(".png"))
-    document = dict(context, targets=checks, runs=summaries, restarts=restarts,
-                    records=records, restart_record=restart_record)
+    document = dict(context, targets=checks, runs=summaries, restarts=restarts)
     stem.with_suffix(".json").write_text(json.dumps(document, indent=1, default=str))
     stem.with_suffix(".md").write_text(markdown(summaries, checks, context, picture.name,
                                                 restarts))

@@ -21,6 +21,12 @@ from odg_ros.online.errors import BAD_INPUT_KINDS
 from testing.helpers import write_tiny_checkpoint
 
 
+# "no output for 5 s" is the node's honest ERROR when a shared machine starves it for that
+# long (seen at a load average of 15 on 2 cores: steps of up to 10 s); here any ERROR is to
+# mean a fault, so that timeout is beyond such stalls. The hour-long soak keeps the default.
+TOLERANT = ("-p", "no_output_timeout:=30.0")
+
+
 @pytest.fixture(scope="module")
 def scenes(tmp_path_factory):
     from odg_ros.bench.soak import synthetic_scenes
@@ -35,7 +41,7 @@ def test_a_short_soak_at_1x_and_4x(scenes, rclpy_module, tmp_path):
     result = subprocess.run(
         [sys.executable, "-m", "odg_ros.commands", "soak", *map(str, scenes),
          "--run", "1", "1", "--run", "4", "0.5", "-p", f"checkpoint:={checkpoint}",
-         "-p", "device:=cpu", "--out", str(tmp_path / "report"), "--logs",
+         "-p", "device:=cpu", *TOLERANT, "--out", str(tmp_path / "report"), "--logs",
          str(tmp_path / "logs"), "--quiet", "--domain-id", os.environ["ROS_DOMAIN_ID"]],
         capture_output=True, text=True, timeout=600)
     assert result.returncode == 0, result.stderr[-3000:]
@@ -63,6 +69,14 @@ def test_a_short_soak_at_1x_and_4x(scenes, rclpy_module, tmp_path):
     print({r["rate"]: (r["rss"], r["latency_ms_wall"], r["resets"]["at_scene_changes"],
                        r["outputs"], r["sets_completed"]) for r in (one, four)})
     assert set(four["inputs_refused"]) <= set(BAD_INPUT_KINDS)
+    # the records, kept with the logs, give the same report again
+    records = next((tmp_path / "logs").glob("*-soak-records.json"))
+    again = subprocess.run([sys.executable, "-m", "odg_ros.commands", "soak", "--from-json",
+                            str(records), "--out", str(tmp_path / "again")],
+                           capture_output=True, text=True, timeout=120)
+    assert again.returncode == 0, again.stderr[-3000:]
+    assert json.loads(next((tmp_path / "again").glob("*.json")).read_text())["runs"] == \
+        document["runs"]
 
 
 def test_the_node_killed_mid_bag_and_started_again(scenes, rclpy_module, tmp_path):
@@ -73,7 +87,7 @@ def test_the_node_killed_mid_bag_and_started_again(scenes, rclpy_module, tmp_pat
     checkpoint = write_tiny_checkpoint(tmp_path / "tiny.pt")
     result = subprocess.run(
         [sys.executable, "-m", "odg_ros.commands", "soak", *map(str, scenes),
-         "--restarts", "2", "-p", f"checkpoint:={checkpoint}", "-p", "device:=cpu",
+         "--restarts", "2", "-p", f"checkpoint:={checkpoint}", "-p", "device:=cpu", *TOLERANT,
          "--out", str(tmp_path / "report"), "--logs", str(tmp_path / "logs"), "--quiet",
          "--domain-id", os.environ["ROS_DOMAIN_ID"]],
         capture_output=True, text=True, timeout=600)
