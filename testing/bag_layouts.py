@@ -96,6 +96,26 @@ def reselect_keyframes(records: list[SensorRecord], gaps: list[float]) -> list[S
     return [dataclasses.replace(r, is_key_frame=id(r) in keys) for r in records]
 
 
+def keyframe_pose_records(records: list[SensorRecord]) -> list[SensorRecord]:
+    """The same world with only the ego poses that /tf at keyframes carries: each record's
+    ego pose interpolated between the keyframe poses around it (linear position, slerp
+    rotation, as tf2 interpolates); outside the keyframes' span (nothing there to
+    interpolate) the record keeps its pose. Written by ``odg bag``, it carries the same
+    information as the Foxglove-derived layout without /odom."""
+    keys = [(g[LIDAR_CHANNEL].timestamp_us, g[LIDAR_CHANNEL].T_global_from_ego)
+            for g in keyframe_groups(records)]
+    stamps = np.array([t for t, _ in keys], dtype=np.int64)
+    out = []
+    for r in records:
+        i = int(np.searchsorted(stamps, r.timestamp_us))
+        if 0 < i < len(stamps):
+            (t0, T0), (t1, T1) = keys[i - 1], keys[i]
+            r = dataclasses.replace(r, T_global_from_ego=interpolate_pose(
+                t0 * 1e-6, T0, t1 * 1e-6, T1, r.timestamp_us * 1e-6))
+        out.append(r)
+    return out
+
+
 def keyframe_gaps(records: list[SensorRecord]) -> list[float]:
     stamps = [g[LIDAR_CHANNEL].timestamp_us for g in keyframe_groups(records)]
     return [round((b - a) * 1e-6, 6) for a, b in zip(stamps, stamps[1:])]
@@ -443,8 +463,9 @@ def _write_nuscenes2bag(records: list[SensorRecord], out: Path) -> None:
 
 @dataclasses.dataclass
 class LayoutWorld:
-    """One synthetic scene with keyframe gaps of 0.55 and 0.75 s, as a bag of every layout,
-    with rig files of its car for the layouts that need one."""
+    """One synthetic scene with keyframe gaps of 0.55 and 0.75 s, as a bag of every layout
+    (and ``odg keyframe poses``: ``odg bag`` of the world with only its keyframe poses,
+    keyframe_pose_records), with rig files of its car for the layouts that need one."""
 
     root: Path
     records: list[SensorRecord]
@@ -474,6 +495,8 @@ def build_layout_world(root: Path, seconds: float = 2.0, image_hw=(45, 80)) -> L
     records = reselect_keyframes(tables.scene_records("scene-0001"), GAPS)
     bags = {layout: write_layout_bag(layout, records, root / "bags" / layout)
             for layout in LAYOUTS}
+    bags["odg keyframe poses"] = write_layout_bag("odg", keyframe_pose_records(records),
+                                                  root / "bags" / "odg_keyframe_poses")
     rigs = {name: write_rig_file(records, CONVERTERS[name], "scene-0001",
                                  root / f"rig_{name}.yaml")
             for name in ("odg", "chris7462", "nuscenes2bag")}

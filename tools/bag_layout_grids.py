@@ -1,8 +1,10 @@
 """The same grid whatever the converter, with a real model: one synthetic world (keyframe gaps
 0.55 and 0.75 s) as a bag of `odg bag` and of each public converter's layout
 (testing/bag_layouts.py), each run deterministically through the node's pipeline with the
-layout's documented settings (testing/bag_pipeline.py), grids compared with those of the
-`odg bag` bag set by set.
+layout's documented params file (testing/bag_pipeline.py), grids compared set by set with
+those of the `odg bag` bag that carries the same information: the world's, or for
+`foxglove tf` (ego poses only at keyframes) the world with its keyframe poses interpolated;
+`foxglove tf` is also compared with the world's true poses (the interpolation error).
 
     python -m tools.bag_layout_grids                          # shipped model, a new world
     python -m tools.bag_layout_grids --world /tmp/layouts     # keep / reuse the world there
@@ -27,7 +29,7 @@ from odg_ros.network.checkpoint import load_model
 from odg_ros.online.predictor import OnlinePredictor
 from odg_ros.resources import shipped_checkpoint
 from testing.bag_layouts import build_layout_world, keyframe_gaps
-from testing.bag_pipeline import VARIANTS, layout_settings, run_bag
+from testing.bag_pipeline import VARIANTS, layout_parameters, run_bag, variant_bag
 
 
 def agreement(grids: dict, reference: dict) -> dict:
@@ -71,16 +73,22 @@ def main(argv=None) -> int:
     runs = {}
     for variant in VARIANTS:
         predictor = OnlinePredictor(model, cfg, "cpu", min_interval=0.45, visibility=False)
-        runs[variant] = run_bag(world.bags[variant.split()[0]], predictor,
-                                layout_settings(world, variant), only_us=only)
+        runs[variant] = run_bag(variant_bag(world, variant), predictor,
+                                layout_parameters(world, variant), only_us=only)
     report = {"world": str(args.world), "keyframe_gaps_s": keyframe_gaps(world.records),
               "model": cfg.name, "sets": len(only), "layouts": {}}
-    for variant, run in runs.items():
-        entry = {"sets_run": len(run.grids), "refused": dict(run.skipped)}
-        entry.update(agreement(run.grids, runs["odg"].grids))
-        report["layouts"][variant] = entry
+    compared = [(v, "odg keyframe poses" if v == "foxglove tf" else "odg") for v in VARIANTS
+                if v != "odg"] + [("foxglove tf", "odg")]
+    for variant, reference in compared:
+        run = runs[variant]
+        entry = {"against": reference, "sets_run": len(run.grids),
+                 "refused": dict(run.skipped),
+                 "stale_sets_dropped": run.counters["stale_sets_dropped"]}
+        entry.update(agreement(run.grids, runs[reference].grids))
+        report["layouts"][f"{variant} against {reference}"] = entry
         a, o = entry["all_voxels"], entry["occupied_voxels"]
-        print(f"{variant:14s} sets {len(run.grids):3d}  refused {dict(run.skipped) or '-'}  "
+        print(f"{variant:12s} against {reference:18s} sets {len(run.grids):3d}  refused "
+              f"{dict(run.skipped) or '-'}  "
               + (f"all voxels min {100 * a['min']:.3f} % median {100 * a['median']:.3f} %  "
                  f"occupied min {100 * o['min']:.2f} % median {100 * o['median']:.2f} %"
                  if a else "nothing to compare"))

@@ -24,6 +24,7 @@ SUBCOMMANDS = {
     "export": "training checkpoint -> shipped one (compressed, score threshold calibrated)",
     "bag": "write rosbag2 MCAP bags (synth world or nuScenes), or a scene's rig file",
     "replay": "publish rosbag2 bags with rclpy, one after the other",
+    "soak": "odg_node fed a loop of scenes for a long while: memory, latency, resets",
     "demo": "the end-to-end demo: world -> bag -> node -> planner stand-in -> scores",
     "ablation": "the ablation table and plot of several odg eval --json results",
 }

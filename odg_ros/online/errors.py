@@ -13,7 +13,7 @@ BAD_INPUT_KINDS = (
     "corrupt_image",        # undecodable / truncated JPEG or PNG, short raw buffer
     "unsupported_encoding",  # raw encoding or compressed format we do not decode
     "wrong_image_size",     # decoded size differs from the CameraInfo
-    "missing_camera_info",  # no CameraInfo received yet for a camera of the set
+    "missing_camera_info",  # no CameraInfo received for a camera of the set (after pose_wait)
     "bad_camera_info",      # CameraInfo with a zero / non-finite K or zero size
     "implausible_camera_info",  # focal length / principal point out of range for the size
     "bad_pose",             # NaN or non-orthonormal pose

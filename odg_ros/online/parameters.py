@@ -136,6 +136,17 @@ def validate(values: dict, schema: dict[str, Parameter] | None = None) -> dict:
     return result
 
 
+def params_file_parameters(path: str | Path) -> dict:
+    """The parameters a ROS params file gives every node (its sections, ``/**`` and named,
+    merged in order), without ``use_sim_time`` (rclpy's own, not in the schema)."""
+    document = yaml.safe_load(Path(path).read_text()) or {}
+    values = {}
+    for section in document.values():
+        values.update((section or {}).get("ros__parameters") or {})
+    values.pop("use_sim_time", None)
+    return values
+
+
 def _yaml_value(value) -> str:
     """A value as one flow-style YAML scalar / list."""
     return yaml.safe_dump(value, default_flow_style=True, width=10_000).strip() \

@@ -4,17 +4,17 @@ The node (odg_ros/ros/node.py) only converts messages and publishes; everything 
 lives here so it is unit-tested without rclpy::
 
     on_image ─> CameraSetSync ─> WaitingSets ──> prepare(): CameraInfo check, poses at
-    on_camera_info (K, size)        ^ (until its   every camera stamp, extrinsics, ego2img,
-    on_pose ─> PoseBuffer ─ notify ─┤  poses are   decode + resize ─> LatestMailbox
+    on_camera_info (K, size) notify ^ (until its   every camera stamp, extrinsics, ego2img,
+    on_pose ─> PoseBuffer ─ notify ─┤  data is     decode + resize ─> LatestMailbox
     transforms_arrived ──── notify ─┘  there)      ─> infer(): OnlinePredictor.step
                                                                   ─> OnlineResult
 
-A complete set whose poses or camera transforms have not arrived yet waits for them, up to
-``pose_wait`` seconds of the node's clock (online/waiting.py: the newest ready set wins,
-older ones are dropped as stale); one whose wait runs out is a ``pose_miss`` (or
-``missing_extrinsics``) saying how long it waited. ``process`` runs both stages in the
-caller's thread; ``start_decoding`` runs ``prepare`` in a thread of its own, so the next set
-decodes while the model runs (``next_prepared``).
+A complete set whose poses, camera transforms or first CameraInfo have not arrived yet waits
+for them, up to ``pose_wait`` seconds of the node's clock (online/waiting.py: the newest
+ready set wins, older ones are dropped as stale); one whose wait runs out is a ``pose_miss``
+(or ``missing_extrinsics``, ``missing_camera_info``) saying how long it waited. ``process``
+runs both stages in the caller's thread; ``start_decoding`` runs ``prepare`` in a thread of
+its own, so the next set decodes while the model runs (``next_prepared``).
 
 Every unusable input raises ``BadInput`` after it has been counted; the caller logs it
 (throttled) and carries on with the next message or set.
@@ -197,7 +197,10 @@ class OnlinePipeline:
         except BadInput as error:
             raise self.count_bad_input(error) from None
         with self._input_lock:
+            first = camera not in self._camera_info
             self._camera_info[camera] = calibration
+        if first:          # a set may be waiting for it (its CameraInfo came after it)
+            self.waiting.notify()
 
     def on_pose(self, stamp: float, T_global_from_ego) -> None:
         """Odometry: one T_global_from_ego sample."""
@@ -317,7 +320,10 @@ class OnlinePipeline:
             infos = {c: self._camera_info.get(c) for c in names}
         missing = [c for c in names if infos[c] is None]
         if missing:
-            raise BadInput("missing_camera_info", f"no valid CameraInfo yet for {missing}")
+            # pending: a player publishes each CameraInfo with its image, and the first set
+            # can complete before the callback of its last CameraInfo has run
+            raise BadInput("missing_camera_info", f"no valid CameraInfo yet for {missing}",
+                           pending=True)
 
         # Cheap checks before the expensive decoding, each kind for the whole set at once
         # (stacked: NumPy on 4x4 matrices costs its per-call overhead, not arithmetic). The

@@ -201,12 +201,13 @@ class PoseBuffer:
             raise BadInput("pose_miss", f"no pose near t={stamp:.3f}: older than the buffer, "
                            f"which spans [{first:.3f}, {last:.3f}]")
         if stamp > last + self.max_extrapolation:
+            # pending, however far ahead: poses after a dropout or a jump forward in time (a
+            # bag of the next scene) can still bracket it, as tf2 would wait for them
             ahead = stamp - last
-            if ahead <= gap:
-                raise BadInput("pose_miss", f"no pose at t={stamp:.3f} yet: the newest is "
-                               f"{ahead:.3f} s older", pending=True)
-            raise BadInput("pose_miss", f"no pose near t={stamp:.3f}: the newest pose is "
-                           f"{ahead:.3f} s older (> max_pose_gap {gap:g} s)")
+            beyond = f" (> max_pose_gap {gap:g} s: only newer poses can give it)" \
+                if ahead > gap else ""
+            raise BadInput("pose_miss", f"no pose at t={stamp:.3f} yet: the newest is "
+                           f"{ahead:.3f} s older{beyond}", pending=True)
         i = bisect.bisect_left(stamps, stamp)
         if i < len(stamps) and stamps[i] == stamp:
             return self._poses[i].copy()

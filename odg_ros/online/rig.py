@@ -92,7 +92,10 @@ def load_rig(path: str | Path) -> Rig:
                                            entry.get("frame_id", name))
             extrinsics = entry["sensor2ego"]
             T = make_transform(extrinsics["rotation"], extrinsics["translation"])
-        except (KeyError, TypeError, ValueError, BadInput) as error:
+        except KeyError as error:
+            raise ValueError(f"{path}: camera {name}: no {error.args[0]!r} (a rig file gives "
+                             "each camera image_size, intrinsics and sensor2ego)") from None
+        except (TypeError, ValueError, BadInput) as error:
             raise ValueError(f"{path}: camera {name}: {error}") from None
         if not is_rigid(T):
             raise ValueError(f"{path}: camera {name}: sensor2ego is not rigid")

@@ -1,9 +1,12 @@
-"""Complete camera sets waiting for their poses and extrinsics, newest ready set first.
+"""Complete camera sets waiting for their poses, extrinsics and first CameraInfo, newest
+ready set first.
 
 A set can complete before the poses (or camera transforms) for its stamps have arrived:
 nuScenes bag converters publish /tf only at 2 Hz keyframes (a set between two keyframes needs
 the next one's transform) or write odometry in bursts up to 0.5 s after the stamps it
 carries. As tf2's message filter does, such a set waits, bounded, instead of being dropped.
+So does a set completed before the first CameraInfo of one of its cameras was read (a player
+publishes each CameraInfo next to its image; the node's callbacks run in their own order).
 
 ``probe(item, final)`` tells whether a set is READY (its look-ups succeed), FAILED (they fail
 for good) or PENDING (they only wait for data not received yet). The consumer (``get``)
@@ -19,8 +22,11 @@ takes, in this order:
 * else nothing yet: it sleeps until a new set or new pose data (``notify``) or a short poll.
 
 Which clock measures the wait: the node's (``clock``), so that with ``use_sim_time`` and a
-replayed bag the wait is in bag time, whatever the replay rate or a pause; the steady clock
-while the node's clock does not run (0: sim time before the first /clock). A set whose node
+replayed bag the wait is in bag time, whatever the replay rate; the steady clock while the
+node's clock does not run (0: sim time before the first /clock). A set never waits forever:
+when the node's clock stands still (the replay ended or was paused; what the set waits for
+comes with that clock, so not before it moves again), the steady seconds a set has waited
+since the clock stopped count too, and it expires after ``wait`` of them. A set whose node
 clock went backwards past its arrival (the bag looped) is dropped as stale, and so is every
 waiting set when a set older than them arrives (synchronisation restarted after a time jump):
 neither can be processed in stamp order any more.
@@ -79,11 +85,15 @@ class WaitingSets:
         self.delivered = 0
         self.waited = 0      # sets handed on after waiting
         self.expired = 0     # sets handed on because their wait ran out
+        # the node clock's last reading, and the steady time it was first read at that value
+        self._clock_lock = threading.Lock()
+        self._last_clock = (None, 0.0)
 
     # ------------------------------------------------------------------------ producers
     def put(self, item: Any) -> None:
         """A newly completed set."""
-        entry = _Entry(item, float(self._stamp_of(item)), self._node_now(), self._steady())
+        node_now, steady_now, _ = self._now()
+        entry = _Entry(item, float(self._stamp_of(item)), node_now, steady_now)
         with self._condition:
             if self._entries and entry.stamp <= self._entries[-1].stamp:
                 # synchronisation restarted (the stamps jumped back): the waiting sets come
@@ -98,7 +108,8 @@ class WaitingSets:
             self._condition.notify_all()
 
     def notify(self) -> None:
-        """New poses or transforms arrived: a waiting set may be ready now."""
+        """New poses, transforms or a first CameraInfo arrived: a waiting set may be ready
+        now."""
         with self._condition:
             if self._entries:
                 self._news += 1
@@ -153,9 +164,9 @@ class WaitingSets:
                     failed = entry                            # the oldest newer one first
             if failed is not None:
                 return failed, False
-        node_now, steady_now = self._node_now(), self._steady()
+        now = self._now()
         for entry in snapshot:                                # oldest first
-            if self._waited(entry, node_now, steady_now) >= self.wait:
+            if self._waited(entry, now) >= self.wait:
                 self._probe(entry.item, True)                # last chance (a source settles)
                 entry.expired = True
                 return entry, False
@@ -174,8 +185,7 @@ class WaitingSets:
         if chosen.probes > 1 or chosen.expired:
             self.waited += 1
             self.expired += chosen.expired
-            for name, value in (("waited", self._waited(chosen, self._node_now(),
-                                                        self._steady())),
+            for name, value in (("waited", self._waited(chosen, self._now())),
                                 ("expired", chosen.expired)):
                 if hasattr(chosen.item, name):
                     setattr(chosen.item, name, value)
@@ -209,9 +219,23 @@ class WaitingSets:
     def _node_now(self) -> float:
         return float(self._clock())
 
+    def _now(self) -> tuple[float, float, float]:
+        """(node clock, steady clock, steady seconds the node clock has stood still: since
+        its reading last changed)."""
+        node_now, steady_now = self._node_now(), self._steady()
+        with self._clock_lock:
+            value, since = self._last_clock
+            if node_now != value:
+                self._last_clock = (node_now, steady_now)
+                return node_now, steady_now, 0.0
+        return node_now, steady_now, steady_now - since
+
     @staticmethod
-    def _waited(entry: _Entry, node_now: float, steady_now: float) -> float:
-        """Seconds waited: on the node's clock where it ran at both ends, else steady."""
+    def _waited(entry: _Entry, now: tuple[float, float, float]) -> float:
+        """Seconds waited: on the node's clock where it ran at both ends, else steady; or the
+        steady seconds waited while the node's clock stood still, if more."""
+        node_now, steady_now, still = now
+        steady_waited = steady_now - entry.steady_start
         if entry.node_start > 0 and node_now > 0:
-            return node_now - entry.node_start
-        return steady_now - entry.steady_start
+            return max(node_now - entry.node_start, min(still, steady_waited))
+        return steady_waited

@@ -60,17 +60,13 @@ from std_msgs.msg import Float32
 from ..network.checkpoint import load_model
 from ..network.precision import resolve_device, slow_precision_warning
 from ..online.diagnostics import InputMonitor, PipelineStats, transform_topics_needed
-from ..online import parameters as node_parameters
+from ..online import node_setup, parameters as node_parameters
 from ..online.errors import BadInput
-from ..online.extrinsics import CameraExtrinsics
 from ..online.images import EncodedImage
-from ..online.pipeline import OnlinePipeline, PipelineSettings
 from ..online.poses import pose_from_xyz_xyzw
 from ..online.predictor import OnlinePredictor
-from ..online.rig import IntrinsicsRange, load_rig
 from ..online.sync import stamp_to_seconds
-from ..online.transforms import TransformBuffer
-from ..resources import resource_path, shipped_checkpoint
+from ..resources import shipped_checkpoint
 from . import messages
 
 NODE_NAME = "odg_node"
@@ -113,14 +109,18 @@ class OdgNode(Node):
         self.base_frame = p["base_frame"]
         self.output_frame = p["output_frame"] or p["base_frame"]
         cameras = list(p["camera_names"])
+        # before the model: a rig file that cannot serve stops the node at once
+        found = node_setup.sources(p, cameras, self._log_note)
         predictor = load_predictor(p, self.get_logger())
         self.cfg = predictor.cfg
         self.cameras = cameras
-        self.tf, pose_lookup, self.extrinsics = pose_sources(p, cameras, self._log_note)
-        # /tf frames looked up from: the ego frame, and each camera's CameraInfo frame
+        self.tf, self.extrinsics = found.tf, found.extrinsics
+        # /tf frames looked up from: the ego frame, and each camera's frame (from its
+        # CameraInfo, or from the rig file with intrinsics_source rig)
         self._tf_base = {p["base_frame"]} if p["pose_source"] == "tf" else set()
         self._tf_cameras: dict[str, str] = {}
-        self.tf.set_wanted(self._tf_base)
+        self.tf.set_wanted(self._tf_base | (found.camera_frames()
+                                            if p["extrinsics_source"] != "rig" else set()))
         if p["extrinsics_source"] != "rig":
             # a converter sends base_link -> every sensor with the first /tf, maybe before
             # the CameraInfo that names a camera's frame: keep them from the start
@@ -132,9 +132,8 @@ class OdgNode(Node):
         self.internal_errors = 0
         self._error_lock = threading.Lock()
         # the wait for poses runs on the node's clock: bag time under use_sim_time
-        self.pipeline = OnlinePipeline(predictor, pipeline_settings(p, cameras),
-                                       self.extrinsics, pose_lookup, self.stats,
-                                       clock=self.now_seconds)
+        self.pipeline = node_setup.build_pipeline(predictor, p, cameras, found, self.stats,
+                                                  clock=self.now_seconds)
         self._bad_input_loggers = {}
         self.outputs = messages.Outputs(self, self.cfg, self.output_frame,
                                         (float(p["bev_min_z"]), float(p["bev_max_z"])))
@@ -150,7 +149,8 @@ class OdgNode(Node):
         self._worker.start()
         self.get_logger().info(
             f"{self.cfg.name}: {len(cameras)} cameras ({p['image_transport']}), pose from "
-            f"{p['pose_source']}, extrinsics from {p['extrinsics_source']}, history "
+            f"{p['pose_source']}, extrinsics from {p['extrinsics_source']}, intrinsics from "
+            f"{p['intrinsics_source'].replace('_', ' ')}, history "
             f"{predictor.history.capacity} frames, outputs in {self.output_frame}")
 
     # ------------------------------------------------------------------------ start-up
@@ -191,9 +191,10 @@ class OdgNode(Node):
         for camera in cameras:
             self._input(image_type, p["image_topic"].format(camera=camera),
                         lambda m, c=camera: self.on_image(c, m), qos_profile_sensor_data)
-            self._input(CameraInfo, p["camera_info_topic"].format(camera=camera),
-                        lambda m, c=camera: self.on_camera_info(c, m),
-                        qos_profile_sensor_data)
+            if p["intrinsics_source"] == "camera_info":
+                self._input(CameraInfo, p["camera_info_topic"].format(camera=camera),
+                            lambda m, c=camera: self.on_camera_info(c, m),
+                            qos_profile_sensor_data)
         if p["pose_source"] == "odometry":
             self._input(Odometry, p["odometry_topic"], self.on_odometry,
                         QoSProfile(depth=100, reliability=ReliabilityPolicy.BEST_EFFORT))
@@ -398,46 +399,6 @@ def load_predictor(p: dict, logger) -> OnlinePredictor:
                 f"start-up (compile, capture) "
                 f"{predictor.startup_seconds:.1f} s")
     return predictor
-
-
-def pose_sources(p: dict, cameras: list[str], log=lambda level, message: None):
-    """(the TF buffer, the pose look-up or None for odometry, the CameraExtrinsics) of the
-    validated parameters ``p``; ``log(level, message)`` takes the extrinsics' notes."""
-    tf = TransformBuffer(max_extrapolation=float(p["max_pose_extrapolation"]),
-                         max_interpolation_gap=float(p["max_pose_gap"]),
-                         cache_time=float(p["tf_cache_time"]), max_speed=float(p["max_speed"]),
-                         max_acceleration=float(p["max_acceleration"]))
-    pose_lookup = None
-    if p["pose_source"] == "tf":
-        global_frame, base = p["global_frame"], p["base_frame"]
-        pose_lookup = lambda t: tf.lookup(global_frame, base, t, "pose_miss")  # noqa
-    rig = None
-    if p["extrinsics_source"] != "tf":
-        rig = load_rig(p["rig_file"] or resource_path("config/rig_nuscenes.yaml"))
-        missing = [c for c in cameras if c not in rig.cameras]
-        if missing and p["extrinsics_source"] == "rig":
-            raise ValueError(f"cameras {missing} are not in the rig file "
-                             f"(it has {list(rig.cameras)})")
-        if missing:
-            log("warning", f"cameras {missing} are not in the rig file: their extrinsics "
-                "can only come from TF")
-    return tf, pose_lookup, CameraExtrinsics(p["extrinsics_source"], p["base_frame"], tf, rig,
-                                             log)
-
-
-def pipeline_settings(p: dict, cameras: list[str]) -> PipelineSettings:
-    """The pipeline's settings from the validated parameters."""
-    return PipelineSettings(cameras, slop=float(p["slop"]),
-                            max_future=float(p["max_future_stamp"]),
-                            pose_max_extrapolation=float(p["max_pose_extrapolation"]),
-                            max_pose_gap=float(p["max_pose_gap"]),
-                            pose_wait=float(p["pose_wait"]),
-                            intrinsics=IntrinsicsRange(float(p["min_focal_length"]),
-                                                       float(p["max_focal_length"]),
-                                                       float(p["max_principal_point_offset"])),
-                            max_speed=float(p["max_speed"]),
-                            max_acceleration=float(p["max_acceleration"]),
-                            max_image_pixels=int(p["max_image_pixels"]))
 
 
 def params_file_problem(argv: list[str]) -> str | None:

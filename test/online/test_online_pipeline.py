@@ -90,7 +90,7 @@ def test_pipeline_output_equals_the_predictor_on_the_same_arrays(model_and_cfg):
 
 
 def expect_skip(pipeline, kind):
-    camera_set = pipeline.next_set(timeout=0.1)
+    camera_set = pipeline.next_set(timeout=2.0)    # at once, or after pose_wait
     assert camera_set is not None
     with pytest.raises(BadInput) as error:
         pipeline.process(camera_set)
@@ -99,11 +99,12 @@ def expect_skip(pipeline, kind):
 
 
 def test_every_bad_input_is_counted_and_the_pipeline_goes_on(model_and_cfg):
-    pipeline = make_pipeline(model_and_cfg)
+    # a set whose CameraInfo or pose has not come waits pose_wait (steady clock here)
+    pipeline = make_pipeline(model_and_cfg, pose_wait=0.2)
     t = 10.0
     good = set_images(0)
 
-    # no CameraInfo yet
+    # no CameraInfo (after waiting for it)
     for t_pose in np.arange(9.0, 14.0, 0.02):
         pipeline.on_pose(float(t_pose), pose_at(float(t_pose)))
     feed_set(pipeline, t, good)

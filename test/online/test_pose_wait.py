@@ -101,9 +101,10 @@ def test_the_wait_runs_on_the_node_clock_and_on_the_steady_clock_while_that_stan
     steady = [0.0]
     waiting, data, clock = room(wait=1.0, steady=lambda: steady[0])
     waiting.put(Item(10.0))
-    steady[0] += 5.0                                # a paused bag: the sim clock stands still
+    steady[0] += 0.2
+    clock[0] += 0.9                                 # a replay at 4.5x: bag time counts
     assert waiting.get(timeout=0) is None
-    clock[0] += 1.0
+    clock[0] += 0.1
     assert waiting.get(timeout=0).expired
     sim_time_before_clock = WaitingSets(data.probe, 1.0, lambda: 0.0,
                                         steady=lambda: steady[0])
@@ -111,6 +112,34 @@ def test_the_wait_runs_on_the_node_clock_and_on_the_steady_clock_while_that_stan
     assert sim_time_before_clock.get(timeout=0) is None
     steady[0] += 1.0
     assert sim_time_before_clock.get(timeout=0).expired
+
+
+def test_a_set_never_waits_forever_when_the_node_clock_stops():
+    """A replay that ended (or paused): its /clock stands still and what the set waits for
+    does not come; the steady seconds waited since the clock stopped count."""
+    steady = [0.0]
+    waiting, data, clock = room(wait=1.0, steady=lambda: steady[0])
+    first, second = Item(10.0), Item(10.1)
+    waiting.put(first)
+    steady[0] += 0.5
+    clock[0] += 0.5                                 # the clock runs for half a second...
+    waiting.put(second)
+    for _ in range(9):                              # ...then stands still: 0.9 s, waiting
+        steady[0] += 0.1
+        assert waiting.get(timeout=0) is None
+    steady[0] += 0.1
+    assert waiting.get(timeout=0) is first and first.expired
+    assert first.waited == pytest.approx(1.0)
+    assert waiting.get(timeout=0) is second and second.expired and len(waiting) == 0
+    # the clock moving again: node time counts again, from where it is
+    third = Item(12.0)
+    clock[0] += 1.5
+    waiting.put(third)
+    steady[0] += 0.5
+    clock[0] += 0.5
+    assert waiting.get(timeout=0) is None
+    clock[0] += 0.5
+    assert waiting.get(timeout=0) is third and third.waited == pytest.approx(1.0)
 
 
 def test_wait_zero_never_waits():
@@ -211,7 +240,8 @@ class Replay:
     set that is ready and prepares it (look-ups, decoding: the model is not what is tested),
     as the node's decoding thread does when it keeps up."""
 
-    def __init__(self, model_and_cfg, pose_source, extrinsics="rig", **settings):
+    def __init__(self, model_and_cfg, pose_source, extrinsics="rig", camera_info=True,
+                 **settings):
         model, cfg = model_and_cfg
         self.clock = [0.0]
         self.tf = TransformBuffer(max_interpolation_gap=settings.get("max_pose_gap", 1.0),
@@ -225,8 +255,9 @@ class Replay:
         self.pipeline = OnlinePipeline(predictor, PipelineSettings(CAMS, **settings),
                                        self.extrinsics, pose_lookup,
                                        clock=lambda: self.clock[0])
-        for name in CAMS:
-            self.pipeline.on_camera_info(name, scaled_K(name), *HW, frame_id=name)
+        if camera_info:
+            for name in CAMS:
+                self.pipeline.on_camera_info(name, scaled_K(name), *HW, frame_id=name)
         self.events = []
         self.prepared, self.errors = [], []
 
@@ -378,6 +409,45 @@ def test_extrinsics_auto_without_tf_waits_once_then_takes_the_rig_file(model_and
     assert len(infos) == len(CAMS) and "CAM_FRONT: no TF base_link -> CAM_FRONT" in infos[0]
 
 
+def camera_info_after_the_first_set(replay, late, never=()):
+    """Poses all along; the first set's images at 10.0 s, each camera's first CameraInfo
+    logged with its image, except ``late`` ones read 20 ms after the set completed (the
+    executor ran their callbacks after the image's) and ``never`` ones never sent."""
+    replay.at(9.9, lambda: [replay.pipeline.on_pose(float(t), pose_at(float(t)))
+                            for t in np.arange(9.5, 12.5, 0.02)])
+    replay.cameras(10.0, 11.0)
+    first_done = 10.0 + OFFSETS[-1] + 0.005
+    for name, offset in zip(CAMS, OFFSETS):
+        if name not in never:
+            replay.at(first_done + 0.02 if name in late else 10.0 + offset - 1e-4,
+                      lambda name=name: replay.pipeline.on_camera_info(
+                          name, scaled_K(name), *HW, frame_id=name))
+
+
+def test_a_set_completed_before_its_last_camera_info_waits_for_it(model_and_cfg):
+    replay = Replay(model_and_cfg, "odometry", camera_info=False)
+    camera_info_after_the_first_set(replay, late={CAMS[-1]})
+    counters = replay.run()
+    assert counters["missing_camera_info"] == 0, replay.errors
+    assert accounted(counters, replay) and counters["sets_waited"] >= 1
+    assert replay.prepared[0][0] == pytest.approx(10.0)      # the first set is not lost
+    broken = Replay(model_and_cfg, "odometry", camera_info=False, pose_wait=0.0)
+    camera_info_after_the_first_set(broken, late={CAMS[-1]})
+    assert broken.run()["missing_camera_info"] == 1           # the race, without the wait
+
+
+def test_a_camera_info_that_never_comes_is_missing_after_the_wait(model_and_cfg):
+    replay = Replay(model_and_cfg, "odometry", camera_info=False, pose_wait=0.5)
+    camera_info_after_the_first_set(replay, late=(), never={CAMS[2]})
+    counters = replay.run()
+    assert counters["missing_camera_info"] >= 1 and not replay.prepared
+    assert counters["sets_waiting"] == 0 and counters["sets_completed"] == \
+        counters["missing_camera_info"] + counters["stale_sets_dropped"]
+    message = replay.errors[0].message
+    assert message.startswith("still missing after waiting 0.50 s (pose_wait 0.5 s): ")
+    assert f"no valid CameraInfo yet for ['{CAMS[2]}']" in message
+
+
 def test_the_decoding_thread_waits_for_a_late_pose(model_and_cfg):
     """The node's path: sets prepared in their own thread, on the steady clock."""
     model, cfg = model_and_cfg
@@ -399,3 +469,40 @@ def test_the_decoding_thread_waits_for_a_late_pose(model_and_cfg):
         assert pipeline.counters()["sets_waited"] == 1
     finally:
         pipeline.close()
+
+
+def test_a_first_camera_info_wakes_the_waiting_room(model_and_cfg):
+    """The decoding thread sleeps until news (or its poll): a camera's first CameraInfo is
+    news; a repeated one (with every image) is not."""
+    model, cfg = model_and_cfg
+    pipeline = OnlinePipeline(OnlinePredictor(model, cfg, "cpu"), PipelineSettings(CAMS),
+                              lambda camera, frame, t: RIG.cameras[camera].sensor2ego)
+    woken = []
+    pipeline.waiting.notify = lambda: woken.append(True)
+    try:
+        pipeline.on_camera_info(CAMS[0], scaled_K(CAMS[0]), *HW, frame_id=CAMS[0])
+        assert len(woken) == 1
+        pipeline.on_camera_info(CAMS[0], scaled_K(CAMS[0]), *HW, frame_id=CAMS[0])
+        assert len(woken) == 1
+    finally:
+        pipeline.close()
+
+
+def test_the_first_set_after_a_jump_forward_waits_for_the_new_poses(model_and_cfg):
+    """Bags of two scenes back to back, the second much later: its first set completes
+    before its first /tf; the pose buffer holds only the first scene's. It waits, then
+    goes; no pose miss."""
+    replay = Replay(model_and_cfg, "tf")
+    replay.keyframe_tf([10.0, 10.5, 11.0])
+    replay.cameras(10.0, 10.9)
+    later = 5000.0
+    replay.at(later + OFFSETS[-1] + 0.005, lambda: replay.feed(later, 0))
+
+    def new_scene_poses():       # the new bag's first /tf messages, read after the images
+        for t in later + 0.02 * np.arange(26):
+            replay.tf.add("map", "base_link", float(t), pose_at(float(t)))
+        replay.pipeline.transforms_arrived()
+    replay.at(later + 0.1, new_scene_poses)
+    counters = replay.run()
+    assert counters["pose_miss"] == 0, replay.errors
+    assert replay.prepared[-1][0] == pytest.approx(later)

@@ -126,3 +126,22 @@ def test_the_node_runs_the_visibility_min_clear_it_is_given(rclpy_module):
     assert predictor.online_step.visibility.min_clear == 0.5
     assert any(level == "warning" and "visibility_min_clear 0.5 has no effect" in message
                for level, message in logger.lines)
+
+
+def test_intrinsics_from_a_rig_file_that_cannot_give_them(rclpy_module, tmp_path):
+    """intrinsics_source rig with cameras the rig file does not have, or a rig file without
+    intrinsics: one FATAL line that says which, before the model loads."""
+    line = one_fatal_line(run_node(
+        "--ros-args", "-p", "intrinsics_source:=rig", "-p", "device:=cpu", "-p",
+        "camera_names:=[cam_front, cam_front_right, cam_front_left, cam_back, cam_back_left, "
+        "cam_back_right]"))
+    assert "cameras ['cam_front'," in line and "are not in the rig file " \
+        "config/rig_nuscenes.yaml (intrinsics_source rig; it has ['CAM_FRONT'," in line
+    from odg_ros.resources import resource_path
+    rig = yaml.safe_load(resource_path("config/rig_nuscenes.yaml").read_text())
+    del rig["cameras"]["CAM_BACK"]["intrinsics"]
+    path = tmp_path / "rig.yaml"
+    path.write_text(yaml.safe_dump(rig))
+    line = one_fatal_line(run_node("--ros-args", "-p", "intrinsics_source:=rig", "-p",
+                                   f"rig_file:={path}", "-p", "device:=cpu"))
+    assert f"{path}: camera CAM_BACK: no 'intrinsics'" in line
