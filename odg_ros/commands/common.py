@@ -16,8 +16,8 @@ class UserError(Exception):
     """A mistake in the command line or its files, found after parsing."""
 
 
-# Reported as one line `odg CMD: error: ...` with exit code 2 (cli.py): a UserError and what
-# the library raises for bad input (a missing or foreign file, a bad value).
+# Reported as one line `odg CMD: error: ...` with exit code 2 (main, commands/__init__.py): a
+# UserError and what the library raises for bad input (a missing or foreign file, a bad value).
 USER_ERRORS = (UserError, FileNotFoundError, FileExistsError, NotADirectoryError,
                IsADirectoryError, PermissionError, ValueError)
 

@@ -12,7 +12,7 @@
    against the GT (mIoU, RayIoU);
 4. a table (``--json``: the numbers as JSON only), and always ``demo.json`` + ``demo.png``
    (cameras + BEV prediction vs GT) in the output folder. What each number means:
-   odg_ros/demo.py.
+   odg_ros/demo/__init__.py.
 """
 from __future__ import annotations
 

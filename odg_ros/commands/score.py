@@ -48,7 +48,7 @@ def add_miou_convention(parser) -> None:
 
 
 def run(args) -> int:
-    result = score_split(args.pred, args.data, args.occ_root,     # errors: one line (cli.py)
+    result = score_split(args.pred, args.data, args.occ_root,     # errors: one line (commands/__init__.py)
                          args.miou_convention)
     if args.png is not None:
         plot_per_class(result, args.png)

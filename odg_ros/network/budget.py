@@ -188,12 +188,6 @@ def gather_queries(t: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
     return t.gather(1, view.expand(-1, -1, *t.shape[2:]))
 
 
-def scatter_queries(full: torch.Tensor, index: torch.Tensor, part: torch.Tensor):
-    """A copy of ``full`` [B, Q, ...] with rows ``index`` [B, Q'] replaced by ``part``."""
-    view = index.view(*index.shape, *([1] * (full.dim() - 2)))
-    return full.scatter(1, view.expand(-1, -1, *full.shape[2:]), part)
-
-
 @torch.no_grad()
 def needed_queries(scores: torch.Tensor, num_dynamic: int, threshold: float) -> torch.Tensor:
     """Queries whose keep-score says refining them changes the grid by more than ``threshold``:
