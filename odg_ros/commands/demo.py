@@ -27,7 +27,8 @@ from pathlib import Path
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from odg_ros.demo.world import DEFAULT_OUT, DEFAULT_RATE, DEFAULT_SECONDS, DEFAULT_SEED
 
-    from .common import device, existing_file, positive_float, positive_int
+    from .common import add_device_option, add_json_option, existing_file, positive_float, \
+        positive_int
 
     parser.add_argument("--out", type=Path, default=DEFAULT_OUT,
                         help=f"folder of the world, bag, logs, demo.json and demo.png "
@@ -49,10 +50,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--precision", choices=("fp32", "bf16", "fp16"), default="fp32",
                         help="the node's inference precision (bf16 autocast is ~1.4x faster on "
                              "a CPU with AVX512-BF16/AMX)")
-    parser.add_argument("--device", type=device, default="auto",
-                        help="the node's device: auto (cuda when available), cpu, cuda or cuda:N")
-    parser.add_argument("--json", action="store_true",
-                        help="print the numbers as JSON only (progress still goes to stderr)")
+    add_device_option(parser, help="the node's device: auto (cuda when available), cpu, cuda "
+                                   "or cuda:N")
+    add_json_option(parser, help="print the numbers as JSON only (progress still goes to stderr)")
 
 
 def run(args) -> int:

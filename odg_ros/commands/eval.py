@@ -13,8 +13,8 @@ from ..network.checkpoint import load_model
 from ..network.precision import resolve_device
 from ..online.predictor import resolve_budget
 from ..train.evaluate import evaluate
-from .common import (config_overrides, device, existing_dir, existing_file, infos_file,
-                     positive_int)
+from .common import (add_device_option, add_json_option, add_set_option, config_overrides,
+                     existing_dir, existing_file, infos_file, positive_int)
 from .score import add_miou_convention
 
 
@@ -28,8 +28,7 @@ def add_arguments(parser):
     parser.add_argument("--save-pred", default=None,
                         help="write <token>.npz predictions here (what odg score --pred reads; "
                              "default: not saved)")
-    parser.add_argument("--device", type=device, default="auto",
-                        help="auto (cuda when available), cpu, cuda or cuda:N")
+    add_device_option(parser)
     parser.add_argument("--limit", type=positive_int, default=None,
                         help="the first N samples only (default: all)")
     parser.add_argument("--no-rayiou", action="store_true", help="skip RayIoU (faster)")
@@ -39,9 +38,8 @@ def add_arguments(parser):
                              "query_budget parameter: full (default), auto (chosen per "
                              "keyframe from the one before) or a fraction in (0, 1]; the "
                              "result then says the mean share of the queries refined")
-    parser.add_argument("--json", action="store_true", help="print JSON only")
-    parser.add_argument("--set", action="append", metavar="KEY=VALUE",
-                        help="config override at inference, e.g. motion_compensation=false "
+    add_json_option(parser)
+    add_set_option(parser, help="config override at inference, e.g. motion_compensation=false "
                              "(what a trained model loses without a component) or "
                              "score_threshold=0.3 (default: the checkpoint's config)")
 

@@ -14,7 +14,7 @@ from pathlib import Path
 from ..network.checkpoint import compress_state, load_model, load_weights, save_checkpoint
 from ..train.calibrate import DEFAULT_THRESHOLDS, calibrate_thresholds
 from ..network.precision import PRECISIONS, resolve_device
-from .common import UserError, device, existing_file, infos_file, positive_int
+from .common import UserError, add_device_option, existing_file, infos_file, positive_int
 
 
 def add_arguments(parser):
@@ -32,8 +32,8 @@ def add_arguments(parser):
                       help="compile the online step ahead of time (AOTInductor) into this "
                            "file, for the node's compiled_step: a restart then skips the "
                            "compile (no default: this, --out or --onnx)")
-    parser.add_argument("--device", type=device, default="cpu",
-                        help="--aoti: the device it runs on (cpu, cuda, cuda:N or auto)")
+    add_device_option(parser, default="cpu",
+                      help="--aoti: the device it runs on (cpu, cuda, cuda:N or auto)")
     parser.add_argument("--precision", choices=PRECISIONS, default="fp32",
                         help="--aoti: the node's precision parameter")
     parser.add_argument("--frames", type=positive_int, default=None,
