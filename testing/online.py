@@ -27,6 +27,16 @@ def make_model():
     return ODG(cfg).eval(), cfg
 
 
+def budget_model(need_threshold=0.0, **overrides):
+    """The tiny model with trained-flagged random budget heads; no box passes its threshold
+    (no object tracked)."""
+    cfg = tiny_config(score_threshold=0.0, box_score_threshold=1.0, **overrides)
+    torch.manual_seed(0)
+    model = ODG(cfg).eval()
+    model.decoder.budget_heads.set_trained(True, need_threshold)
+    return model, cfg
+
+
 @torch.inference_mode()
 def raw_output(predictor, budget=None):
     """The decoder's full output (``ODGOutput``, every layer) over the predictor's ring as its
