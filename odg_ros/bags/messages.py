@@ -7,8 +7,8 @@ from functools import lru_cache
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from odg_ros import geometry
-from odg_ros.bags import layout
+from .. import geometry
+from . import layout
 
 # Half-width of the central difference that gives /odom its twist: ego poses come every few
 # milliseconds (one per sensor stamp), too close together for a stable finite difference.
