@@ -6,6 +6,7 @@ The grid is padded as OPUS pads it at test time (``network/padding.py``) unless
 from __future__ import annotations
 
 import json
+import sys
 
 from ..metrics.detection import format_detection
 from ..metrics.score import format_table
@@ -49,10 +50,13 @@ def run(args) -> int:
     model, cfg = load_model(args.checkpoint, device=device, **config_overrides(args.set))
     budgets, policy = resolve_budget(args.query_budget, model, cfg)
     budget = policy if policy is not None else budgets[0]
-    result = evaluate(model, cfg, args.data, occ_root=args.occ_root, save_pred=args.save_pred,
-                      device=device, rayiou=not args.no_rayiou, limit=args.limit,
-                      progress=not args.json, miou_convention=args.miou_convention,
-                      budget=budget)
+    options = dict(occ_root=args.occ_root, device=device, rayiou=not args.no_rayiou,
+                   limit=args.limit, progress=not args.json,
+                   miou_convention=args.miou_convention)
+    result = evaluate(model, cfg, args.data, save_pred=args.save_pred, budget=budget, **options)
+    if budget is not None:      # the same keyframes with every query refined, for the change
+        full = evaluate(model, cfg, args.data, **options)
+        result["query_budget"]["against_full"] = against_full(result, full)
     if args.json:
         print(json.dumps(result, indent=2))
     else:
@@ -62,8 +66,36 @@ def run(args) -> int:
         if "boxes" in result:
             print(format_detection(result["boxes"]))
         if "query_budget" in result:
-            use = result["query_budget"]
-            print(f"query budget {use['mode']}: on average "
-                  f"{100 * use['mean_refined_fraction']:.1f} % of the queries refined "
-                  f"(keyframes per budget: {use['keyframes_per_budget']})")
+            print(format_budget_use(result["query_budget"]))
+    if args.save_pred:          # stderr: --json keeps stdout for the JSON
+        saved = result["predictions"]
+        print(f"odg eval: wrote {saved['files']} predictions (<token>.npz, for odg score "
+              f"--pred) to {saved['folder']}", file=sys.stderr)
     return 0
+
+
+COMPARED = ("mIoU", "mIoU_dynamic", "RayIoU", "IoU_geometry")
+
+
+def against_full(result: dict, full: dict) -> dict:
+    """{metric: {"full": its value with every query refined, "change": result's minus it}}
+    for the scores both runs have (percent; boxes: their mAP)."""
+    pairs = [(k, result.get(k), full.get(k)) for k in COMPARED]
+    if "boxes" in result and "boxes" in full:
+        pairs.append(("box mAP", result["boxes"]["mAP"], full["boxes"]["mAP"]))
+    return {k: {"full": f, "change": round(r - f, 2)} for k, r, f in pairs
+            if r is not None and f is not None}
+
+
+def format_budget_use(use: dict) -> str:
+    """The budgets that ran, in words, with their keyframes, and the change against full."""
+    lines = [f"query budget {use['mode']}: on average {100 * use['mean_refined_fraction']:.1f} "
+             "% of the queries refined by the later decoder layers; keyframes per budget:"]
+    lines += [f"  {count:4d}  {use['budgets'][name]}"
+              for name, count in use["keyframes_per_budget"].items()]
+    change = use.get("against_full")
+    if change:
+        lines.append("against full (every query refined, the same keyframes in this run): "
+                     + ", ".join(f"{k} {c['full'] + c['change']:.2f} ({c['change']:+.2f})"
+                                 for k, c in change.items()))
+    return "\n".join(lines)

@@ -3,7 +3,9 @@ from __future__ import annotations
 
 import json
 import logging
+import sys
 import traceback
+from pathlib import Path
 
 from ..config import load_preset
 from ..train.trainer import Trainer, TrainOptions, end_distributed
@@ -91,7 +93,13 @@ def run(args) -> int:
     finally:
         end_distributed()
     if rank == 0:
+        out = Path(args.out)
+        summary["wrote"] = {"weights": str(out / "final.pt"), "resume": str(out / "latest.pt"),
+                            "log": str(out / "train_log.csv")}
         print(json.dumps(summary, indent=2))
+        print(f"odg train: wrote {out / 'final.pt'} (the trained model: odg eval / odg export "
+              f"--checkpoint), {out / 'latest.pt'} (odg train --resume) and "
+              f"{out / 'train_log.csv'}", file=sys.stderr)
     return 0
 
 

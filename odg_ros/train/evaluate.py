@@ -87,6 +87,7 @@ class BudgetUse:
         self.fixed = None if self.policy is not None else budget
         self.infos, self.cfg = infos, cfg
         self.used: list[str] = []
+        self.described: dict[str, str] = {}
         self.refined: list[float] = []
         self._scene = self.current = None
 
@@ -105,15 +106,18 @@ class BudgetUse:
         """After the keyframe ran: count its budget, feed its needs to the policy."""
         cfg, budget = self.cfg, self.current
         self.used.append(budget.name)
+        self.described.setdefault(budget.name, budget.describe(cfg))
         self.refined.append(budget.refined_fraction(cfg))
         if self.policy is not None:
             self.policy.update(*output_needs(output, model, cfg))
 
     def result(self) -> dict:
+        """mode, mean_refined_fraction, keyframes_per_budget {name: keyframes} and
+        budgets {name: the budget in words (QueryBudget.describe)}."""
         counts = {name: self.used.count(name) for name in dict.fromkeys(self.used)}
         return {"mode": "auto" if self.policy is not None else self.fixed.name,
                 "mean_refined_fraction": round(float(np.mean(self.refined)), 4),
-                "keyframes_per_budget": counts}
+                "keyframes_per_budget": counts, "budgets": dict(self.described)}
 
 
 @torch.no_grad()
@@ -126,7 +130,8 @@ def evaluate(model, cfg, infos, occ_root=None, save_pred: str | None = None, dev
     ``network.budget.QueryBudget`` for every keyframe, or an ``online.budget_policy.
     BudgetPolicy`` (query_budget auto), or None (every query); the result then says which
     budgets ran (``query_budget``). decode_options go to ``ODG.decode``. The result also
-    says whether the grid was padded."""
+    says whether the grid was padded and, with save_pred, where the predictions went
+    (``predictions``: folder, files)."""
     data_cfg = cfg if frames is None else cfg.replace(num_frames=frames)
     dataset = OccDataset(infos, data_cfg, occ_root=occ_root, train=False)
     score = OccScore(dataset.dataset, rayiou=rayiou, miou_convention=miou_convention)
@@ -135,6 +140,7 @@ def evaluate(model, cfg, infos, occ_root=None, save_pred: str | None = None, dev
     if save_pred:
         Path(save_pred).mkdir(parents=True, exist_ok=True)
     use = BudgetUse(budget, dataset.infos, cfg) if budget is not None else None
+    saved = 0
     for index, batch, output in predict_split(model, dataset, limit, device, workers, progress,
                                               budget_for=use, **decode_options):
         if use is not None:
@@ -142,6 +148,7 @@ def evaluate(model, cfg, infos, occ_root=None, save_pred: str | None = None, dev
         grid = predicted_grid(output, cfg)
         if save_pred:
             np.savez_compressed(Path(save_pred) / f"{batch['token'][0]}.npz", semantics=grid)
+            saved += 1
         if boxes is not None:
             add_box_sample(boxes, output, batch, cfg)
         if not batch["has_occ"][0]:
@@ -156,4 +163,6 @@ def evaluate(model, cfg, infos, occ_root=None, save_pred: str | None = None, dev
         result["boxes"] = boxes.result()
     if use is not None:
         result["query_budget"] = use.result()
+    if save_pred:
+        result["predictions"] = {"folder": str(save_pred), "files": saved}
     return result
