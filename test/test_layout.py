@@ -224,17 +224,23 @@ def test_every_benchmark_times_the_nodes_own_step(modules):
         "calls self.model.decode", "imports FeatureRing"]
 
 
+def imports_where(trees: dict[str, ast.Module], wrong) -> list[str]:
+    """``where:line imports target`` for every import whose target (``a.b``, or ``..a`` for a
+    relative one) makes ``wrong(target)`` true."""
+    found = []
+    for name, tree in trees.items():
+        for node in ast.walk(tree):
+            targets = [a.name for a in node.names] if isinstance(node, ast.Import) else \
+                ["." * node.level + (node.module or "")] if isinstance(node, ast.ImportFrom) \
+                else []
+            found += [f"{name}:{node.lineno} imports {t}" for t in targets if wrong(t)]
+    return found
+
+
 def absolute_self_imports(modules: dict[str, ast.Module]) -> list[str]:
     """Where a module of the package imports the package by its name (``from odg_ros.x import``,
     ``import odg_ros.x``): inside it, imports are relative, one style throughout."""
-    found = []
-    for name, tree in modules.items():
-        for node in ast.walk(tree):
-            targets = [a.name for a in node.names] if isinstance(node, ast.Import) else \
-                [node.module or ""] if isinstance(node, ast.ImportFrom) and not node.level else []
-            found += [f"{name}:{node.lineno} imports {t}" for t in targets
-                      if t.split(".")[0] == "odg_ros"]
-    return found
+    return imports_where(modules, lambda target: target.split(".")[0] == "odg_ros")
 
 
 def test_the_package_imports_itself_relatively(modules):
@@ -255,16 +261,9 @@ TESTS = PACKAGE.parent / "test"
 def sibling_test_imports(tests: dict[str, ast.Module]) -> list[str]:
     """Where a test imports another test module (``test_*``, ``conftest``) instead of the
     shared helpers in ``testing/``: a test module is collected, not imported."""
-    found = []
-    for name, tree in tests.items():
-        for node in ast.walk(tree):
-            targets = [a.name for a in node.names] if isinstance(node, ast.Import) else \
-                [("." * node.level) + (node.module or "")] \
-                if isinstance(node, ast.ImportFrom) else []
-            found += [f"{name}:{node.lineno} imports {t}" for t in targets
-                      if t.startswith(".") or t.split(".")[0] in ("test", "conftest")
-                      or t.split(".")[-1].startswith("test_")]
-    return found
+    return imports_where(tests, lambda target: target.startswith(".")
+                         or target.split(".")[0] in ("test", "conftest")
+                         or target.split(".")[-1].startswith("test_"))
 
 
 def test_tests_share_helpers_through_testing_only():
