@@ -70,10 +70,15 @@ def scored(split) -> DetectionScore:
     return score
 
 
+def scored_split(make, seed):
+    """(the split ``make`` draws from ``seed``, its DetectionScore)."""
+    split = make(np.random.default_rng(seed))
+    return split, scored(split)
+
+
 @pytest.mark.parametrize("seed", range(4))
 def test_ap_matches_nuscenes_devkit(seed):
-    split = random_split(np.random.default_rng(seed))
-    score = scored(split)
+    split, score = scored_split(random_split, seed)
     compared = 0
     for label in (0, 5, 8):
         for threshold in (0.5, 1.0, 2.0, 4.0):
@@ -224,8 +229,7 @@ def random_full_split(rng, samples=8, classes=(0, 5, 8, 9)):
 
 @pytest.mark.parametrize("seed", range(4))
 def test_tp_errors_match_nuscenes_devkit(seed):
-    split = random_full_split(np.random.default_rng(seed))
-    score = scored(split)
+    split, score = scored_split(random_full_split, seed)
     compared = 0
     for label in (0, 5, 8, 9):
         ours = score.class_tp_errors(label)
