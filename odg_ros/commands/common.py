@@ -1,6 +1,7 @@
 """What every ``odg`` command shares: argument types that check a value when it is parsed
-(one clear line, exit code 2, instead of a failure deep inside), the help formatter that
-shows defaults, and UserError for a mistake found later.
+(one clear line, exit code 2, instead of a failure deep inside), the options several commands
+take (``add_device_option`` ...: one spelling and meaning of ``--device`` everywhere), the help
+formatter that shows defaults, and UserError for a mistake found later.
 
 A new option takes one of these types, e.g.
 ``parser.add_argument("--iters", type=positive_int, default=5, help="timed iterations")``.
