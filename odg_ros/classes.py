@@ -22,11 +22,6 @@ BOX_CLASSES = (
     "car", "truck", "construction_vehicle", "bus", "trailer", "barrier", "motorcycle",
     "bicycle", "pedestrian", "traffic_cone",
 )
-NUM_BOX_CLASSES = 10
-
-# Box class -> occupancy class (same names in both label sets).
-BOX_TO_OCC = tuple(OCC_CLASSES.index(name) for name in BOX_CLASSES)
-
 WAYMO_OCC_CLASSES = (
     "general_object", "vehicle", "pedestrian", "sign", "cyclist", "traffic_light", "pole",
     "construction_cone", "bicycle", "motorcycle", "building", "vegetation", "tree_trunk",

@@ -21,6 +21,7 @@ from odg_ros.network.sampling import (DEPTH_EPS, SpatioTemporalSampling, first_v
 from odg_ros.rig import ring_ego2img
 
 from testing.hard_cases import FEW, HARD, all_finite, log_uniform, rotation_matrix
+from testing.helpers import model_inputs as random_inputs
 from testing.helpers import tiny_config
 
 unit_vectors = st.tuples(*[st.floats(-1, 1)] * 3).filter(lambda v: np.linalg.norm(v) > 1e-3)
@@ -304,14 +305,8 @@ def test_sampling_with_corrupt_geometry_gives_finite_features(case):
 
 # ------------------------------------------------------------------------------ whole model
 def model_inputs(cfg, frames, dt=None):
-    g = torch.Generator().manual_seed(0)
-    H, W = cfg.image_size
-    images = torch.randn(1, frames, cfg.num_cams, 3, H, W, generator=g)
-    e2i = ring_ego2img(cfg.image_size, frames, cfg.num_cams, 1)
-    warp = torch.eye(4).repeat(1, frames, 1, 1)
-    warp[:, :, 0, 3] = torch.arange(frames) * 4.0
-    dt = torch.arange(frames, dtype=torch.float32)[None] * 0.5 if dt is None else dt
-    return images, e2i, warp, dt
+    images, e2i, warp, ring_dt = random_inputs(cfg, frames)
+    return images, e2i, warp, ring_dt if dt is None else dt
 
 
 @pytest.fixture(scope="module")

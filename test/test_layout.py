@@ -2,8 +2,10 @@
 tools (bench, demo) are imported only by the commands and the demo session, no two public
 functions or classes share a name, no two functions share a body (a copy with other names is
 still a copy), no function runs past ~80 lines without saying why, the package never imports
-the maintainer scripts (``tools/``) or the test helpers (``testing/``), and every benchmark times the one step the node runs (``OnlinePredictor``), never an assembly of
-its parts.
+the maintainer scripts (``tools/``) or the test helpers (``testing/``), every benchmark times
+the one step the node runs (``OnlinePredictor``), never an assembly of its parts; the package
+imports itself relatively, and tests share helpers through ``testing/``, never by importing
+another test module.
 
 Each rule is checked by a function that takes the parsed package, so the tests below also
 plant a violation and see each rule catch it."""
@@ -317,3 +319,58 @@ def test_every_benchmark_times_the_nodes_own_step(modules):
     assert sorted(p.split(" ", 1)[1] for p in step_assemblies(planted)) == [
         "calls model.decode_ring", "calls model.extract_features", "calls self.model",
         "calls self.model.decode", "imports FeatureRing"]
+
+
+def imports_where(trees: dict[str, ast.Module], wrong) -> list[str]:
+    """``where:line imports target`` for every import whose target (``a.b``, or ``..a`` for a
+    relative one) makes ``wrong(target)`` true."""
+    found = []
+    for name, tree in trees.items():
+        for node in ast.walk(tree):
+            targets = [a.name for a in node.names] if isinstance(node, ast.Import) else \
+                ["." * node.level + (node.module or "")] if isinstance(node, ast.ImportFrom) \
+                else []
+            found += [f"{name}:{node.lineno} imports {t}" for t in targets if wrong(t)]
+    return found
+
+
+def absolute_self_imports(modules: dict[str, ast.Module]) -> list[str]:
+    """Where a module of the package imports the package by its name (``from odg_ros.x import``,
+    ``import odg_ros.x``): inside it, imports are relative, one style throughout."""
+    return imports_where(modules, lambda target: target.split(".")[0] == "odg_ros")
+
+
+def test_the_package_imports_itself_relatively(modules):
+    assert absolute_self_imports(modules) == []
+    planted = {"odg_ros.online.extra": ast.parse(
+        "from odg_ros.geometry import make_transform\nimport odg_ros.classes\n"
+        "from odg_ros_msgs.msg import SemanticVoxelGrid\nfrom ..geometry import ego_warp\n"
+        "def f():\n    from odg_ros.network import ODG\n")}
+    assert absolute_self_imports(planted) == [
+        "odg_ros.online.extra:1 imports odg_ros.geometry",
+        "odg_ros.online.extra:2 imports odg_ros.classes",
+        "odg_ros.online.extra:6 imports odg_ros.network"]
+
+
+TESTS = PACKAGE.parent / "test"
+
+
+def sibling_test_imports(tests: dict[str, ast.Module]) -> list[str]:
+    """Where a test imports another test module (``test_*``, ``conftest``) instead of the
+    shared helpers in ``testing/``: a test module is collected, not imported."""
+    return imports_where(tests, lambda target: target.startswith(".")
+                         or target.split(".")[0] in ("test", "conftest")
+                         or target.split(".")[-1].startswith("test_"))
+
+
+def test_tests_share_helpers_through_testing_only():
+    tests = {str(path.relative_to(TESTS)): ast.parse(path.read_text(), filename=str(path))
+             for path in sorted(TESTS.rglob("*.py"))}
+    assert sibling_test_imports(tests) == []
+    planted = {"ros/test_a.py": ast.parse(
+        "from test_node import Harness\nimport test.online.test_step\n"
+        "from .test_b import helper\nfrom testing.online import make_sets\n"
+        "from odg_ros.online.step import OnlineStep\n")}
+    assert sibling_test_imports(planted) == [
+        "ros/test_a.py:1 imports test_node", "ros/test_a.py:2 imports test.online.test_step",
+        "ros/test_a.py:3 imports .test_b"]

@@ -378,24 +378,16 @@ def _ros1_header(types, stamp_ns: int, frame: str):
 
 
 def _ros1_transform(types, stamp_ns, parent, child, T):
-    (tx, ty, tz), (qx, qy, qz, qw) = bag_messages._pose_parts(T)
     return types["geometry_msgs/msg/TransformStamped"](
         header=_ros1_header(types, stamp_ns, parent), child_frame_id=child,
-        transform=types["geometry_msgs/msg/Transform"](
-            translation=types["geometry_msgs/msg/Vector3"](x=tx, y=ty, z=tz),
-            rotation=types["geometry_msgs/msg/Quaternion"](x=qx, y=qy, z=qz, w=qw)))
+        transform=bag_messages.ros_transform(types, T))
 
 
 def _ros1_odometry(types, stamp_ns, T):
-    (px, py, pz), (qx, qy, qz, qw) = bag_messages._pose_parts(T)
     zero = types["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0)
     return types["nav_msgs/msg/Odometry"](
         header=_ros1_header(types, stamp_ns, "odom"), child_frame_id="base_link",
-        pose=types["geometry_msgs/msg/PoseWithCovariance"](
-            pose=types["geometry_msgs/msg/Pose"](
-                position=types["geometry_msgs/msg/Point"](x=px, y=py, z=pz),
-                orientation=types["geometry_msgs/msg/Quaternion"](x=qx, y=qy, z=qz, w=qw)),
-            covariance=np.zeros(36)),
+        pose=bag_messages.pose_with_covariance(types, T),
         twist=types["geometry_msgs/msg/TwistWithCovariance"](
             twist=types["geometry_msgs/msg/Twist"](linear=zero, angular=zero),
             covariance=np.zeros(36)))

@@ -27,6 +27,28 @@ def make_model():
     return ODG(cfg).eval(), cfg
 
 
+def stepped_predictor(steps, num_sets=4):
+    """The tiny model (make_model) in an OnlinePredictor on the CPU (max_gap 1 s) after its
+    first ``steps`` of ``num_sets`` random sets (make_sets) -> (predictor, model, cfg, sets)."""
+    from odg_ros.online.predictor import OnlinePredictor
+    model, cfg = make_model()
+    sets = make_sets(cfg, num_sets)
+    predictor = OnlinePredictor(model, cfg, "cpu", max_gap=1.0)
+    for s in sets[:steps]:
+        predictor.step(*s)
+    return predictor, model, cfg, sets
+
+
+def budget_model(need_threshold=0.0, **overrides):
+    """The tiny model with trained-flagged random budget heads; no box passes its threshold
+    (no object tracked)."""
+    cfg = tiny_config(score_threshold=0.0, box_score_threshold=1.0, **overrides)
+    torch.manual_seed(0)
+    model = ODG(cfg).eval()
+    model.decoder.budget_heads.set_trained(True, need_threshold)
+    return model, cfg
+
+
 @torch.inference_mode()
 def raw_output(predictor, budget=None):
     """The decoder's full output (``ODGOutput``, every layer) over the predictor's ring as its

@@ -133,21 +133,7 @@ if [ "$DEVICE" = cuda ]; then
 fi
 
 machine() {  # what the machine is: OUT/machine.json
-    $PY - <<'PYEOF' > "$OUT/machine.json"
-import json, platform, torch
-info = {"python": platform.python_version(), "torch": torch.__version__,
-        "cuda": torch.version.cuda, "device": None}
-if torch.cuda.is_available():
-    p = torch.cuda.get_device_properties(0)
-    info.update(device=p.name, memory_gib=round(p.total_memory / 2**30, 1),
-                capability=f"{p.major}.{p.minor}", multiprocessors=p.multi_processor_count)
-try:
-    import gsplat
-    info["gsplat"] = gsplat.__version__
-except ImportError:
-    pass
-print(json.dumps(info, indent=1))
-PYEOF
+    $PY -m tools.gpu_report --machine > "$OUT/machine.json"
     cat "$OUT/machine.json"
     command -v nvidia-smi >/dev/null && nvidia-smi > "$OUT/nvidia-smi.txt"
     return 0

@@ -284,15 +284,15 @@ def first_figures(work: Path) -> dict:
                           (work / "checks.jsonl").read_text().splitlines() if line.strip()]
                if (work / "checks.jsonl").is_file() else [],
                "targets": TARGETS}
-    for name, path in (("machine", "machine.json"), ("node_step", "node_step.json")):
+    for name in ("machine", "node_step", "budgets", "training_step", "flex_attention"):
         try:
-            value = _read(work / path)
+            value = _read(work / f"{name}.json")
         except ValueError as error:
-            figures.setdefault("unreadable", []).append(f"{path}: {error}")
+            figures.setdefault("unreadable", []).append(f"{name}.json: {error}")
             continue
         if value is not None:
             figures[name] = value
-    node_step = figures.pop("node_step", None)
+    node_step = figures.get("node_step")
     if node_step:
         figures["node_step"] = {
             "preset": node_step.get("preset"), "precision": node_step.get("precisions"),
@@ -300,15 +300,6 @@ def first_figures(work: Path) -> dict:
                              "startup_s": m.get("startup_s"),
                              "grid_agreement_min": m.get("grid_agreement_min")}
                       for name, m in node_step.get("modes", {}).items()}}
-    for name, path in (("budgets", "budgets.json"), ("training_step", "training_step.json"),
-                       ("flex_attention", "flex_attention.json")):
-        try:
-            value = _read(work / path)
-        except ValueError as error:
-            figures.setdefault("unreadable", []).append(f"{path}: {error}")
-            continue
-        if value is not None:
-            figures[name] = value
     return figures
 
 

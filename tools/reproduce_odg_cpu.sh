@@ -20,6 +20,25 @@ K32='--set points_per_layer=[1,2,4,8,16,32] --set num_dynamic=50'
 # the options of every two-process (torchrun) stage
 DDP_OPTS="--epochs 1000 --lr 3e-4 --backbone-lr-mult 1.0 --workers 1 --no-history-grad \
     --render-pixels 256 --checkpoint-every 100"
+worlds() {  # SEED...: a 24-scene world data/synth24s<SEED> each, then their infos (all scenes)
+    local seed
+    for seed in "$@"; do
+        odg synth --out "data/synth24s$seed" --scenes 24 --seconds 8 --seed "$seed"
+    done
+    for seed in "$@"; do
+        odg prepare --dataroot "data/synth24s$seed" --out "data/synth24s$seed/infos_all.pkl" \
+            --split all
+    done
+}
+ddp_stage() {  # OUT INIT STEPS "SEED..." [OPTION...]: a two-process (torchrun) stage on seed
+    # 1's train split and the worlds of the seeds, from the checkpoint INIT
+    local out=$1 init=$2 steps=$3 seed data=(data/synth24/infos_train.pkl)
+    for seed in $4; do data+=("data/synth24s$seed/infos_all.pkl"); done
+    shift 4
+    OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.commands train \
+        --preset odg_cpu --data "${data[@]}" $DDP_OPTS --out "$out" --init "$init" \
+        --steps "$steps" --warmup 50 "$@"
+}
 export_int8() {  # CHECKPOINT OUT: the int8 export every stage ships, calibrated on seed 1's train
     odg export --checkpoint "$1" --out "$2" --compress int8 \
         --calibrate data/synth24/infos_train.pkl --limit 48
@@ -36,39 +55,27 @@ odg train --preset odg_cpu --set num_dynamic=50 $COMMON --out runs/cpu24w \
 odg train --preset odg_cpu $COMMON --out runs/cpu24d100f --init runs/cpu24w/final.pt \
     --steps 3200 --warmup 100
 # (5) more data: two more worlds, every one of their scenes for training (seed 1's val held out)
-odg synth --out data/synth24s2 --scenes 24 --seconds 8 --seed 2
-odg synth --out data/synth24s3 --scenes 24 --seconds 8 --seed 3
-odg prepare --dataroot data/synth24s2 --out data/synth24s2/infos_all.pkl --split all
-odg prepare --dataroot data/synth24s3 --out data/synth24s3/infos_all.pkl --split all
+worlds 2 3
 odg train --preset odg_cpu --data data/synth24/infos_train.pkl data/synth24s2/infos_all.pkl \
     data/synth24s3/infos_all.pkl --epochs 1000 --lr 3e-4 --backbone-lr-mult 1.0 --workers 0 \
     --no-history-grad --render-pixels 256 --checkpoint-every 200 --out runs/cpu66 \
     --init runs/cpu24d100f/final.pt --steps 3000 --warmup 100
 # (6) still more data: seeds 4 and 5, every scene for training
-odg synth --out data/synth24s4 --scenes 24 --seconds 8 --seed 4
-odg synth --out data/synth24s5 --scenes 24 --seconds 8 --seed 5
-odg prepare --dataroot data/synth24s4 --out data/synth24s4/infos_all.pkl --split all
-odg prepare --dataroot data/synth24s5 --out data/synth24s5/infos_all.pkl --split all
+worlds 4 5
 odg train --preset odg_cpu --data data/synth24/infos_train.pkl data/synth24s2/infos_all.pkl \
     data/synth24s3/infos_all.pkl data/synth24s4/infos_all.pkl data/synth24s5/infos_all.pkl \
     --epochs 1000 --lr 3e-4 --backbone-lr-mult 1.0 --workers 1 --no-history-grad \
     --render-pixels 256 --checkpoint-every 200 --out runs/cpu114 --init runs/cpu66/final.pt \
     --steps 2500 --warmup 100
 # (7) seeds 6 and 7 as well, every scene for training
-odg synth --out data/synth24s6 --scenes 24 --seconds 8 --seed 6
-odg synth --out data/synth24s7 --scenes 24 --seconds 8 --seed 7
-odg prepare --dataroot data/synth24s6 --out data/synth24s6/infos_all.pkl --split all
-odg prepare --dataroot data/synth24s7 --out data/synth24s7/infos_all.pkl --split all
+worlds 6 7
 odg train --preset odg_cpu --data data/synth24/infos_train.pkl \
     data/synth24s{2,3,4,5,6,7}/infos_all.pkl \
     --epochs 1000 --lr 3e-4 --backbone-lr-mult 1.0 --workers 1 --no-history-grad \
     --render-pixels 256 --checkpoint-every 200 --out runs/cpu162 --init runs/cpu114/final.pt \
     --steps 2600 --warmup 100
 # (8) seeds 8 and 9 as well (a stopped run continues with the same command plus --resume)
-odg synth --out data/synth24s8 --scenes 24 --seconds 8 --seed 8
-odg synth --out data/synth24s9 --scenes 24 --seconds 8 --seed 9
-odg prepare --dataroot data/synth24s8 --out data/synth24s8/infos_all.pkl --split all
-odg prepare --dataroot data/synth24s9 --out data/synth24s9/infos_all.pkl --split all
+worlds 8 9
 odg train --preset odg_cpu --data data/synth24/infos_train.pkl \
     data/synth24s{2,3,4,5,6,7,8,9}/infos_all.pkl \
     --epochs 1000 --lr 3e-4 --backbone-lr-mult 1.0 --workers 1 --no-history-grad \
@@ -78,10 +85,7 @@ export_int8 runs/cpu210/final.pt runs/odg_cpu_stage8.pt
 # (9) a new machine: seed 1, seed 2 and two new worlds, seeds 10 and 11, from the (8) file
 #;
 # the 2,100-step schedule was stopped at its step-1,800 checkpoint (runs/cpu90/latest.pt)
-odg synth --out data/synth24s10 --scenes 24 --seconds 8 --seed 10
-odg synth --out data/synth24s11 --scenes 24 --seconds 8 --seed 11
-odg prepare --dataroot data/synth24s10 --out data/synth24s10/infos_all.pkl --split all
-odg prepare --dataroot data/synth24s11 --out data/synth24s11/infos_all.pkl --split all
+worlds 10 11
 odg train --preset odg_cpu --data data/synth24/infos_train.pkl \
     data/synth24s{2,10,11}/infos_all.pkl \
     --epochs 1000 --lr 3e-4 --backbone-lr-mult 1.0 --workers 1 --no-history-grad \
@@ -90,58 +94,31 @@ odg train --preset odg_cpu --data data/synth24/infos_train.pkl \
 export_int8 runs/cpu90/latest.pt runs/odg_cpu_stage9.pt
 # (10) the same 90 scenes, two processes of one thread each (DDP on gloo, batch 2), from the
 # (9) file
-OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.commands train --preset odg_cpu \
-    --data data/synth24/infos_train.pkl data/synth24s{2,10,11}/infos_all.pkl \
-    $DDP_OPTS --out runs/cpu90b_ddp --init runs/odg_cpu_stage9.pt \
-    --steps 1500 --warmup 50
+ddp_stage runs/cpu90b_ddp runs/odg_cpu_stage9.pt 1500 "2 10 11"
 export_int8 runs/cpu90b_ddp/final.pt runs/odg_cpu_stage10.pt
 # (11) two more worlds, seeds 12 and 13; 138 scenes, from the (10) file
-odg synth --out data/synth24s12 --scenes 24 --seconds 8 --seed 12
-odg synth --out data/synth24s13 --scenes 24 --seconds 8 --seed 13
-odg prepare --dataroot data/synth24s12 --out data/synth24s12/infos_all.pkl --split all
-odg prepare --dataroot data/synth24s13 --out data/synth24s13/infos_all.pkl --split all
-OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.commands train --preset odg_cpu \
-    --data data/synth24/infos_train.pkl data/synth24s{2,10,11,12,13}/infos_all.pkl \
-    $DDP_OPTS --out runs/cpu138 --init runs/odg_cpu_stage10.pt \
-    --steps 1500 --warmup 50
+worlds 12 13
+ddp_stage runs/cpu138 runs/odg_cpu_stage10.pt 1500 "2 10 11 12 13"
 export_int8 runs/cpu138/final.pt runs/odg_cpu_stage11.pt
 # (12) two more worlds, seeds 14 and 15; 186 scenes, from the (11) file; stopped at step 917, continued with the same command
 # plus --resume
-odg synth --out data/synth24s14 --scenes 24 --seconds 8 --seed 14
-odg synth --out data/synth24s15 --scenes 24 --seconds 8 --seed 15
-odg prepare --dataroot data/synth24s14 --out data/synth24s14/infos_all.pkl --split all
-odg prepare --dataroot data/synth24s15 --out data/synth24s15/infos_all.pkl --split all
-OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.commands train --preset odg_cpu \
-    --data data/synth24/infos_train.pkl data/synth24s{2,10,11,12,13,14,15}/infos_all.pkl \
-    $DDP_OPTS --out runs/cpu186 --init runs/odg_cpu_stage11.pt \
-    --steps 1500 --warmup 50
+worlds 14 15
+ddp_stage runs/cpu186 runs/odg_cpu_stage11.pt 1500 "2 10 11 12 13 14 15"
 export_int8 runs/cpu186/final.pt runs/odg_cpu_stage12.pt
 # (13) a second pass over the same 186 scenes, in another order, from the (12) file
 #
-OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.commands train --preset odg_cpu \
-    --data data/synth24/infos_train.pkl data/synth24s{2,10,11,12,13,14,15}/infos_all.pkl \
-    $DDP_OPTS --out runs/cpu186b --init runs/odg_cpu_stage12.pt \
-    --steps 1200 --warmup 50 --seed 1
+ddp_stage runs/cpu186b runs/odg_cpu_stage12.pt 1200 "2 10 11 12 13 14 15" --seed 1
 export_int8 runs/cpu186b/final.pt runs/odg_cpu_stage13.pt
 # (14), not shipped: a third pass, the (13) command with --out runs/cpu186c
 # --init runs/odg_cpu_stage13.pt --steps 1500 --seed 2, exported to runs/odg_cpu_stage14.pt
 # (15) two more worlds, seeds 16 and 17; 234 scenes, from the (13) file; stopped after step 666, continued with the same command
 # plus --resume (from the step-600 checkpoint)
-odg synth --out data/synth24s16 --scenes 24 --seconds 8 --seed 16
-odg synth --out data/synth24s17 --scenes 24 --seconds 8 --seed 17
-odg prepare --dataroot data/synth24s16 --out data/synth24s16/infos_all.pkl --split all
-odg prepare --dataroot data/synth24s17 --out data/synth24s17/infos_all.pkl --split all
-OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.commands train --preset odg_cpu \
-    --data data/synth24/infos_train.pkl data/synth24s{2,10,11,12,13,14,15,16,17}/infos_all.pkl \
-    $DDP_OPTS --out runs/cpu234 --init runs/odg_cpu_stage13.pt \
-    --steps 1500 --warmup 50
+worlds 16 17
+ddp_stage runs/cpu234 runs/odg_cpu_stage13.pt 1500 "2 10 11 12 13 14 15 16 17"
 export_int8 runs/cpu234/final.pt runs/odg_cpu_stage15.pt
 # (16) a second pass over the 234 scenes, in another order, from the (15) file; stopped after step ~1,240, continued with the same
 # command plus --resume (from the step-1,200 checkpoint)
-OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.commands train --preset odg_cpu \
-    --data data/synth24/infos_train.pkl data/synth24s{2,10,11,12,13,14,15,16,17}/infos_all.pkl \
-    $DDP_OPTS --out runs/cpu234b --init runs/odg_cpu_stage15.pt \
-    --steps 1500 --warmup 50 --seed 1
+ddp_stage runs/cpu234b runs/odg_cpu_stage15.pt 1500 "2 10 11 12 13 14 15 16 17" --seed 1
 export_int8 runs/cpu234b/final.pt model/odg_cpu.pt
 odg eval --checkpoint model/odg_cpu.pt --data data/synth24/infos_val.pkl
 # the second held-out world, made after training
@@ -149,197 +126,105 @@ odg synth --out data/synth8s18 --scenes 8 --seconds 8 --seed 18
 odg prepare --dataroot data/synth8s18 --out data/synth8s18/infos_all.pkl --split all
 odg eval --checkpoint model/odg_cpu.pt --data data/synth8s18/infos_all.pkl
 # (17), not shipped: seed 1 and three new worlds (19, 20, 21), from the (16) file
-odg synth --out data/synth24s19 --scenes 24 --seconds 8 --seed 19
-odg synth --out data/synth24s20 --scenes 24 --seconds 8 --seed 20
-odg synth --out data/synth24s21 --scenes 24 --seconds 8 --seed 21
-odg prepare --dataroot data/synth24s19 --out data/synth24s19/infos_all.pkl --split all
-odg prepare --dataroot data/synth24s20 --out data/synth24s20/infos_all.pkl --split all
-odg prepare --dataroot data/synth24s21 --out data/synth24s21/infos_all.pkl --split all
-OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.commands train --preset odg_cpu \
-    --data data/synth24/infos_train.pkl data/synth24s{19,20,21}/infos_all.pkl \
-    $DDP_OPTS --out runs/cpu90n --init runs/odg_cpu_stage16.pt \
-    --steps 1000 --warmup 50
+worlds 19 20 21
+ddp_stage runs/cpu90n runs/odg_cpu_stage16.pt 1000 "19 20 21"
 export_int8 runs/cpu90n/final.pt runs/odg_cpu_stage17.pt
 # (18), not shipped alone ((19) starts from it): five of the earlier worlds regenerated
 # (seeds 2, 10-13, the commands of (5), (9) and (11) above) and added to (17)'s set,
 # from the (16) file
-OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.commands train --preset odg_cpu \
-    --data data/synth24/infos_train.pkl data/synth24s{2,10,11,12,13,19,20,21}/infos_all.pkl \
-    $DDP_OPTS --out runs/cpu210 --init runs/odg_cpu_stage16.pt \
-    --steps 1100 --warmup 50
+ddp_stage runs/cpu210 runs/odg_cpu_stage16.pt 1100 "2 10 11 12 13 19 20 21"
 export_int8 runs/cpu210/final.pt runs/odg_cpu_stage18.pt
 # (19), shipped until (20) (which starts from it): seeds 14 and 15 regenerated ((12)'s
 # commands) and added to (18)'s set, from the (18) file
-OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.commands train --preset odg_cpu \
-    --data data/synth24/infos_train.pkl data/synth24s{2,10,11,12,13,14,15,19,20,21}/infos_all.pkl \
-    $DDP_OPTS --out runs/cpu258 --init runs/odg_cpu_stage18.pt \
-    --steps 1500 --warmup 50
+ddp_stage runs/cpu258 runs/odg_cpu_stage18.pt 1500 "2 10 11 12 13 14 15 19 20 21"
 export_int8 runs/cpu258/final.pt runs/odg_cpu_stage19.pt
 # (20), shipped until (21) (which starts from it): seeds 16 and 17 regenerated ((15)'s
 # commands) and added to (19)'s set, all 306 scenes, from the (19) file
-OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.commands train --preset odg_cpu \
-    --data data/synth24/infos_train.pkl data/synth24s{2,10,11,12,13,14,15,16,17,19,20,21}/infos_all.pkl \
-    $DDP_OPTS --out runs/cpu306 --init runs/odg_cpu_stage19.pt \
-    --steps 1300 --warmup 50
+ddp_stage runs/cpu306 runs/odg_cpu_stage19.pt 1300 "2 10 11 12 13 14 15 16 17 19 20 21"
 export_int8 runs/cpu306/final.pt runs/odg_cpu_stage20.pt
 # (21), shipped until (22) (which starts from it): a second pass over the 306 scenes in another
 # order, from the (20) file; stopped after
 # step 141, continued with the same command plus --resume (from the step-100 checkpoint)
-OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.commands train --preset odg_cpu \
-    --data data/synth24/infos_train.pkl data/synth24s{2,10,11,12,13,14,15,16,17,19,20,21}/infos_all.pkl \
-    $DDP_OPTS --out runs/cpu306b --init runs/odg_cpu_stage20.pt \
-    --steps 1500 --warmup 50 --seed 1
+ddp_stage runs/cpu306b runs/odg_cpu_stage20.pt 1500 "2 10 11 12 13 14 15 16 17 19 20 21" --seed 1
 export_int8 runs/cpu306b/final.pt runs/odg_cpu_stage21.pt
 # (22), shipped until (23) (which starts from it): two new worlds, seeds 22 and 23, and the 306
 # scenes, from the (21) file; stopped after
 # step 766, continued with the same command plus --resume (from the step-700 checkpoint)
-odg synth --out data/synth24s22 --scenes 24 --seconds 8 --seed 22
-odg synth --out data/synth24s23 --scenes 24 --seconds 8 --seed 23
-odg prepare --dataroot data/synth24s22 --out data/synth24s22/infos_all.pkl --split all
-odg prepare --dataroot data/synth24s23 --out data/synth24s23/infos_all.pkl --split all
-OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.commands train --preset odg_cpu \
-    --data data/synth24/infos_train.pkl data/synth24s{2,10,11,12,13,14,15,16,17,19,20,21,22,23}/infos_all.pkl \
-    $DDP_OPTS --out runs/cpu354 --init runs/odg_cpu_stage21.pt \
-    --steps 1500 --warmup 50
+worlds 22 23
+ddp_stage runs/cpu354 runs/odg_cpu_stage21.pt 1500 "2 10 11 12 13 14 15 16 17 19 20 21 22 23"
 export_int8 runs/cpu354/final.pt runs/odg_cpu_stage22.pt
 # (23), shipped until (24) (which starts from it): a second pass over the 354 scenes in another
 # order, from the (22) file
-OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.commands train --preset odg_cpu \
-    --data data/synth24/infos_train.pkl data/synth24s{2,10,11,12,13,14,15,16,17,19,20,21,22,23}/infos_all.pkl \
-    $DDP_OPTS --out runs/cpu354b --init runs/odg_cpu_stage22.pt \
-    --steps 1200 --warmup 50 --seed 1
+ddp_stage runs/cpu354b runs/odg_cpu_stage22.pt 1200 "2 10 11 12 13 14 15 16 17 19 20 21 22 23" --seed 1
 export_int8 runs/cpu354b/final.pt runs/odg_cpu_stage23.pt
 # (24), shipped until (25) (which starts from it): two new worlds, seeds 24 and 25, and the 354
 # scenes, from the (23) file
-odg synth --out data/synth24s24 --scenes 24 --seconds 8 --seed 24
-odg synth --out data/synth24s25 --scenes 24 --seconds 8 --seed 25
-odg prepare --dataroot data/synth24s24 --out data/synth24s24/infos_all.pkl --split all
-odg prepare --dataroot data/synth24s25 --out data/synth24s25/infos_all.pkl --split all
-OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.commands train --preset odg_cpu \
-    --data data/synth24/infos_train.pkl data/synth24s{2,10,11,12,13,14,15,16,17,19,20,21,22,23,24,25}/infos_all.pkl \
-    $DDP_OPTS --out runs/cpu402 --init runs/odg_cpu_stage23.pt \
-    --steps 1200 --warmup 50
+worlds 24 25
+ddp_stage runs/cpu402 runs/odg_cpu_stage23.pt 1200 "2 10 11 12 13 14 15 16 17 19 20 21 22 23 24 25"
 export_int8 runs/cpu402/final.pt runs/odg_cpu_stage24.pt
 # (25), shipped until (27): a second pass over the 402 scenes in another order, from the
 # (24) file
 #; stopped after step 901, continued with the same
 # command plus --resume (from the step-900 checkpoint)
-OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.commands train --preset odg_cpu \
-    --data data/synth24/infos_train.pkl data/synth24s{2,10,11,12,13,14,15,16,17,19,20,21,22,23,24,25}/infos_all.pkl \
-    $DDP_OPTS --out runs/cpu402b --init runs/odg_cpu_stage24.pt \
-    --steps 1200 --warmup 50 --seed 1
+ddp_stage runs/cpu402b runs/odg_cpu_stage24.pt 1200 "2 10 11 12 13 14 15 16 17 19 20 21 22 23 24 25" --seed 1
 export_int8 runs/cpu402b/final.pt runs/odg_cpu_stage25.pt
 # (26), not shipped alone (the second pass, (27), starts from it): two new worlds, seeds 26 and
 # 27, and the 402 scenes, from the (25) file (the export above)
-odg synth --out data/synth24s26 --scenes 24 --seconds 8 --seed 26
-odg synth --out data/synth24s27 --scenes 24 --seconds 8 --seed 27
-odg prepare --dataroot data/synth24s26 --out data/synth24s26/infos_all.pkl --split all
-odg prepare --dataroot data/synth24s27 --out data/synth24s27/infos_all.pkl --split all
-OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.commands train --preset odg_cpu \
-    --data data/synth24/infos_train.pkl data/synth24s{2,10,11,12,13,14,15,16,17,19,20,21,22,23,24,25,26,27}/infos_all.pkl \
-    $DDP_OPTS --out runs/cpu450 --init runs/odg_cpu_stage25.pt \
-    --steps 1200 --warmup 50
+worlds 26 27
+ddp_stage runs/cpu450 runs/odg_cpu_stage25.pt 1200 "2 10 11 12 13 14 15 16 17 19 20 21 22 23 24 25 26 27"
 export_int8 runs/cpu450/final.pt runs/odg_cpu_stage26.pt
 # (27), shipped until (28): a second pass over the 450 scenes in another order, from the (26) file;
 # stopped after step 147, continued with the same command plus --resume (from the step-100
 # checkpoint)
-OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.commands train --preset odg_cpu \
-    --data data/synth24/infos_train.pkl data/synth24s{2,10,11,12,13,14,15,16,17,19,20,21,22,23,24,25,26,27}/infos_all.pkl \
-    $DDP_OPTS --out runs/cpu450b --init runs/odg_cpu_stage26.pt \
-    --steps 1200 --warmup 50 --seed 1
+ddp_stage runs/cpu450b runs/odg_cpu_stage26.pt 1200 "2 10 11 12 13 14 15 16 17 19 20 21 22 23 24 25 26 27" --seed 1
 export_int8 runs/cpu450b/final.pt runs/odg_cpu_stage27.pt
 # (28), shipped until (29): two new worlds, seeds 28 and 29, and the 450 scenes, from the (27) file
 # (the export above)
-odg synth --out data/synth24s28 --scenes 24 --seconds 8 --seed 28
-odg synth --out data/synth24s29 --scenes 24 --seconds 8 --seed 29
-odg prepare --dataroot data/synth24s28 --out data/synth24s28/infos_all.pkl --split all
-odg prepare --dataroot data/synth24s29 --out data/synth24s29/infos_all.pkl --split all
-OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.commands train --preset odg_cpu \
-    --data data/synth24/infos_train.pkl data/synth24s{2,10,11,12,13,14,15,16,17,19,20,21,22,23,24,25,26,27,28,29}/infos_all.pkl \
-    $DDP_OPTS --out runs/cpu498 --init runs/odg_cpu_stage27.pt \
-    --steps 1200 --warmup 50
+worlds 28 29
+ddp_stage runs/cpu498 runs/odg_cpu_stage27.pt 1200 "2 10 11 12 13 14 15 16 17 19 20 21 22 23 24 25 26 27 28 29"
 export_int8 runs/cpu498/final.pt runs/odg_cpu_stage28.pt
 # (29), shipped until (31): a second pass over the 498 scenes in another order, from the (28) file
 # (the export above);
 # stopped after step 154, continued with the same command plus --resume (from the step-100
 # checkpoint)
-OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.commands train --preset odg_cpu \
-    --data data/synth24/infos_train.pkl data/synth24s{2,10,11,12,13,14,15,16,17,19,20,21,22,23,24,25,26,27,28,29}/infos_all.pkl \
-    $DDP_OPTS --out runs/cpu498b --init runs/odg_cpu_stage28.pt \
-    --steps 1200 --warmup 50 --seed 1
+ddp_stage runs/cpu498b runs/odg_cpu_stage28.pt 1200 "2 10 11 12 13 14 15 16 17 19 20 21 22 23 24 25 26 27 28 29" --seed 1
 export_int8 runs/cpu498b/final.pt runs/odg_cpu_stage29.pt
 # (30), not shipped alone (the second pass, (31), starts from it): two new worlds, seeds 30 and
 # 31, and the 498 scenes, from the (29) file (the export above)
-odg synth --out data/synth24s30 --scenes 24 --seconds 8 --seed 30
-odg synth --out data/synth24s31 --scenes 24 --seconds 8 --seed 31
-odg prepare --dataroot data/synth24s30 --out data/synth24s30/infos_all.pkl --split all
-odg prepare --dataroot data/synth24s31 --out data/synth24s31/infos_all.pkl --split all
-OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.commands train --preset odg_cpu \
-    --data data/synth24/infos_train.pkl data/synth24s{2,10,11,12,13,14,15,16,17,19,20,21,22,23,24,25,26,27,28,29,30,31}/infos_all.pkl \
-    $DDP_OPTS --out runs/cpu546 --init runs/odg_cpu_stage29.pt \
-    --steps 1200 --warmup 50
+worlds 30 31
+ddp_stage runs/cpu546 runs/odg_cpu_stage29.pt 1200 "2 10 11 12 13 14 15 16 17 19 20 21 22 23 24 25 26 27 28 29 30 31"
 export_int8 runs/cpu546/final.pt runs/odg_cpu_stage30.pt
 # (31), shipped until (33): a second pass over the 546 scenes in another order, from the (30) file;
 # stopped after step ~190, continued with the same command plus --resume (from the step-100
 # checkpoint)
-OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.commands train --preset odg_cpu \
-    --data data/synth24/infos_train.pkl data/synth24s{2,10,11,12,13,14,15,16,17,19,20,21,22,23,24,25,26,27,28,29,30,31}/infos_all.pkl \
-    $DDP_OPTS --out runs/cpu546b --init runs/odg_cpu_stage30.pt \
-    --steps 1200 --warmup 50 --seed 1
+ddp_stage runs/cpu546b runs/odg_cpu_stage30.pt 1200 "2 10 11 12 13 14 15 16 17 19 20 21 22 23 24 25 26 27 28 29 30 31" --seed 1
 export_int8 runs/cpu546b/final.pt runs/odg_cpu_stage31.pt
 # (32), not shipped alone (the second pass, (33), starts from it): two new worlds, seeds 32 and
 # 33, and the 546 scenes, from the (31) file (the export above)
-odg synth --out data/synth24s32 --scenes 24 --seconds 8 --seed 32
-odg synth --out data/synth24s33 --scenes 24 --seconds 8 --seed 33
-odg prepare --dataroot data/synth24s32 --out data/synth24s32/infos_all.pkl --split all
-odg prepare --dataroot data/synth24s33 --out data/synth24s33/infos_all.pkl --split all
-OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.commands train --preset odg_cpu \
-    --data data/synth24/infos_train.pkl data/synth24s{2,10,11,12,13,14,15,16,17,19,20,21,22,23,24,25,26,27,28,29,30,31,32,33}/infos_all.pkl \
-    $DDP_OPTS --out runs/cpu594 --init runs/odg_cpu_stage31.pt \
-    --steps 1200 --warmup 50
+worlds 32 33
+ddp_stage runs/cpu594 runs/odg_cpu_stage31.pt 1200 "2 10 11 12 13 14 15 16 17 19 20 21 22 23 24 25 26 27 28 29 30 31 32 33"
 export_int8 runs/cpu594/final.pt runs/odg_cpu_stage32.pt
 # (33), shipped until (35): a second pass over the 594 scenes in another order, from the (32) file
-OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.commands train --preset odg_cpu \
-    --data data/synth24/infos_train.pkl data/synth24s{2,10,11,12,13,14,15,16,17,19,20,21,22,23,24,25,26,27,28,29,30,31,32,33}/infos_all.pkl \
-    $DDP_OPTS --out runs/cpu594b --init runs/odg_cpu_stage32.pt \
-    --steps 1200 --warmup 50 --seed 1
+ddp_stage runs/cpu594b runs/odg_cpu_stage32.pt 1200 "2 10 11 12 13 14 15 16 17 19 20 21 22 23 24 25 26 27 28 29 30 31 32 33" --seed 1
 export_int8 runs/cpu594b/final.pt runs/odg_cpu_stage33.pt
 # (34), not shipped alone (the second pass, (35), starts from it): two new worlds, seeds 34 and
 # 35, and the 594 scenes, from the (33) file (the export above); stopped after step 929,
 # continued with the same command plus --resume (from the step-900 checkpoint)
-odg synth --out data/synth24s34 --scenes 24 --seconds 8 --seed 34
-odg synth --out data/synth24s35 --scenes 24 --seconds 8 --seed 35
-odg prepare --dataroot data/synth24s34 --out data/synth24s34/infos_all.pkl --split all
-odg prepare --dataroot data/synth24s35 --out data/synth24s35/infos_all.pkl --split all
-OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.commands train --preset odg_cpu \
-    --data data/synth24/infos_train.pkl data/synth24s{2,10,11,12,13,14,15,16,17,19,20,21,22,23,24,25,26,27,28,29,30,31,32,33,34,35}/infos_all.pkl \
-    $DDP_OPTS --out runs/cpu642 --init runs/odg_cpu_stage33.pt \
-    --steps 1200 --warmup 50
+worlds 34 35
+ddp_stage runs/cpu642 runs/odg_cpu_stage33.pt 1200 "2 10 11 12 13 14 15 16 17 19 20 21 22 23 24 25 26 27 28 29 30 31 32 33 34 35"
 export_int8 runs/cpu642/final.pt runs/odg_cpu_stage34.pt
 # (35), shipped until (37): a second pass over the 642 scenes in another order, from the (34) file
-OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.commands train --preset odg_cpu \
-    --data data/synth24/infos_train.pkl data/synth24s{2,10,11,12,13,14,15,16,17,19,20,21,22,23,24,25,26,27,28,29,30,31,32,33,34,35}/infos_all.pkl \
-    $DDP_OPTS --out runs/cpu642b --init runs/odg_cpu_stage34.pt \
-    --steps 1200 --warmup 50 --seed 1
+ddp_stage runs/cpu642b runs/odg_cpu_stage34.pt 1200 "2 10 11 12 13 14 15 16 17 19 20 21 22 23 24 25 26 27 28 29 30 31 32 33 34 35" --seed 1
 export_int8 runs/cpu642b/final.pt runs/odg_cpu_stage35.pt
 # (36), not shipped alone (the second pass, (37), starts from it): two new worlds, seeds 36 and
 # 37, and the 642 scenes, from the (35) file (the export above)
-odg synth --out data/synth24s36 --scenes 24 --seconds 8 --seed 36
-odg synth --out data/synth24s37 --scenes 24 --seconds 8 --seed 37
-odg prepare --dataroot data/synth24s36 --out data/synth24s36/infos_all.pkl --split all
-odg prepare --dataroot data/synth24s37 --out data/synth24s37/infos_all.pkl --split all
-OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.commands train --preset odg_cpu \
-    --data data/synth24/infos_train.pkl data/synth24s{2,10,11,12,13,14,15,16,17,19,20,21,22,23,24,25,26,27,28,29,30,31,32,33,34,35,36,37}/infos_all.pkl \
-    $DDP_OPTS --out runs/cpu690 --init runs/odg_cpu_stage35.pt \
-    --steps 1200 --warmup 50
+worlds 36 37
+ddp_stage runs/cpu690 runs/odg_cpu_stage35.pt 1200 "2 10 11 12 13 14 15 16 17 19 20 21 22 23 24 25 26 27 28 29 30 31 32 33 34 35 36 37"
 export_int8 runs/cpu690/final.pt runs/odg_cpu_stage36.pt
 # (37), shipped: a second pass over the 690 scenes in another order, from the (36) file
 # (stopped after step 451, continued with the same command plus --resume from the step-400
 # checkpoint: the same run, bit for bit)
-OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m odg_ros.commands train --preset odg_cpu \
-    --data data/synth24/infos_train.pkl data/synth24s{2,10,11,12,13,14,15,16,17,19,20,21,22,23,24,25,26,27,28,29,30,31,32,33,34,35,36,37}/infos_all.pkl \
-    $DDP_OPTS --out runs/cpu690b --init runs/odg_cpu_stage36.pt \
-    --steps 1200 --warmup 50 --seed 1
+ddp_stage runs/cpu690b runs/odg_cpu_stage36.pt 1200 "2 10 11 12 13 14 15 16 17 19 20 21 22 23 24 25 26 27 28 29 30 31 32 33 34 35 36 37" --seed 1
 export_int8 runs/cpu690b/final.pt model/odg_cpu.pt
 # (38), shipped: the query-budget heads trained on top of (37), every other weight frozen
 # (docs/query_budget.md); the worlds of every scene class, none of them a held-out seed

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from odg_ros.rig import CAMERA_NAMES
+from ..rig import CAMERA_NAMES
 
 MAP_FRAME = "map"
 BASE_FRAME = "base_link"
@@ -30,7 +30,6 @@ CAMERA_INFO_TYPE = "sensor_msgs/msg/CameraInfo"
 POINT_CLOUD_TYPE = "sensor_msgs/msg/PointCloud2"
 TF_TYPE = "tf2_msgs/msg/TFMessage"
 ODOM_TYPE = "nav_msgs/msg/Odometry"
-CLOCK_TYPE = "rosgraph_msgs/msg/Clock"
 
 TF_TOPIC = "/tf"
 TF_STATIC_TOPIC = "/tf_static"

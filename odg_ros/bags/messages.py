@@ -7,8 +7,8 @@ from functools import lru_cache
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from odg_ros import geometry
-from odg_ros.bags import layout
+from .. import geometry
+from . import layout
 
 # Half-width of the central difference that gives /odom its twist: ego poses come every few
 # milliseconds (one per sensor stamp), too close together for a stable finite difference.
@@ -93,31 +93,43 @@ def _pose_parts(T):
     return np.asarray(T)[:3, 3], (x, y, z, w)
 
 
+def ros_transform(types, T):
+    """geometry_msgs/Transform of a 4x4 transform, from the message classes ``types`` (a
+    typestore's, ROS 2 or ROS 1)."""
+    (tx, ty, tz), (qx, qy, qz, qw) = _pose_parts(T)
+    return types["geometry_msgs/msg/Transform"](
+        translation=types["geometry_msgs/msg/Vector3"](x=tx, y=ty, z=tz),
+        rotation=types["geometry_msgs/msg/Quaternion"](x=qx, y=qy, z=qz, w=qw))
+
+
 def transform_stamped(timestamp_ns, parent, child, T):
     types = typestore().types
-    (tx, ty, tz), (qx, qy, qz, qw) = _pose_parts(T)
     return types["geometry_msgs/msg/TransformStamped"](
         header=_header(timestamp_ns, parent), child_frame_id=child,
-        transform=types["geometry_msgs/msg/Transform"](
-            translation=types["geometry_msgs/msg/Vector3"](x=tx, y=ty, z=tz),
-            rotation=types["geometry_msgs/msg/Quaternion"](x=qx, y=qy, z=qz, w=qw)))
+        transform=ros_transform(types, T))
 
 
 def tf_message(transforms):
     return typestore().types[layout.TF_TYPE](transforms=list(transforms))
 
 
+def pose_with_covariance(types, T):
+    """geometry_msgs/PoseWithCovariance of a 4x4 pose, covariance zeros (not given), from the
+    message classes ``types`` (a typestore's, ROS 2 or ROS 1)."""
+    (px, py, pz), (qx, qy, qz, qw) = _pose_parts(T)
+    return types["geometry_msgs/msg/PoseWithCovariance"](
+        pose=types["geometry_msgs/msg/Pose"](
+            position=types["geometry_msgs/msg/Point"](x=px, y=py, z=pz),
+            orientation=types["geometry_msgs/msg/Quaternion"](x=qx, y=qy, z=qz, w=qw)),
+        covariance=np.zeros(36))
+
+
 def odometry_message(timestamp_ns, T_global_from_ego, linear, angular):
     types = typestore().types
-    (px, py, pz), (qx, qy, qz, qw) = _pose_parts(T_global_from_ego)
     Vector3 = types["geometry_msgs/msg/Vector3"]
     return types[layout.ODOM_TYPE](
         header=_header(timestamp_ns, layout.MAP_FRAME), child_frame_id=layout.BASE_FRAME,
-        pose=types["geometry_msgs/msg/PoseWithCovariance"](
-            pose=types["geometry_msgs/msg/Pose"](
-                position=types["geometry_msgs/msg/Point"](x=px, y=py, z=pz),
-                orientation=types["geometry_msgs/msg/Quaternion"](x=qx, y=qy, z=qz, w=qw)),
-            covariance=np.zeros(36)),
+        pose=pose_with_covariance(types, T_global_from_ego),
         twist=types["geometry_msgs/msg/TwistWithCovariance"](
             twist=types["geometry_msgs/msg/Twist"](
                 linear=Vector3(x=float(linear[0]), y=float(linear[1]), z=float(linear[2])),

@@ -16,9 +16,9 @@ from pathlib import Path
 
 import numpy as np
 
-from odg_ros import geometry
-from odg_ros.bags.layout import LIDAR_NAME
-from odg_ros.rig import CAMERA_NAMES
+from .. import geometry
+from ..rig import CAMERA_NAMES
+from .layout import LIDAR_NAME
 
 LIDAR_CHANNEL = LIDAR_NAME
 TABLES = ("scene", "sample", "sample_data", "ego_pose", "calibrated_sensor", "sensor")

@@ -26,7 +26,7 @@ from pathlib import Path
 
 import yaml
 
-from odg_ros.bags import layout
+from . import layout
 
 
 @dataclass(frozen=True)

@@ -13,10 +13,10 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from odg_ros import geometry
-from odg_ros.bags.converters import Converter
-from odg_ros.bags.nuscenes_source import SensorRecord
-from odg_ros.rig import CAMERA_NAMES
+from .. import geometry
+from ..rig import CAMERA_NAMES
+from .converters import Converter
+from .nuscenes_source import SensorRecord
 
 
 def _image_hw(record: SensorRecord) -> tuple[int, int]:

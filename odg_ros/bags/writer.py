@@ -19,13 +19,12 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from odg_ros import geometry
-from odg_ros.bags import layout
-from odg_ros.bags.messages import (camera_info_message, compressed_image_message, ego_twists,
-                                   odometry_message, point_cloud_message, tf_message,
-                                   transform_stamped, typestore)
-from odg_ros.bags.nuscenes_source import LIDAR_CHANNEL, SensorRecord
-from odg_ros.data.lidar import load_points
+from .. import geometry
+from ..data.lidar import load_points
+from . import layout
+from .messages import (camera_info_message, compressed_image_message, ego_twists, odometry_message,
+                       point_cloud_message, tf_message, transform_stamped, typestore)
+from .nuscenes_source import LIDAR_CHANNEL, SensorRecord
 
 # rosbag2 metadata version 8 is what ROS 2 Jazzy writes; later releases read it.
 BAG_VERSION = 8

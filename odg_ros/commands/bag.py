@@ -18,7 +18,7 @@ from .common import UserError
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from odg_ros.bags.converters import CONVERTERS
+    from ..bags.converters import CONVERTERS
 
     sub = parser.add_subparsers(dest="source", required=True, metavar="{synth,nuscenes,rig}")
     synth = sub.add_parser("synth", help="bag the synthetic world of `odg synth`")
@@ -49,8 +49,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args) -> int:
-    from odg_ros.bags.writer import write_scene_bag
-    from odg_ros.bags.nuscenes_source import NuScenesSensorTables
+    from ..bags.nuscenes_source import NuScenesSensorTables
+    from ..bags.writer import write_scene_bag
 
     if args.source == "rig":
         return _write_rig(args)
@@ -72,9 +72,9 @@ def run(args) -> int:
 
 
 def _write_rig(args) -> int:
-    from odg_ros.bags.converters import CONVERTERS
-    from odg_ros.bags.nuscenes_source import NuScenesSensorTables
-    from odg_ros.bags.rig_file import write_rig_file
+    from ..bags.converters import CONVERTERS
+    from ..bags.nuscenes_source import NuScenesSensorTables
+    from ..bags.rig_file import write_rig_file
 
     try:
         tables = NuScenesSensorTables(args.dataroot, args.version)

@@ -15,8 +15,8 @@ import sys
 
 import torch
 
-from .common import (UserError, device, existing_file, infos_file, nonnegative_int,
-                     positive_int, preset)
+from .common import (UserError, add_device_option, add_json_option, add_preset_option,
+                     existing_file, infos_file, nonnegative_int, positive_int)
 
 SWEEP_OUT = "bench_results"
 
@@ -36,11 +36,10 @@ def add_arguments(parser):
     parser.epilog = EPILOG
     parser.add_argument("--checkpoint", default=None, type=existing_file,
                         help="weights (default: the shipped model/odg_cpu.pt, as the node)")
-    parser.add_argument("--preset", type=preset, default=None,
-                        help="random weights of this preset instead of a checkpoint (timing "
-                             "only; default: none, the checkpoint's model)")
-    parser.add_argument("--device", type=device, default="cpu",
-                        help="cpu, cuda, cuda:N or auto")
+    add_preset_option(parser, default=None,
+                      help="random weights of this preset instead of a checkpoint (timing "
+                           "only; default: none, the checkpoint's model)")
+    add_device_option(parser, default="cpu")
     parser.add_argument("--frames", type=positive_int, default=None,
                         help="history frames K incl. the current one (default: the model's)")
     parser.add_argument("--iters", type=positive_int, default=None,
@@ -49,7 +48,7 @@ def add_arguments(parser):
     parser.add_argument("--warmup", type=nonnegative_int, default=1, help="untimed steps first")
     parser.add_argument("--threads", type=positive_int, default=None,
                         help="torch CPU threads (default: torch's choice)")
-    parser.add_argument("--json", action="store_true", help="print JSON only")
+    add_json_option(parser)
     parser.add_argument("--compile", default=None, metavar="MODES",
                         help="execution modes of the step, comma-separated (auto, eager, "
                              "compiled, graphs), taking turns set by set; the first is what "
@@ -192,22 +191,23 @@ def format_step_result(result: dict) -> str:
         f"against {result['reference']}",
         f"  {'variant':<16}{'step ms':>9}{'model':>9}{'upload':>8}{'download':>9}{'FPS':>8}"
         f"{'speedup':>8}{'start-up s':>11}{'grid =':>8}{'occ. =':>8}"]
+    # per variant: its row of the table, then its differences, then its stages
+    rows, differences, stages = [], [], []
     for name, r in result["modes"].items():
         lat = r["latency_ms"]
-        lines.append(f"  {name:<16}{lat['step']:9.1f}{lat['model']:9.1f}{lat['upload']:8.1f}"
-                     f"{lat['download']:9.1f}{r['fps']:8.2f}{r['speedup']:8.2f}"
-                     f"{r['startup_s']:11.1f}{r['grid_agreement_min']:8.4f}"
-                     f"{r['occupied_agreement_min']:8.4f}")
-    for name, r in result["modes"].items():
-        if name == result["reference"]:
-            continue
-        d = r["max_difference"]
-        lines.append(f"  {name:<16}largest differences: confidence {d['confidence']}/255, "
-                     f"boxes unmatched {d['boxes_unmatched']} (of {d['boxes_valid']}), box "
-                     f"centre {d['box_centre_m']:.3g} m, size {d['box_size_m']:.3g} m, score "
-                     f"{d['box_score']:.3g}")
-    for name, r in result["modes"].items():
-        lines += format_stages(name, r)
+        rows.append(f"  {name:<16}{lat['step']:9.1f}{lat['model']:9.1f}{lat['upload']:8.1f}"
+                    f"{lat['download']:9.1f}{r['fps']:8.2f}{r['speedup']:8.2f}"
+                    f"{r['startup_s']:11.1f}{r['grid_agreement_min']:8.4f}"
+                    f"{r['occupied_agreement_min']:8.4f}")
+        if name != result["reference"]:
+            d = r["max_difference"]
+            differences.append(
+                f"  {name:<16}largest differences: confidence {d['confidence']}/255, boxes "
+                f"unmatched {d['boxes_unmatched']} (of {d['boxes_valid']}), box centre "
+                f"{d['box_centre_m']:.3g} m, size {d['box_size_m']:.3g} m, score "
+                f"{d['box_score']:.3g}")
+        stages += format_stages(name, r)
+    lines += rows + differences + stages
     lines.append(f"  peak memory {result['peak_memory_mb']:.0f} MB ({result['memory_method']})")
     return "\n".join(lines)
 

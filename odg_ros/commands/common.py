@@ -1,6 +1,7 @@
 """What every ``odg`` command shares: argument types that check a value when it is parsed
-(one clear line, exit code 2, instead of a failure deep inside), the help formatter that
-shows defaults, and UserError for a mistake found later.
+(one clear line, exit code 2, instead of a failure deep inside), the options several commands
+take (``add_device_option`` ...: one spelling and meaning of ``--device`` everywhere), the help
+formatter that shows defaults, and UserError for a mistake found later.
 
 A new option takes one of these types, e.g.
 ``parser.add_argument("--iters", type=positive_int, default=5, help="timed iterations")``.
@@ -16,8 +17,8 @@ class UserError(Exception):
     """A mistake in the command line or its files, found after parsing."""
 
 
-# Reported as one line `odg CMD: error: ...` with exit code 2 (cli.py): a UserError and what
-# the library raises for bad input (a missing or foreign file, a bad value).
+# Reported as one line `odg CMD: error: ...` with exit code 2 (main, commands/__init__.py): a
+# UserError and what the library raises for bad input (a missing or foreign file, a bad value).
 USER_ERRORS = (UserError, FileNotFoundError, FileExistsError, NotADirectoryError,
                IsADirectoryError, PermissionError, ValueError)
 
@@ -152,3 +153,42 @@ def config_overrides(items: list[str] | None) -> dict:
         raise UserError(str(error)) from None
     return {k: v for k, v in values.items()
             if not (k in ("score_threshold", "box_score_threshold") and v < 0)}
+
+
+# Options several commands take, spelled once: the same flag means the same thing everywhere.
+def add_device_option(parser, default: str = "auto", help: str | None = None) -> None:
+    parser.add_argument("--device", type=device, default=default,
+                        help=help or "auto (cuda when available), cpu, cuda or cuda:N")
+
+
+def add_preset_option(parser, default: str | None = "odg_cpu", help: str | None = None) -> None:
+    from ..config import PRESET_NAMES
+    parser.add_argument("--preset", type=preset, default=default,
+                        help=help or f"model preset ({', '.join(PRESET_NAMES)}) or a preset "
+                                     "YAML file")
+
+
+def add_json_option(parser, help: str = "print JSON only") -> None:
+    parser.add_argument("--json", action="store_true", help=help)
+
+
+def add_set_option(parser, help: str) -> None:
+    """``--set KEY=VALUE`` (repeatable), read with config_overrides."""
+    parser.add_argument("--set", action="append", metavar="KEY=VALUE", help=help)
+
+
+def add_backbone_start_options(parser) -> None:
+    """Where a trained backbone starts from (odg train, odg profile train)."""
+    parser.add_argument("--backbone-weights", type=existing_file,
+                        help="ResNet checkpoint to start the backbone from: torchvision, timm, "
+                             "or mmdetection/mmdet3d (backbone.* / img_backbone.* keys, e.g. "
+                             "nuImages Cascade Mask R-CNN; default: none, which presets "
+                             "with frozen stages refuse)")
+    parser.add_argument("--backbone-from-scratch", action="store_true",
+                        help="no pretrained weights: unfreeze a preset's frozen stem/layer1 and "
+                             "train its BatchNorm statistics too")
+
+
+def add_render_pixels_option(parser) -> None:
+    parser.add_argument("--render-pixels", type=positive_int, default=512,
+                        help="supervised LiDAR pixels per camera and step")

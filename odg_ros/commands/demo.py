@@ -12,7 +12,7 @@
    against the GT (mIoU, RayIoU);
 4. a table (``--json``: the numbers as JSON only), and always ``demo.json`` + ``demo.png``
    (cameras + BEV prediction vs GT) in the output folder. What each number means:
-   odg_ros/demo.py.
+   odg_ros/demo/__init__.py.
 """
 from __future__ import annotations
 
@@ -25,9 +25,10 @@ from pathlib import Path
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from odg_ros.demo.world import DEFAULT_OUT, DEFAULT_RATE, DEFAULT_SECONDS, DEFAULT_SEED
+    from ..demo.world import DEFAULT_OUT, DEFAULT_RATE, DEFAULT_SECONDS, DEFAULT_SEED
 
-    from .common import device, existing_file, positive_float, positive_int
+    from .common import add_device_option, add_json_option, existing_file, positive_float, \
+        positive_int
 
     parser.add_argument("--out", type=Path, default=DEFAULT_OUT,
                         help=f"folder of the world, bag, logs, demo.json and demo.png "
@@ -50,10 +51,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         default="auto",
                         help="the node's precision parameter (default auto, the node's: "
                              "bf16-encoder on a CPU with AVX512-BF16/AMX, else fp32)")
-    parser.add_argument("--device", type=device, default="auto",
-                        help="the node's device: auto (cuda when available), cpu, cuda or cuda:N")
-    parser.add_argument("--json", action="store_true",
-                        help="print the numbers as JSON only (progress still goes to stderr)")
+    add_device_option(parser, help="the node's device: auto (cuda when available), cpu, cuda "
+                                   "or cuda:N")
+    add_json_option(parser, help="print the numbers as JSON only (progress still goes to stderr)")
 
 
 def run(args) -> int:
@@ -76,12 +76,12 @@ def _interrupt(signum, frame):
 
 
 def _run(args, log) -> int:
-    from odg_ros.data.synth.generate import DEFAULT_IMAGE_HW
-    from odg_ros.demo import REFERENCE_CAMERA, DemoError
-    from odg_ros.demo.picture import draw_demo_png, pick_keyframe
-    from odg_ros.demo.records import bag_camera_sets
-    from odg_ros.demo.report import format_summary, score_keyframes, summarize_session, write_json
-    from odg_ros.demo.world import WorldSpec, build_demo_world, resolve_checkpoint
+    from ..data.synth.generate import DEFAULT_IMAGE_HW
+    from ..demo import REFERENCE_CAMERA, DemoError
+    from ..demo.picture import draw_demo_png, pick_keyframe
+    from ..demo.records import bag_camera_sets
+    from ..demo.report import format_summary, score_keyframes, summarize_session, write_json
+    from ..demo.world import WorldSpec, build_demo_world, resolve_checkpoint
 
     started = time.monotonic()
     out = args.out
@@ -95,7 +95,7 @@ def _run(args, log) -> int:
         sets = bag_camera_sets(world.bag)
 
         try:                                                # rclpy from here on
-            from odg_ros.ros.demo_session import run_session
+            from ..ros.demo_session import run_session
             import odg_ros_msgs.msg  # noqa: F401
             import rclpy  # noqa: F401
         except ImportError as error:
@@ -111,7 +111,7 @@ def _run(args, log) -> int:
             raise DemoError(f"the node published no occupancy grid (see {out}/node.log); "
                                  f"its last diagnostics: {record.diagnostics_message!r}")
         start = time.monotonic()
-        from odg_ros.metrics.score import load_scoring_infos
+        from ..metrics.score import load_scoring_infos
         meta = load_scoring_infos(world.infos)
         grids = {g.stamp_ns: g.labels for g in record.grids}
         score, scored, per_keyframe = score_keyframes(meta, grids)
@@ -148,7 +148,7 @@ def _run(args, log) -> int:
         print(json.dumps(report, indent=2, allow_nan=False))
     else:
         if score is not None:
-            from odg_ros.metrics.score import format_table
+            from ..metrics.score import format_table
             print(format_table(score) + "\n")
         print(format_summary(report))
         files = [out / "demo.json"] + ([out / "demo.png"] if scored else []) + [out / "node.log"]

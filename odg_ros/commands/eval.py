@@ -9,6 +9,7 @@ the visibility against mask_camera, the confidence's calibration error, label fl
 from __future__ import annotations
 
 import json
+import sys
 from pathlib import Path
 
 from ..metrics.detection import format_detection
@@ -19,8 +20,9 @@ from ..network.precision import NODE_PRECISIONS, resolve_device, resolve_precisi
 from ..network.visibility import DEFAULT_MIN_CLEAR
 from ..online.predictor import resolve_budget
 from ..train.evaluate import BEV_BAND, evaluate
-from .common import (UserError, config_overrides, device, existing_dir, existing_file,
-                     infos_file, positive_int, probability)
+from .common import (UserError, add_device_option, add_json_option, add_set_option,
+                     config_overrides, existing_dir, existing_file, infos_file, positive_int,
+                     probability)
 from .score import add_miou_convention
 
 
@@ -38,8 +40,7 @@ def add_arguments(parser):
     parser.add_argument("--save-pred", default=None,
                         help="write <token>.npz predictions here (what odg score --pred reads; "
                              "default: not saved)")
-    parser.add_argument("--device", type=device, default="auto",
-                        help="auto (cuda when available), cpu, cuda or cuda:N")
+    add_device_option(parser)
     parser.add_argument("--limit", type=positive_int, default=None,
                         help="the first N samples only (default: all)")
     parser.add_argument("--no-rayiou", action="store_true", help="skip RayIoU (faster)")
@@ -63,9 +64,8 @@ def add_arguments(parser):
                              "bf16-encoder: ResNet + FPN in bf16, the decoder in fp32; auto: "
                              "what the node's precision auto picks on this machine; default: "
                              "the training model in float32)")
-    parser.add_argument("--json", action="store_true", help="print JSON only")
-    parser.add_argument("--set", action="append", metavar="KEY=VALUE",
-                        help="config override at inference, e.g. motion_compensation=false "
+    add_json_option(parser)
+    add_set_option(parser, help="config override at inference, e.g. motion_compensation=false "
                              "(what a trained model loses without a component) or "
                              "score_threshold=0.3 (default: the checkpoint's config)")
 
@@ -84,11 +84,14 @@ def run(args) -> int:
         from ..online.step import NodeInferenceModel
         args.precision = resolve_precision(args.precision, device)
         scored = NodeInferenceModel(model, cfg, device, args.precision)
-    result = evaluate(scored, cfg, data, occ_root=args.occ_root, save_pred=args.save_pred,
-                      device=device, rayiou=not args.no_rayiou, limit=args.limit,
-                      progress=not args.json, miou_convention=args.miou_convention,
-                      budget=budget, min_clear=args.visibility_min_clear,
-                      bev_band=tuple(args.bev_band))
+    options = dict(occ_root=args.occ_root, device=device, rayiou=not args.no_rayiou,
+                   limit=args.limit, progress=not args.json,
+                   miou_convention=args.miou_convention, min_clear=args.visibility_min_clear,
+                   bev_band=tuple(args.bev_band))
+    result = evaluate(scored, cfg, data, save_pred=args.save_pred, budget=budget, **options)
+    if budget is not None:      # the same keyframes with every query refined, for the change
+        full = evaluate(scored, cfg, data, **options)
+        result["query_budget"]["against_full"] = against_full(result, full)
     if args.precision is not None:
         result["precision"] = f"{args.precision} (the node's arithmetic)"
     if args.json:
@@ -105,11 +108,12 @@ def run(args) -> int:
         if "boxes" in result:
             print(format_detection(result["boxes"]))
         if "query_budget" in result:
-            use = result["query_budget"]
-            print(f"query budget {use['mode']}: on average "
-                  f"{100 * use['mean_refined_fraction']:.1f} % of the queries refined "
-                  f"(keyframes per budget: {use['keyframes_per_budget']})")
+            print(format_budget_use(result["query_budget"]))
         print(format_planner(result))
+    if args.save_pred:          # stderr: --json keeps stdout for the JSON
+        saved = result["predictions"]
+        print(f"odg eval: wrote {saved['files']} predictions (<token>.npz, for odg score "
+              f"--pred) to {saved['folder']}", file=sys.stderr)
     return 0
 
 
@@ -122,3 +126,30 @@ def named_infos(text: str) -> tuple[str, str]:
     name, _, path = text.rpartition("=") if "=" in text else ("", "", text)
     path = infos_file(path)
     return name or Path(path).resolve().parent.name, path
+
+
+COMPARED = ("mIoU", "mIoU_dynamic", "RayIoU", "IoU_geometry")
+
+
+def against_full(result: dict, full: dict) -> dict:
+    """{metric: {"full": its value with every query refined, "change": result's minus it}}
+    for the scores both runs have (percent; boxes: their mAP)."""
+    pairs = [(k, result.get(k), full.get(k)) for k in COMPARED]
+    if "boxes" in result and "boxes" in full:
+        pairs.append(("box mAP", result["boxes"]["mAP"], full["boxes"]["mAP"]))
+    return {k: {"full": f, "change": round(r - f, 2)} for k, r, f in pairs
+            if r is not None and f is not None}
+
+
+def format_budget_use(use: dict) -> str:
+    """The budgets that ran, in words, with their keyframes, and the change against full."""
+    lines = [f"query budget {use['mode']}: on average {100 * use['mean_refined_fraction']:.1f} "
+             "% of the queries refined by the later decoder layers; keyframes per budget:"]
+    lines += [f"  {count:4d}  {use['budgets'][name]}"
+              for name, count in use["keyframes_per_budget"].items()]
+    change = use.get("against_full")
+    if change:
+        lines.append("against full (every query refined, the same keyframes in this run): "
+                     + ", ".join(f"{k} {c['full'] + c['change']:.2f} ({c['change']:+.2f})"
+                                 for k, c in change.items()))
+    return "\n".join(lines)

@@ -18,7 +18,8 @@ from ..network.checkpoint import (compress_state, load_model, load_weights, read
 from ..network.precision import NODE_PRECISIONS, resolve_device, resolve_precision
 from ..network.visibility import DEFAULT_MIN_CLEAR
 from ..train.calibrate import DEFAULT_THRESHOLDS, calibrate_thresholds, fit_probabilities
-from .common import UserError, device, existing_file, infos_file, positive_int, probability
+from .common import (UserError, add_device_option, existing_file, infos_file, positive_int,
+                     probability)
 
 
 def add_arguments(parser):
@@ -36,8 +37,8 @@ def add_arguments(parser):
                       help="compile the online step ahead of time (AOTInductor) into this "
                            "file, for the node's compiled_step: a restart then skips the "
                            "compile (no default: this, --out or --onnx)")
-    parser.add_argument("--device", type=device, default="cpu",
-                        help="--aoti: the device it runs on (cpu, cuda, cuda:N or auto)")
+    add_device_option(parser, default="cpu",
+                      help="--aoti: the device it runs on (cpu, cuda, cuda:N or auto)")
     parser.add_argument("--precision", choices=NODE_PRECISIONS, default="auto",
                         help="--aoti: the node's precision parameter (default auto, as the "
                              "node's: bf16-encoder on a CPU with bf16 instructions, else fp32; "

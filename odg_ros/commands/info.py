@@ -7,16 +7,14 @@ import json
 from torch.utils.flop_counter import FlopCounterMode
 
 from ..rig import online_inputs
-from ..config import PRESET_NAMES, load_preset
+from ..config import load_preset
 from ..network import ODG
-from .common import preset
+from .common import add_json_option, add_preset_option
 
 
 def add_arguments(parser):
-    parser.add_argument("--preset", type=preset, default="odg_cpu",
-                        help=f"one of {', '.join(PRESET_NAMES)}, or a preset YAML file "
-                             "(default: odg_cpu, the shipped model's)")
-    parser.add_argument("--json", action="store_true", help="print JSON only")
+    add_preset_option(parser)
+    add_json_option(parser)
 
 
 def preset_info(cfg) -> dict:

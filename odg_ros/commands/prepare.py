@@ -34,9 +34,9 @@ def run(args) -> int:
 
     import numpy as np
 
-    from odg_ros.data.prepare import build_infos, save_infos
+    from ..data.prepare import build_infos, save_infos
     if args.layout == "waymo":
-        from odg_ros.data.prepare_waymo import build_waymo_infos
+        from ..data.prepare_waymo import build_waymo_infos
         try:
             infos, notes = build_waymo_infos(args.dataroot, args.occ, args.split,
                                              args.keyframe_interval, args.frame_hz)

@@ -11,20 +11,20 @@ from pathlib import Path
 
 import torch
 
-from ..config import PRESET_NAMES, load_preset
+from ..config import load_preset
 from ..data.batch import collate
 from ..train.census import PHASES, census_of_steps
 from ..train.trainer import Trainer, TrainOptions, training_renderer
-from .common import device, existing_file, infos_file, positive_int, preset
+from .common import (add_backbone_start_options, add_device_option, add_preset_option,
+                     add_render_pixels_option, infos_file, positive_int)
 
 
 def add_arguments(parser):
     parser.add_argument("what", choices=("train",), help="what to profile: a training step")
-    parser.add_argument("--preset", type=preset, default="odg_cpu",
-                        help=f"model preset ({', '.join(PRESET_NAMES)}) or a preset YAML file")
+    add_preset_option(parser)
     parser.add_argument("--data", required=True, type=infos_file,
                         help="training infos (odg prepare)")
-    parser.add_argument("--device", type=device, default="cpu", help="cpu, cuda or cuda:N")
+    add_device_option(parser, default="cpu")
     parser.add_argument("--cuda-paths", action="store_true",
                         help="take the code paths of a CUDA run and count every op as a GPU op "
                              "(the census of a GPU step, taken on the CPU)")
@@ -38,12 +38,8 @@ def add_arguments(parser):
     parser.add_argument("--renderer", choices=("torch", "gsplat"), default="torch",
                         help="the render loss's renderer: ours, or gsplat's (with --cuda-paths "
                              "its CUDA kernels are counted by stand-ins; on CUDA they run)")
-    parser.add_argument("--render-pixels", type=positive_int, default=512,
-                        help="LiDAR pixels rendered per camera, as for odg train")
-    parser.add_argument("--backbone-weights", type=existing_file,
-                        help="backbone checkpoint, as for odg train (default: none)")
-    parser.add_argument("--backbone-from-scratch", action="store_true",
-                        help="as for odg train: unfreeze a preset's frozen backbone")
+    add_render_pixels_option(parser)
+    add_backbone_start_options(parser)
     parser.add_argument("--steps", type=positive_int, default=1,
                         help="counted steps (after a warm-up)")
     parser.add_argument("--top", type=positive_int, default=12, help="source lines to list")

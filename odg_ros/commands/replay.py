@@ -44,9 +44,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args) -> int:
     if not args.network:
-        from odg_ros.ros.dds import use_localhost_dds
+        from ..ros.dds import use_localhost_dds
         use_localhost_dds()  # before rclpy is initialised
-    from odg_ros.ros.replay import replay
+    from ..ros.replay import replay
 
     def say(line: str) -> None:
         print(f"odg replay: {line}", file=sys.stderr, flush=True)

@@ -22,6 +22,7 @@ from ..metrics.miou import MIOU_CONVENTIONS
 from ..metrics.rayiou import LidarOrigins
 from ..metrics.score import (OccScore, format_table, load_scoring_infos, load_prediction,
                              plot_per_class, resolve_occ_root)
+from .common import add_json_option
 
 
 def add_arguments(parser) -> None:
@@ -36,8 +37,8 @@ def add_arguments(parser) -> None:
     parser.add_argument("--png", type=Path, default=None,
                         help="also write a per-class bar chart (IoU, RayIoU) to this PNG "
                              "(default: no chart)")
-    parser.add_argument("--json", action="store_true",
-                        help="print the scores as JSON (percent, NaN as null) instead of a table")
+    add_json_option(parser, help="print the scores as JSON (percent, NaN as null) instead of "
+                                 "a table")
 
 
 def add_miou_convention(parser) -> None:
@@ -48,7 +49,7 @@ def add_miou_convention(parser) -> None:
 
 
 def run(args) -> int:
-    result = score_split(args.pred, args.data, args.occ_root,     # errors: one line (cli.py)
+    result = score_split(args.pred, args.data, args.occ_root,     # errors: one line (commands/__init__.py)
                          args.miou_convention)
     if args.png is not None:
         plot_per_class(result, args.png)

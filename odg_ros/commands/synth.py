@@ -9,7 +9,7 @@ for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
 
 
 def add_arguments(parser) -> None:
-    from odg_ros.data.synth.generate import DEFAULT_IMAGE_HW
+    from ..data.synth.generate import DEFAULT_IMAGE_HW
 
     from .common import positive_float, positive_int
     parser.add_argument("--out", required=True,
@@ -37,13 +37,13 @@ def add_arguments(parser) -> None:
 
 
 def run(args) -> int:
-    from odg_ros.data.synth.city import SceneKind
-    from odg_ros.data.synth.generate import generate
+    from ..data.synth.city import SceneKind
+    from ..data.synth.generate import generate
     options = dict(scenes=args.scenes, seconds=args.seconds, seed=args.seed,
                    image_hw=tuple(args.image_size), version=args.version,
                    kind=SceneKind(args.traffic, args.roads))
     if args.layout == "waymo":
-        from odg_ros.data.synth.waymo_layout import generate_waymo
+        from ..data.synth.waymo_layout import generate_waymo
         summary = generate_waymo(args.out, **options)
         print(f"wrote {summary['split']['train']} training and {summary['split']['val']} "
               f"validation scenes in the Occ3D-Waymo layout to {args.out} in "

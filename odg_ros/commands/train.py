@@ -6,21 +6,22 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import sys
 import traceback
 from pathlib import Path
 
-from ..config import PRESET_NAMES, load_preset
+from ..config import load_preset
 from ..train.budget_heads import BudgetHeadTraining, train_budget_heads
 from ..train.trainer import Trainer, TrainOptions, end_distributed
-from .common import (config_overrides, device, existing_file, infos_file, nonnegative_int,
-                     positive_float, positive_int, preset)
+from .common import (add_backbone_start_options, add_device_option, add_preset_option,
+                     add_render_pixels_option, add_set_option, config_overrides, existing_file,
+                     infos_file, nonnegative_int, positive_float, positive_int)
 
 parse_overrides = config_overrides      # eval and the tools import it from here
 
 
 def add_arguments(parser):
-    parser.add_argument("--preset", type=preset, default="odg_cpu",
-                        help=f"model preset ({', '.join(PRESET_NAMES)}) or a preset YAML file")
+    add_preset_option(parser)
     parser.add_argument("--data", required=True, nargs="+", type=infos_file,
                         help="training infos (odg prepare); several files train together")
     parser.add_argument("--out", required=True, help="output dir: checkpoints, train_log.csv")
@@ -36,13 +37,11 @@ def add_arguments(parser):
                              "1.0 when it trains from scratch)")
     parser.add_argument("--workers", type=nonnegative_int, default=2,
                         help="data-loading processes per training process (0: in-process)")
-    parser.add_argument("--device", type=device, default="auto",
-                        help="auto (cuda when available), cpu, cuda or cuda:N")
+    add_device_option(parser)
     parser.add_argument("--seed", type=int, default=0, help="random seed")
     parser.add_argument("--no-render", action="store_true",
                         help="ablation: no Gaussian-splatting rendering supervision")
-    parser.add_argument("--render-pixels", type=positive_int, default=512,
-                        help="supervised LiDAR pixels per camera and step")
+    add_render_pixels_option(parser)
     parser.add_argument("--renderer", choices=("auto", "torch", "gsplat"), default="auto",
                         help="render loss (auto: gsplat on CUDA when installed, else ours): our "
                              "PyTorch renderer (any device), or gsplat's CUDA "
@@ -60,17 +59,9 @@ def add_arguments(parser):
     parser.add_argument("--compile", action="store_true",
                         help="torch.compile the model's forward (the first step compiles, "
                              "minutes for ODG-T; default: off, eager)")
-    parser.add_argument("--set", action="append", metavar="KEY=VALUE",
-                        help="model config override, repeatable, e.g. --set das_attention=false "
+    add_set_option(parser, help="model config override, repeatable, e.g. --set das_attention=false "
                              "(the keys of model/odg_cpu.yaml; default: the preset as it is)")
-    parser.add_argument("--backbone-weights", type=existing_file,
-                        help="ResNet checkpoint to start the backbone from: torchvision, timm, "
-                             "or mmdetection/mmdet3d (backbone.* / img_backbone.* keys, e.g. "
-                             "nuImages Cascade Mask R-CNN; default: none, which presets "
-                             "with frozen stages refuse)")
-    parser.add_argument("--backbone-from-scratch", action="store_true",
-                        help="no pretrained weights: unfreeze a preset's frozen stem/layer1 and "
-                             "train its BatchNorm statistics too")
+    add_backbone_start_options(parser)
     parser.add_argument("--init", type=existing_file,
                         help="start from this checkpoint's weights (default: fresh weights)")
     parser.add_argument("--checkpoint-every", type=positive_int, default=500,
@@ -179,7 +170,13 @@ def run(args) -> int:
     finally:
         end_distributed()
     if rank == 0:
+        out = Path(args.out)
+        summary["wrote"] = {"weights": str(out / "final.pt"), "resume": str(out / "latest.pt"),
+                            "log": str(out / "train_log.csv")}
         print(json.dumps(summary, indent=2))
+        print(f"odg train: wrote {out / 'final.pt'} (the trained model: odg eval / odg export "
+              f"--checkpoint), {out / 'latest.pt'} (odg train --resume) and "
+              f"{out / 'train_log.csv'}", file=sys.stderr)
     return 0
 
 

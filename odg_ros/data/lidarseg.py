@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from odg_ros.classes import OCC_CLASSES
+from ..classes import OCC_CLASSES
 
 LIDARSEG_CLASSES = (
     "noise", "animal", "human.pedestrian.adult", "human.pedestrian.child",

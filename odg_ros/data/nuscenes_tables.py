@@ -13,8 +13,8 @@ import os
 
 import numpy as np
 
-from odg_ros.classes import BOX_CLASSES
-from odg_ros.geometry import make_transform
+from ..classes import BOX_CLASSES
+from ..geometry import make_transform
 
 REQUIRED_TABLES = ("scene", "sample", "sample_data", "ego_pose", "calibrated_sensor", "sensor",
                    "sample_annotation", "instance", "category", "log")

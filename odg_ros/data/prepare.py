@@ -20,11 +20,11 @@ import pickle
 import numpy as np
 from tqdm import tqdm
 
-from odg_ros.classes import BOX_CLASSES
-from odg_ros.rig import CAMERA_NAMES
-from odg_ros.data.nuscenes_tables import CATEGORY_TO_BOX_CLASS, NuScenesTables, pose_matrix
-from odg_ros.geometry import invert_transform, quaternion_to_matrix
-from odg_ros.rotation import yaw_of
+from ..classes import BOX_CLASSES
+from ..geometry import invert_transform, quaternion_to_matrix
+from ..rig import CAMERA_NAMES
+from ..rotation import yaw_of
+from .nuscenes_tables import CATEGORY_TO_BOX_CLASS, NuScenesTables, pose_matrix
 
 MAX_SWEEP_SETS = 12        # safety cap; nuScenes has 5 camera sets between keyframes
 SET_TOLERANCE_US = 60_000  # cameras of one set lie within ~42 ms of CAM_FRONT (docs/architecture.md sec. 2)

@@ -36,7 +36,7 @@ import pickle
 import numpy as np
 from PIL import Image
 
-from odg_ros import geometry
+from .. import geometry
 
 WAYMO_CAMERA_NAMES = ("FRONT", "FRONT_LEFT", "FRONT_RIGHT", "SIDE_LEFT", "SIDE_RIGHT")
 IMAGE_FOLDER_OF_POSE = (0, 1, 3, 2, 4)

@@ -30,7 +30,7 @@ def bev_rgb(labels: np.ndarray, seen: np.ndarray | None = None,
     bool [X, Y, Z] (e.g. mask_camera): columns without a seen voxel are drawn darker.
     ``unknown`` bool [X, Y]: columns drawn in UNKNOWN_COLOR (the node's unknown space).
     """
-    from odg_ros.classes import FREE_LABEL, OCC_COLORS
+    from ..classes import FREE_LABEL, OCC_COLORS
 
     labels = np.asarray(labels)
     occupied = labels != FREE_LABEL
@@ -50,9 +50,9 @@ def bev_rgb(labels: np.ndarray, seen: np.ndarray | None = None,
 def unknown_columns(labels: np.ndarray, observed: np.ndarray) -> np.ndarray:
     """bool [X, Y]: the columns the node's ~/occupancy/bev marks unknown (-1) for this grid
     and observed mask, with its default height band."""
-    from odg_ros.config import load_preset
-    from odg_ros.bev import bev_fields
-    from odg_ros.online.parameters import load_schema
+    from ..bev import bev_fields
+    from ..config import load_preset
+    from ..online.parameters import load_schema
     cfg, schema = load_preset("odg_cpu"), load_schema()
     fields = bev_fields(np.asarray(labels), cfg.pc_range, cfg.voxel_size,
                         schema["bev_min_z"].default, schema["bev_max_z"].default, cfg.labels,
@@ -73,10 +73,10 @@ def draw_demo_png(path, meta: dict, index: int, pred: np.ndarray, report: dict,
     from matplotlib.patches import Patch
     from PIL import Image
 
-    from odg_ros.classes import FREE_LABEL, OCC_CLASSES, OCC_COLORS
-    from odg_ros.data.occ_io import load_occ
-    from odg_ros.data.synth.pictures import MOSAIC_ORDER
-    from odg_ros.metrics.score import resolve_occ_root
+    from ..classes import FREE_LABEL, OCC_CLASSES, OCC_COLORS
+    from ..data.occ_io import load_occ
+    from ..data.synth.pictures import MOSAIC_ORDER
+    from ..metrics.score import resolve_occ_root
 
     info = meta["infos"][index]
     dataroot = Path(meta["dataroot"])

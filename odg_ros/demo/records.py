@@ -33,8 +33,8 @@ class CameraSets:
 def bag_camera_sets(bag, slop_ns: int = SET_SLOP_NS) -> CameraSets:
     """Group the bag's camera images into sets around each CAM_FRONT image (nearest image of
     every other camera within ``slop_ns``), as the node's synchroniser will."""
-    from odg_ros.bags import layout
-    from odg_ros.bags.reader import iter_bag
+    from ..bags import layout
+    from ..bags.reader import iter_bag
 
     topics = {layout.image_topic(c): c for c in layout.CAMERA_NAMES}
     stamps = {c: [] for c in layout.CAMERA_NAMES}

@@ -26,9 +26,9 @@ def score_keyframes(meta: dict, grids: dict[int, np.ndarray], progress: bool = T
     Returns (OccScore.result() or None when no keyframe grid arrived, scored info indices,
     per-keyframe mIoU {info index: percent or None}).
     """
-    from odg_ros.data.occ_io import load_occ
-    from odg_ros.metrics.rayiou import LidarOrigins
-    from odg_ros.metrics.score import OccScore, resolve_occ_root
+    from ..data.occ_io import load_occ
+    from ..metrics.rayiou import LidarOrigins
+    from ..metrics.score import OccScore, resolve_occ_root
 
     infos, dataset = meta["infos"], meta["dataset"]
     root = resolve_occ_root(meta)
@@ -78,7 +78,7 @@ DROP_COUNTERS = ("stale_sets_dropped", "dropped_incomplete_sets")
 def summarize_session(record: SessionRecord, sets: CameraSets, meta: dict, score: dict | None,
                       scored: list[int], rate: float) -> dict:
     """The demo's numbers (see the package docstring), JSON-ready (None where unmeasured)."""
-    from odg_ros.online.errors import BAD_INPUT_KINDS
+    from ..online.errors import BAD_INPUT_KINDS
 
     diag = record.diagnostics
     reasons = {k: _counter(diag, k) for k in DROP_COUNTERS + BAD_INPUT_KINDS}

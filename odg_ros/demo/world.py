@@ -45,10 +45,10 @@ def build_demo_world(out: Path, spec: WorldSpec, progress: bool = True, log=prin
     and ``bag/``. ``out/world.json`` records the settings and is marked complete only after
     the bag is written, so an interrupted build is redone, and a different seed, length or
     image size rebuilds. Folders there that this function did not make are never deleted."""
-    from odg_ros.data.prepare import build_infos, save_infos
-    from odg_ros.data.synth.generate import generate
-    from odg_ros.bags.writer import write_scene_bag
-    from odg_ros.bags.nuscenes_source import NuScenesSensorTables
+    from ..bags.nuscenes_source import NuScenesSensorTables
+    from ..bags.writer import write_scene_bag
+    from ..data.prepare import build_infos, save_infos
+    from ..data.synth.generate import generate
 
     start = time.monotonic()
     out = Path(out)
@@ -105,7 +105,7 @@ def _read_marker(path: Path) -> dict | None:
 
 def resolve_checkpoint(given) -> Path:
     """``--checkpoint`` as given, else the shipped checkpoint (clear error if absent)."""
-    from odg_ros.resources import shipped_checkpoint
+    from ..resources import shipped_checkpoint
 
     if given is not None:
         path = Path(given)

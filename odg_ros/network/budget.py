@@ -51,6 +51,18 @@ class QueryBudget:
         return (min(self.static, cfg.static_queries) +
                 min(self.dynamic, cfg.dynamic_queries)) / cfg.num_queries
 
+    def describe(self, cfg) -> str:
+        """The budget in words, e.g. ``s120-d52: 120 of 200 (60 %) static queries, 52 of 100
+        (52 %) dynamic, 57 % of all``."""
+        def share(kept: int, total: int) -> str:
+            kept = min(kept, total)
+            return f"{kept} of {total}" + (f" ({100 * kept / total:.0f} %)" if total else "")
+        if self.is_full(cfg.static_queries, cfg.dynamic_queries):
+            return f"{self.name}: every query (full)"
+        return (f"{self.name}: {share(self.static, cfg.static_queries)} static queries, "
+                f"{share(self.dynamic, cfg.dynamic_queries)} dynamic, "
+                f"{100 * self.refined_fraction(cfg):.0f} % of all")
+
 
 def budget_of(cfg, static_fraction: float, dynamic_fraction: float | None = None
               ) -> QueryBudget:
@@ -186,12 +198,6 @@ def gather_queries(t: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
     """t [B, Q, ...], index [B, Q'] -> t[b, index[b]] [B, Q', ...] (a static-shape gather)."""
     view = index.view(*index.shape, *([1] * (t.dim() - 2)))
     return t.gather(1, view.expand(-1, -1, *t.shape[2:]))
-
-
-def scatter_queries(full: torch.Tensor, index: torch.Tensor, part: torch.Tensor):
-    """A copy of ``full`` [B, Q, ...] with rows ``index`` [B, Q'] replaced by ``part``."""
-    view = index.view(*index.shape, *([1] * (full.dim() - 2)))
-    return full.scatter(1, view.expand(-1, -1, *full.shape[2:]), part)
 
 
 @torch.no_grad()

@@ -27,8 +27,6 @@ scores (score x 255, 0 for free) and has no hazard.
 """
 from __future__ import annotations
 
-import math
-
 import torch
 from torch import nn
 

@@ -24,12 +24,6 @@ CLOUD_DTYPE = np.dtype({"names": ["x", "y", "z", "label"],
                         "offsets": [0, 4, 8, 12], "itemsize": 16})
 
 
-
-def voxel_centres(indices: np.ndarray, pc_range, voxel_size: float) -> np.ndarray:
-    """int [M, 3] voxel indices -> float32 [M, 3] centres (metres, grid frame)."""
-    return ((indices + 0.5) * voxel_size + np.asarray(pc_range[:3])).astype(np.float32)
-
-
 def voxel_grid_fields(grid: np.ndarray, confidence: np.ndarray | None, pc_range,
                       voxel_size: float, labels: OccLabels = NUSCENES_LABELS,
                       observed: np.ndarray | None = None) -> dict:

@@ -98,10 +98,6 @@ class PoseBuffer:
         self._suspects.clear()
 
     @property
-    def newest_stamp(self) -> float | None:
-        return self._stamps[-1] if self._stamps else None
-
-    @property
     def span(self) -> tuple[float, float] | None:
         return (self._stamps[0], self._stamps[-1]) if self._stamps else None
 

@@ -23,7 +23,7 @@ import torch
 from ..config import ModelConfig
 from ..geometry import invert_projections
 from ..network.postprocess import box_dicts
-from ..network.precision import precision_context, resolve_precision
+from ..network.precision import resolve_precision
 from ..network.budget import QueryBudget, budget_ladder, budget_of
 from .budget_policy import BudgetPolicy
 from .history import Frame, FrameHistory, history_geometry

@@ -195,21 +195,10 @@ def _check_scenes(scenes, cam_from_ego, intrinsics, pixels) -> None:
                              f"{first[0].device} with {first[4].shape[1]}")
 
 
-def checked_gaussians(means, scales, rotations, opacities, features, cam_from_ego, intrinsics,
-                      pixels, image_hw, near, tile_size):
-    """What every renderer does first: clear errors for malformed input (one host read),
-    half-precision Gaussians in float32. Returns ((H, W), (means, scales, rotations,
-    opacities, features))."""
-    hw, gaussians, checks = _gaussians_and_checks(means, scales, rotations, opacities, features,
-                                                  cam_from_ego, intrinsics, pixels, image_hw,
-                                                  near, tile_size)
-    _raise_failed(checks, torch.stack([flag for _, flag in checks]).tolist())
-    return hw, gaussians
-
-
 def _gaussians_and_checks(means, scales, rotations, opacities, features, cam_from_ego,
                           intrinsics, pixels, image_hw, near, tile_size):
-    """checked_gaussians with the value checks returned unread (as in _check_inputs)."""
+    """Clear errors for malformed input and half-precision Gaussians in float32, with the
+    value checks returned unread (as in _check_inputs)."""
     height, width, checks = _check_inputs(means, scales, rotations, opacities, features,
                                           cam_from_ego, intrinsics, pixels, image_hw, near,
                                           tile_size)

@@ -19,7 +19,7 @@ from __future__ import annotations
 import os
 from collections.abc import Mapping
 
-from odg_ros.resources import resource_path
+from ..resources import resource_path
 
 PROFILE_RELATIVE_PATH = "config/fastdds_localhost.xml"
 

@@ -27,11 +27,11 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from odg_ros.demo import DemoError
-from odg_ros.demo.records import CameraSets, ReceivedGrid, SessionRecord
-from odg_ros.resources import resource_path
-from odg_ros.bags import layout
-from odg_ros.ros.dds import localhost_dds_env, use_localhost_dds
+from ..bags import layout
+from ..demo import DemoError
+from ..demo.records import CameraSets, ReceivedGrid, SessionRecord
+from ..resources import resource_path
+from .dds import localhost_dds_env, use_localhost_dds
 
 NODE_NAME = "odg_node"                 # pinned on the node's command line (-r __node:=...)
 NODE = f"/{NODE_NAME}"

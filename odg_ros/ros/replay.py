@@ -28,8 +28,8 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from odg_ros.bags import layout
-from odg_ros.bags.reader import Bag, find_bags, open_bag
+from ..bags import layout
+from ..bags.reader import Bag, find_bags, open_bag
 
 
 def message_class(msgtype: str):

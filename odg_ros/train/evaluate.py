@@ -145,6 +145,7 @@ class BudgetUse:
         self.fixed = None if self.policy is not None else budget
         self.infos, self.cfg = infos, cfg
         self.used: list[str] = []
+        self.described: dict[str, str] = {}
         self.refined: list[float] = []
         self._scene = self.current = None
 
@@ -163,15 +164,18 @@ class BudgetUse:
         """After the keyframe ran: count its budget, feed its needs to the policy."""
         cfg, budget = self.cfg, self.current
         self.used.append(budget.name)
+        self.described.setdefault(budget.name, budget.describe(cfg))
         self.refined.append(budget.refined_fraction(cfg))
         if self.policy is not None:
             self.policy.update(*output_needs(output, model, cfg))
 
     def result(self) -> dict:
+        """mode, mean_refined_fraction, keyframes_per_budget {name: keyframes} and
+        budgets {name: the budget in words (QueryBudget.describe)}."""
         counts = {name: self.used.count(name) for name in dict.fromkeys(self.used)}
         return {"mode": "auto" if self.policy is not None else self.fixed.name,
                 "mean_refined_fraction": round(float(np.mean(self.refined)), 4),
-                "keyframes_per_budget": counts}
+                "keyframes_per_budget": counts, "budgets": dict(self.described)}
 
 
 # the node's default BEV height band (bev_min_z, bev_max_z), metres in the grid frame
@@ -237,7 +241,8 @@ def evaluate(model, cfg, infos, occ_root=None, save_pred: str | None = None, dev
     ``network.budget.QueryBudget`` for every keyframe, or an ``online.budget_policy.
     BudgetPolicy`` (query_budget auto), or None (every query); the result then says which
     budgets ran (``query_budget``). decode_options go to ``ODG.decode``. The result also
-    says whether the grid was padded.
+    says whether the grid was padded and, with save_pred, where the predictions went
+    (``predictions``: folder, files).
 
     What a planner reads (metrics/planner.py), with the grid published as the node
     publishes it (``PublishedGrid``: visibility with ``min_clear``, the calibrated
@@ -251,7 +256,7 @@ def evaluate(model, cfg, infos, occ_root=None, save_pred: str | None = None, dev
     publish = PublishedGrid(cfg, device, min_clear)
     if save_pred:
         Path(save_pred).mkdir(parents=True, exist_ok=True)
-    use, overall, per_set = None, None, {}
+    use, overall, per_set, saved = None, None, {}, 0
     for name, split in sets.items():
         dataset = OccDataset(split, data_cfg, occ_root=occ_root, train=False)
         score = SetScore(dataset.dataset, cfg, rayiou, miou_convention)
@@ -279,6 +284,7 @@ def evaluate(model, cfg, infos, occ_root=None, save_pred: str | None = None, dev
             if save_pred:
                 np.savez_compressed(Path(save_pred) / f"{batch['token'][0]}.npz",
                                     semantics=grid)
+                saved += 1
             boxes = publish.boxes(output)
             for s in scores:
                 if s.boxes is not None:
@@ -303,4 +309,6 @@ def evaluate(model, cfg, infos, occ_root=None, save_pred: str | None = None, dev
                           for name, s in per_set.items()}
     if use is not None:
         result["query_budget"] = use.result()
+    if save_pred:
+        result["predictions"] = {"folder": str(save_pred), "files": saved}
     return result

@@ -175,7 +175,8 @@ def test_eval_overrides_reach_the_model(tiny_split, capsys, tmp_path):
     def occupied_voxels(threshold):
         out = tmp_path / str(threshold)
         assert main(args + ["--save-pred", str(out), "--set", f"score_threshold={threshold}"]) == 0
-        capsys.readouterr()
+        assert f"wrote 3 predictions (<token>.npz, for odg score --pred) to {out}" in \
+            capsys.readouterr().err
         return sum(int((np.load(f)["semantics"] != 17).sum()) for f in out.glob("*.npz"))
 
     # every point inside the grid counts at threshold 0, none at 1 (the highest allowed)
@@ -186,8 +187,9 @@ def test_eval_overrides_reach_the_model(tiny_split, capsys, tmp_path):
 
 
 def test_eval_reports_the_mean_query_budget(tiny_split, capsys, tmp_path):
-    """--query-budget: the result says how many queries were refined; a checkpoint whose
-    budget heads are untrained is one error line."""
+    """--query-budget: the result says how many queries were refined, names each budget in
+    words and gives the change against every query refined on the same keyframes; a
+    checkpoint whose budget heads are untrained is one error line."""
     from odg_ros.network.budget import budget_of
     data, checkpoint = tiny_split
     args = ["eval", "--data", str(data), "--no-rayiou", "--json"]
@@ -197,13 +199,24 @@ def test_eval_reports_the_mean_query_budget(tiny_split, capsys, tmp_path):
     model.decoder.budget_heads.set_trained(True)
     trained = tmp_path / "heads.pt"
     save_checkpoint(trained, model)
+    assert main(args + ["--checkpoint", str(trained), "--query-budget", "full"]) == 0
+    full = json.loads(capsys.readouterr().out)
+    assert "query_budget" not in full
     assert main(args + ["--checkpoint", str(trained), "--query-budget", "0.5"]) == 0
-    use = json.loads(capsys.readouterr().out)["query_budget"]
-    half = budget_of(cfg, 0.5)
+    result = json.loads(capsys.readouterr().out)
+    use, half = result["query_budget"], budget_of(cfg, 0.5)
+    change = use.pop("against_full")
     assert use == {"mode": half.name, "keyframes_per_budget": {half.name: 3},
-                   "mean_refined_fraction": round(half.refined_fraction(cfg), 4)}
+                   "mean_refined_fraction": round(half.refined_fraction(cfg), 4),
+                   "budgets": {half.name: half.describe(cfg)}}
+    assert f"{half.static} of {cfg.static_queries} (" in use["budgets"][half.name]
+    for metric in ("mIoU", "IoU_geometry"):          # the full run of the same call
+        assert change[metric] == {"full": full[metric],
+                                  "change": round(result[metric] - full[metric], 2)}
     assert main(args[:-1] + ["--checkpoint", str(trained), "--query-budget", "auto"]) == 0
-    assert "query budget auto: on average" in capsys.readouterr().out
+    text = capsys.readouterr().out
+    assert "query budget auto: on average" in text and "every query (full)" in text
+    assert "against full (every query refined, the same keyframes in this run): mIoU" in text
 
 
 def test_single_query_set_has_no_box_score(tmp_path):

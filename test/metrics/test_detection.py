@@ -62,12 +62,23 @@ def devkit_ap(split, label, threshold):
     return calc_ap(devkit_metric_data(split, label, threshold), 0.1, 0.1)
 
 
-@pytest.mark.parametrize("seed", range(4))
-def test_ap_matches_nuscenes_devkit(seed):
-    split = random_split(np.random.default_rng(seed))
+def scored(split) -> DetectionScore:
+    """A DetectionScore of every (pred, labels, scores, gt, gt_labels) sample of ``split``."""
     score = DetectionScore()
     for sample in split:
         score.add(*sample)
+    return score
+
+
+def scored_split(make, seed):
+    """(the split ``make`` draws from ``seed``, its DetectionScore)."""
+    split = make(np.random.default_rng(seed))
+    return split, scored(split)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_ap_matches_nuscenes_devkit(seed):
+    split, score = scored_split(random_split, seed)
     compared = 0
     for label in (0, 5, 8):
         for threshold in (0.5, 1.0, 2.0, 4.0):
@@ -93,9 +104,7 @@ def perfect(samples=3):
 
 
 def test_perfect_detections_score_100_and_absent_classes_are_none():
-    score = DetectionScore()
-    for sample in perfect():
-        score.add(*sample)
+    score = scored(perfect())
     result = score.result()
     assert result["mAP"] == 100.0
     assert result["per_class"]["car"]["AP@0.5"] == 100.0
@@ -220,10 +229,7 @@ def random_full_split(rng, samples=8, classes=(0, 5, 8, 9)):
 
 @pytest.mark.parametrize("seed", range(4))
 def test_tp_errors_match_nuscenes_devkit(seed):
-    split = random_full_split(np.random.default_rng(seed))
-    score = DetectionScore()
-    for sample in split:
-        score.add(*sample)
+    split, score = scored_split(random_full_split, seed)
     compared = 0
     for label in (0, 5, 8, 9):
         ours = score.class_tp_errors(label)

@@ -20,7 +20,7 @@ from odg_ros.render import render_cameras
 from odg_ros.rig import ring_ego2img
 
 from testing.hard_cases import all_finite
-from testing.helpers import tiny_config
+from testing.helpers import model_inputs, tiny_config
 from testing.losses import make_batch
 from testing.render import random_scene
 
@@ -51,15 +51,7 @@ def model_and_inputs():
     with torch.no_grad():
         for layer in model.decoder.layers:
             torch.nn.init.normal_(layer.boxes.reg[-1].weight, std=0.05, generator=box_weights)
-    frames = cfg.num_frames
-    g = torch.Generator().manual_seed(0)
-    H, W = cfg.image_size
-    images = torch.randn(1, frames, cfg.num_cams, 3, H, W, generator=g)
-    e2i = ring_ego2img(cfg.image_size, frames, cfg.num_cams, 1)
-    warp = torch.eye(4).repeat(1, frames, 1, 1)
-    warp[:, :, 0, 3] = torch.arange(frames) * 4.0
-    dt = torch.arange(frames, dtype=torch.float32)[None] * 0.5
-    return cfg, model, (images, e2i, warp, dt)
+    return cfg, model, model_inputs(cfg)
 
 
 def layer_errors(reference, output):

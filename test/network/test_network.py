@@ -258,9 +258,20 @@ def test_history_without_grad_gives_the_same_output_and_no_backbone_grad_from_th
             m.p = 0.0
         if isinstance(m, DaSAttention):
             m.dropout = 0.0
-    _, inputs = run(model, cfg, seed=5)
-    full = model(*inputs)
-    cheap = model(*inputs, history_grad=False)
-    torch.testing.assert_close(full.last.means, cheap.last.means, rtol=1e-4, atol=1e-4)
-    cheap.last.logits.sum().backward()
-    assert model.backbone.layer4[0].conv1.weight.grad is not None
+    _, (images, *geometry) = run(model, cfg, seed=5)
+    assert images.shape[1] > 1                          # a history to take gradients from
+    grads = {}
+    for history_grad in (True, False):
+        model.zero_grad(set_to_none=True)
+        frames = images.clone().requires_grad_(True)
+        out = model(frames, *geometry, history_grad=history_grad)
+        out.last.logits.sum().backward()
+        grads[history_grad] = (out.last.means.detach(), frames.grad,
+                               model.backbone.layer4[0].conv1.weight.grad)
+    (full, full_images, _), (cheap, cheap_images, cheap_backbone) = grads[True], grads[False]
+    torch.testing.assert_close(full, cheap, rtol=1e-4, atol=1e-4)
+    # the only way from the loss to a past frame's pixels is back through the backbone
+    assert full_images[:, 1:].abs().amax() > 0          # with history grad it flows there
+    assert cheap_images[:, 1:].abs().amax() == 0        # without, none from the past
+    assert cheap_images[:, 0].abs().amax() > 0          # the current frame still trains it
+    assert cheap_backbone is not None and cheap_backbone.abs().amax() > 0

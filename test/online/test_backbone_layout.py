@@ -7,7 +7,7 @@ import torch
 from torch.utils._python_dispatch import TorchDispatchMode
 
 from odg_ros.online.predictor import OnlinePredictor
-from test_online_predictor import make_model, make_sets
+from testing.online import make_model, make_sets
 
 aten = torch.ops.aten
 CONVERSIONS = {aten.clone.default, aten._to_copy.default, aten.contiguous.default,

@@ -11,8 +11,7 @@ import torch
 from odg_ros.network.budget import budget_ladder
 from odg_ros.online import predictor as predictor_module
 from odg_ros.online.predictor import OnlinePredictor
-from test_predictor_budget import budget_model
-from testing.online import RecordedGraph, make_model, make_sets
+from testing.online import RecordedGraph, budget_model, make_model, make_sets
 
 
 @pytest.fixture

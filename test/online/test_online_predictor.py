@@ -8,7 +8,7 @@ from testing.helpers import assert_layers_close, published_grid
 from odg_ros.geometry import ego_warp
 from odg_ros.online.predictor import OnlinePredictor
 from odg_ros.preprocess import normalize
-from testing.online import make_model, make_sets, raw_output
+from testing.online import make_model, make_sets, raw_output, stepped_predictor
 
 
 def offline(model, sets, index, num_frames):
@@ -50,11 +50,7 @@ def test_online_equals_offline_over_a_sequence():
 
 
 def test_history_reset_on_time_jump_gives_a_single_frame():
-    model, cfg = make_model()
-    sets = make_sets(cfg, 4)
-    predictor = OnlinePredictor(model, cfg, "cpu", max_gap=1.0)
-    for s in sets[:3]:
-        predictor.step(*s)
+    predictor, model, cfg, sets = stepped_predictor(3)
     # a set from the past (the bag looped): the decoder must see only that set
     looped = predictor.step(*sets[0])
     assert looped.num_frames == 1 and looped.history_reset == "time_backwards"

@@ -11,7 +11,8 @@ from odg_ros.network.postprocess import box_list, occupancy_grid
 from odg_ros.online.predictor import OnlinePredictor, resolve_mode
 from odg_ros.preprocess import normalize
 from testing.helpers import assert_layers_close, published_grid
-from testing.online import HostSyncCounter, make_model, make_sets, raw_output
+from testing.online import (HostSyncCounter, make_model, make_sets, raw_output,
+                            stepped_predictor)
 
 from testing import reference_postprocess
 
@@ -57,11 +58,7 @@ def test_static_step_equals_the_dynamic_ring_at_every_fill_level(capacity):
 
 
 def test_the_step_reads_nothing_back_and_copies_nothing_up():
-    model, cfg = make_model()
-    sets = make_sets(cfg, 4)
-    predictor = OnlinePredictor(model, cfg, "cpu", max_gap=1.0)
-    for s in sets[:2]:
-        predictor.step(*s)
+    predictor, model, cfg, sets = stepped_predictor(2)
     with torch.inference_mode(), HostSyncCounter() as counter:
         predictor.online_step(predictor._images, predictor._packed)
     assert counter.ops > 1000 and counter.syncs == []

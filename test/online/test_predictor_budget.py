@@ -11,16 +11,7 @@ from odg_ros.network.feature_ring import FeatureRing
 from odg_ros.online.predictor import OnlinePredictor
 from odg_ros.preprocess import normalize
 from testing.helpers import published_grid, tiny_config
-from testing.online import HostSyncCounter, make_sets
-
-
-def budget_model(need_threshold=0.0, **overrides):
-    """Trained-flagged random heads; no box passes its threshold (no object tracked)."""
-    cfg = tiny_config(score_threshold=0.0, box_score_threshold=1.0, **overrides)
-    torch.manual_seed(0)
-    model = ODG(cfg).eval()
-    model.decoder.budget_heads.set_trained(True, need_threshold)
-    return model, cfg
+from testing.online import HostSyncCounter, budget_model, make_sets
 
 
 def ring_outputs(model, cfg, sets, budget):

@@ -98,6 +98,22 @@ def check_invariants(result, scene):
     assert (depth >= -1e-12).all() and (depth <= alpha * zmax + ztol).all()
 
 
+def check_against_the_reference(scene, pixels, tol, depth_atol):
+    """The render of a float64 scene: its invariants, the long-double reference within ``tol``
+    (depth: absolute ``depth_atol``), and finite gradients of every output."""
+    result = render_scene(scene, pixels)
+    check_invariants(result, scene)
+    depth, features, alpha = reference_of(scene, pixels)
+    np.testing.assert_allclose(result.alpha.numpy(), alpha, atol=tol, rtol=tol)
+    np.testing.assert_allclose(result.features.numpy(), features, atol=tol, rtol=tol)
+    np.testing.assert_allclose(result.depth.numpy(), depth, atol=depth_atol, rtol=tol)
+    leaves = {n: t.clone().requires_grad_(True) for n, t in scene.items()}
+    out = render_scene(leaves, pixels)
+    loss = out.depth.sum() + out.features.square().sum() + out.alpha.sum()
+    grads = torch.autograd.grad(loss, list(leaves.values()), allow_unused=True)
+    assert all_finite(*grads)
+
+
 @HARD
 @given(gaussians=st.lists(gaussian, min_size=1, max_size=6), coincident=st.booleans(),
        first_opaque=st.booleans())
@@ -105,17 +121,7 @@ def test_random_extreme_scenes_match_the_long_double_reference(gaussians, coinci
                                                                first_opaque):
     scene = scene_tensors(gaussians, coincident, torch.float64, first_opaque)
     pixels = pixels_for(scene["means"], torch.float64)
-    result = render_scene(scene, pixels)
-    check_invariants(result, scene)
-    depth, features, alpha = reference_of(scene, pixels)
-    np.testing.assert_allclose(result.alpha.numpy(), alpha, atol=1e-8, rtol=1e-8)
-    np.testing.assert_allclose(result.depth.numpy(), depth, atol=1e-7, rtol=1e-8)
-    np.testing.assert_allclose(result.features.numpy(), features, atol=1e-8, rtol=1e-8)
-    leaves = {n: t.clone().requires_grad_(True) for n, t in scene.items()}
-    out = render_scene(leaves, pixels)
-    loss = out.depth.sum() + out.features.square().sum() + out.alpha.sum()
-    grads = torch.autograd.grad(loss, list(leaves.values()), allow_unused=True)
-    assert all_finite(*grads)
+    check_against_the_reference(scene, pixels, tol=1e-8, depth_atol=1e-7)
 
 
 @HARD
@@ -173,17 +179,7 @@ def test_thousands_of_gaussians_in_one_pixel(n, opacity, same_depth):
              "opacities": torch.full((n,), opacity, dtype=torch.float64),
              "features": torch.rand(n, 3, generator=g, dtype=torch.float64)}
     pixels = torch.tensor([[176.0, 64.0], [176.5, 64.5], [200.0, 80.0]], dtype=torch.float64)
-    result = render_scene(scene, pixels)
-    check_invariants(result, scene)
-    depth, features, alpha = reference_of(scene, pixels)
-    np.testing.assert_allclose(result.alpha.numpy(), alpha, atol=1e-9, rtol=1e-9)
-    np.testing.assert_allclose(result.features.numpy(), features, atol=1e-9, rtol=1e-9)
-    np.testing.assert_allclose(result.depth.numpy(), depth, atol=1e-8, rtol=1e-9)
-    leaves = {k: v.clone().requires_grad_(True) for k, v in scene.items()}
-    out = render_scene(leaves, pixels)
-    grads = torch.autograd.grad(out.depth.sum() + out.features.sum(), list(leaves.values()),
-                                allow_unused=True)
-    assert all_finite(*grads)
+    check_against_the_reference(scene, pixels, tol=1e-9, depth_atol=1e-8)
 
 
 @FEW

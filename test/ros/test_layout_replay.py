@@ -9,10 +9,8 @@ either published or dropped as stale (the model is slower than the cameras here)
 """
 from __future__ import annotations
 
-import signal
 import subprocess
 import sys
-import time
 
 import pytest
 
@@ -20,7 +18,7 @@ from odg_ros.bags.converters import CONVERTERS
 from odg_ros.bags.reader import bag_topics
 from odg_ros.online.errors import BAD_INPUT_KINDS
 from odg_ros.resources import resource_path
-from testing.helpers import write_tiny_checkpoint
+from testing.node_harness import checkpoint, spin_until, stop  # noqa: F401
 
 NAMESPACE = "/odg_layouts"
 NODE = f"{NAMESPACE}/odg_node"
@@ -42,21 +40,6 @@ LAYOUTS = {
     "nuscenes2bag": ("config/bags/nuscenes2bag.yaml", {"rig_file": "nuscenes2bag"}, [],
                      ("/{camera}/raw", "/tf")),
 }
-
-
-@pytest.fixture(scope="module")
-def checkpoint(tmp_path_factory):
-    return write_tiny_checkpoint(tmp_path_factory.mktemp("ckpt") / "tiny.pt")
-
-
-def stop(child, timeout=15):
-    if child.poll() is None:
-        child.send_signal(signal.SIGINT)
-        try:
-            child.wait(timeout=timeout)
-        except subprocess.TimeoutExpired:
-            child.kill()
-            child.wait()
 
 
 class Listener:
@@ -86,15 +69,7 @@ class Listener:
         return {kv.key: int(kv.value) for kv in self.status.values if kv.value.isdigit()}
 
     def spin_until(self, predicate, timeout, child=None, log=None) -> bool:
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            self.executor.spin_once(timeout_sec=0.05)
-            if predicate():
-                return True
-            if child is not None and child.poll() is not None:
-                raise AssertionError(f"node exited with {child.returncode}:\n"
-                                     f"{log.read_text()}")
-        return False
+        return spin_until(self.executor, predicate, timeout, child, log)
 
 
 def settled(listener, replay) -> bool:

@@ -19,8 +19,9 @@ import time
 import numpy as np
 import pytest
 
-from test_node import (CAMS, FAST, HW, OFFSETS, RIG, Harness, checkpoint, jpeg,  # noqa: F401
-                       pose_at, scaled_K, set_images, start_node, tf_transform)
+from testing.node_harness import (FAST, Harness, checkpoint, jpeg, pose_at,  # noqa: F401
+                                  start_node, tf_transform)
+from testing.online import CAMS, HW, OFFSETS, RIG, scaled_K, set_images
 
 KEYFRAME_GAPS = (0.5, 0.55, 0.5, 0.75, 0.5, 0.5, 0.5)    # 3.8 s
 # fast diagnostics; the default no-output timeout, which the tiny model's first set (seconds

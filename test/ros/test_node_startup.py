@@ -65,5 +65,8 @@ def test_a_node_that_failed_to_start_shuts_down_cleanly(ros_context, monkeypatch
     monkeypatch.setattr(node_module, "load_model", broken_load_model)
     with pytest.raises(RuntimeError, match="a bug while loading") as failure:
         node_module.OdgNode(context=ros_context)
-    ros_context.try_shutdown()
-    assert failure.value is not None
+    # the constructor's own error, raised where it happened, with no second one behind it
+    assert failure.type is RuntimeError and failure.traceback[-1].name == "broken_load_model"
+    assert failure.value.__context__ is None and failure.value.__cause__ is None
+    ros_context.try_shutdown()                  # destroys the half-built node: raises nothing
+    assert not ros_context.ok()

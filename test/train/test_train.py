@@ -491,6 +491,9 @@ def test_train_command_ends_its_process_group(split, tmp_path, monkeypatch, caps
         one_rank_group()
         assert cli_main(["train", "--data", str(split), "--out", str(tmp_path / "run"),
                          *tiny]) == 0
+        run = tmp_path / "run"
+        assert f"odg train: wrote {run / 'final.pt'} (the trained model" in \
+            capsys.readouterr().err and (run / "final.pt").is_file()
         assert not dist.is_initialized()
         one_rank_group()
         assert cli_main(["train", "--data", str(split), "--out", str(tmp_path / "failed"),

@@ -23,13 +23,13 @@ import numpy as np
 from PIL import Image
 from tqdm import tqdm
 
-from odg_ros.rig import CAMERA_NAMES
-from odg_ros.data.synth import occupancy, pictures, rig, sensors, shading
-from odg_ros.data.synth.city import SceneKind, build_world
-from odg_ros.data.synth.tables import Tables, link_chain, save_npz, token, visibility_token
-from odg_ros.data.synth.world import World
-from odg_ros.geometry import invert_transform, matrix_to_quaternion
-from odg_ros.rotation import yaw_to_quaternion
+from ...geometry import invert_transform, matrix_to_quaternion
+from ...rig import CAMERA_NAMES
+from ...rotation import yaw_to_quaternion
+from . import occupancy, pictures, rig, sensors, shading
+from .city import SceneKind, build_world
+from .tables import Tables, link_chain, save_npz, token, visibility_token
+from .world import World
 
 DEFAULT_IMAGE_HW = (198, 352)
 MASK_RAY_STEP = 0.006          # rad between the depth-map rays of mask_camera (~0.24 m at 40 m)

@@ -21,10 +21,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from odg_ros.classes import FREE_LABEL
-from odg_ros.data.synth.primitives import Primitives, contains
-from odg_ros.data.synth.world import GROUND_CLASS, World
-from odg_ros.geometry import invert_transform
+from ...classes import FREE_LABEL
+from ...geometry import invert_transform
+from .primitives import Primitives, contains
+from .world import GROUND_CLASS, World
 
 GRID_MIN = np.array([-40.0, -40.0, -1.0])
 GRID_MAX = np.array([40.0, 40.0, 5.4])

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from odg_ros.data.synth.primitives import BOX, ELLIPSOID, FRUSTUM, Primitives
+from .primitives import BOX, ELLIPSOID, FRUSTUM, Primitives
 
 SKY = -1
 GROUND = -2

@@ -12,8 +12,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from odg_ros.rig import CAMERA_NAMES
-from odg_ros.geometry import make_transform
+from ...geometry import make_transform
+from ...rig import CAMERA_NAMES
 
 NUSCENES_IMAGE_HW = (900, 1600)
 

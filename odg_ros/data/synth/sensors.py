@@ -3,9 +3,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from odg_ros.data.synth import rig
-from odg_ros.data.synth.primitives import Primitives
-from odg_ros.data.synth.raycast import Hits, cast, rect_pairs
+from . import rig
+from .primitives import Primitives
+from .raycast import Hits, cast, rect_pairs
 
 NEAR = 0.05
 # corner index pairs of the 12 edges of Primitives.corners() (corner k has bits x=k>>2, y=k>>1&1, z=k&1)
@@ -124,9 +124,9 @@ def lidar_points(world, prims: Primitives, hits: Hits, dirs_global, dirs_lidar, 
     azimuth column then beam; lidarseg index uint8 [N]; thing index int32 [N], -1 for stuff).
     Range noise sigma 2 cm; intensity from the material's reflectivity and incidence angle.
     """
-    from odg_ros.data.synth import materials as M
-    from odg_ros.data.synth.raycast import GROUND
-    from odg_ros.data.synth.world import GROUND_SEG, NO_PAINT
+    from . import materials as M
+    from .raycast import GROUND
+    from .world import GROUND_SEG, NO_PAINT
 
     n_el, n_az = len(rig.LIDAR_ELEVATIONS_DEG), rig.LIDAR_AZIMUTHS
     order = np.arange(n_el * n_az).reshape(n_el, n_az).T.ravel()   # column-major firing order

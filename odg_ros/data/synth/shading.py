@@ -8,10 +8,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from odg_ros.data.synth import materials as M
-from odg_ros.data.synth.primitives import Primitives
-from odg_ros.data.synth.raycast import GROUND, SKY, Hits, shadowed
-from odg_ros.data.synth.world import WHITE, YELLOW, World
+from . import materials as M
+from .primitives import Primitives
+from .raycast import GROUND, SKY, Hits, shadowed
+from .world import WHITE, YELLOW, World
 
 
 # -- deterministic value noise -----------------------------------------------------------------

@@ -10,10 +10,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from odg_ros.classes import OCC_CLASSES
-from odg_ros.data.lidarseg import lidarseg_index
-from odg_ros.data.synth import materials as M
-from odg_ros.data.synth.primitives import BOX, ELLIPSOID, FRUSTUM, Primitives, make
+from ...classes import OCC_CLASSES
+from ..lidarseg import lidarseg_index
+from . import materials as M
+from .primitives import BOX, ELLIPSOID, FRUSTUM, Primitives, make
 
 CATEGORY_TO_OCC = {
     "vehicle.car": "car", "vehicle.truck": "truck", "vehicle.bus.rigid": "bus",

@@ -10,7 +10,7 @@ import zipfile
 
 import numpy as np
 
-from odg_ros.data.lidarseg import LIDARSEG_CLASSES
+from ..lidarseg import LIDARSEG_CLASSES
 
 TABLES = ("category", "attribute", "visibility", "instance", "sensor", "calibrated_sensor", "ego_pose",
           "log", "scene", "sample", "sample_data", "sample_annotation", "map", "lidarseg")

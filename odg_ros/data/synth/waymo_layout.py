@@ -20,11 +20,11 @@ import tempfile
 
 import numpy as np
 
-from odg_ros.classes import OCC_CLASSES, WAYMO_OCC_CLASSES
-from odg_ros.data import occ_io
-from odg_ros.data.prepare import build_infos
-from odg_ros.data.prepare_waymo import WAYMO_CAMERA_NAMES, SPLITS
-from odg_ros.geometry import invert_transform
+from ...classes import OCC_CLASSES, WAYMO_OCC_CLASSES
+from ...geometry import invert_transform
+from .. import occ_io
+from ..prepare import build_infos
+from ..prepare_waymo import WAYMO_CAMERA_NAMES, SPLITS
 
 # Waymo camera (image folder order) <- synthetic nuScenes camera.
 SOURCE_CAMERA = {"FRONT": "CAM_FRONT", "FRONT_LEFT": "CAM_FRONT_LEFT",

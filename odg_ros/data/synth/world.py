@@ -10,11 +10,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from odg_ros.classes import OCC_CLASSES
-from odg_ros.data.synth import materials as M
-from odg_ros.data.synth.motion import Movers
-from odg_ros.data.synth.primitives import Primitives
-from odg_ros.data.synth.shapes import Shape
+from ...classes import OCC_CLASSES
+from . import materials as M
+from .motion import Movers
+from .primitives import Primitives
+from .shapes import Shape
 
 # ground material -> Occ3D class
 GROUND_CLASS = np.full(256, OCC_CLASSES.index("terrain"), np.uint8)

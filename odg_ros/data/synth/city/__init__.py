@@ -7,6 +7,6 @@ parked cars and construction zones (traffic.py) and pedestrians (pedestrians.py)
 free of collisions (collisions.py). scene.py builds one scene from these sections, of a
 ``SceneKind``: quiet, normal or dense traffic, in the city or on an open road.
 """
-from odg_ros.data.synth.city.scene import HELD_OUT, ROADS, TRAFFIC, SceneKind, build_world
+from .scene import HELD_OUT, ROADS, TRAFFIC, SceneKind, build_world
 
 __all__ = ["HELD_OUT", "ROADS", "TRAFFIC", "SceneKind", "build_world"]

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from odg_ros.data.synth.city.layout import Layout
-from odg_ros.data.synth.motion import Movers
+from ..motion import Movers
+from .layout import Layout
 
 
 def _circles(shape_wlh, xy, yaw):

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from odg_ros.data.synth.city.layout import Layout, lane_path, turn_pieces
-from odg_ros.data.synth.motion import Path, speed_profile
+from ..motion import Path, speed_profile
+from .layout import Layout, lane_path, turn_pieces
 
 
 def ego_speed_profile(rng, duration):

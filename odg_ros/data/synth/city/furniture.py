@@ -9,14 +9,14 @@ from __future__ import annotations
 
 import numpy as np
 
-from odg_ros.classes import OCC_CLASSES
-from odg_ros.data.lidarseg import lidarseg_index
-from odg_ros.data.synth import materials as M
-from odg_ros.data.synth import shapes
-from odg_ros.data.synth.city.layout import BORDER, Layout, Road
-from odg_ros.data.synth.motion import Path
-from odg_ros.data.synth.primitives import BOX, ELLIPSOID, FRUSTUM, make
-from odg_ros.data.synth.world import GroundMap
+from ....classes import OCC_CLASSES
+from ...lidarseg import lidarseg_index
+from .. import materials as M
+from .. import shapes
+from ..motion import Path
+from ..primitives import BOX, ELLIPSOID, FRUSTUM, make
+from ..world import GroundMap
+from .layout import BORDER, Layout, Road
 
 MANMADE, VEGETATION = OCC_CLASSES.index("manmade"), OCC_CLASSES.index("vegetation")
 SEG_MANMADE, SEG_VEGETATION = lidarseg_index("static.manmade"), lidarseg_index("static.vegetation")

@@ -10,7 +10,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from odg_ros.data.synth.motion import Path
+from ..motion import Path
 
 BORDER = 40.0   # metres the roads and the ground map reach past the layout's area
 

@@ -3,9 +3,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from odg_ros.data.synth import shapes
-from odg_ros.data.synth.city.layout import Layout, Road
-from odg_ros.data.synth.motion import Path, speed_profile
+from .. import shapes
+from ..motion import Path, speed_profile
+from .layout import Layout, Road
 
 
 def place_pedestrians(layout: Layout, rng, span, duration, near, density: float = 1.0):

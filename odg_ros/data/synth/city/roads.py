@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from odg_ros.data.synth import materials as M
-from odg_ros.data.synth.city.layout import Layout, Road, side
-from odg_ros.data.synth.world import NO_PAINT, WHITE, YELLOW, GroundMap
+from .. import materials as M
+from ..world import NO_PAINT, WHITE, YELLOW, GroundMap
+from .layout import Layout, Road, side
 
 
 def pave_roads(layout: Layout, ground: GroundMap, rng, near):

@@ -6,17 +6,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from odg_ros.data.synth.city.collisions import resolve_collisions
-from odg_ros.data.synth.city.ego import NearRoute, ego_route, ego_speed_profile
-from odg_ros.data.synth.city.furniture import (fill_blocks, fill_countryside,
-                                               place_street_furniture)
-from odg_ros.data.synth.city.layout import BORDER, Layout, plan_open_road, plan_roads
-from odg_ros.data.synth.city.pedestrians import place_pedestrians
-from odg_ros.data.synth.city.roads import pave_roads
-from odg_ros.data.synth.city.traffic import place_construction_zones, place_traffic
-from odg_ros.data.synth.motion import Movers
-from odg_ros.data.synth.primitives import Primitives
-from odg_ros.data.synth.world import GroundMap, Lighting, Thing, World
+from ..motion import Movers
+from ..primitives import Primitives
+from ..world import GroundMap, Lighting, Thing, World
+from .collisions import resolve_collisions
+from .ego import NearRoute, ego_route, ego_speed_profile
+from .furniture import fill_blocks, fill_countryside, place_street_furniture
+from .layout import BORDER, Layout, plan_open_road, plan_roads
+from .pedestrians import place_pedestrians
+from .roads import pave_roads
+from .traffic import place_construction_zones, place_traffic
 
 
 # how many road users a scene of each traffic class has, relative to the normal city

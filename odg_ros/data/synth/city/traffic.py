@@ -6,9 +6,9 @@ import itertools
 
 import numpy as np
 
-from odg_ros.data.synth import shapes
-from odg_ros.data.synth.city.layout import Layout, Road, lane_path, side, turn_pieces
-from odg_ros.data.synth.motion import Path, speed_profile
+from .. import shapes
+from ..motion import Path, speed_profile
+from .layout import Layout, Road, lane_path, side, turn_pieces
 
 VEHICLE_MIX = (("car", 0.60), ("truck", 0.09), ("bus", 0.07), ("semi", 0.06), ("motorcycle", 0.08),
                ("construction", 0.03), ("bicycle", 0.07))
