@@ -11,15 +11,24 @@ ResNet-18 at 32 x 88 over 2 frames and the decoder has 2 layers (ODG-T's first t
 keeps the compile short; the attention has ODG-T's sizes.
 
 Not run by default (ODG_FLEX_STEP_TEST=1, as the benchmarks' tests): it compiles for minutes
-on 2 cores, and Inductor 2.13 on the CPU has no FlexAttention template for the decoder's
-attention under autocast (its tau, computed in the graph from a bf16 projection, captured by
-the score_mod: "NoValidChoicesError"), so today it fails at the compile. On CUDA the same is
-checked by tools/flex_attention_check.py (part first of tools/gpu_checks.sh)."""
+on 2 cores. Inductor's CPU template for FlexAttention (PyTorch 2.11 and 2.13) reads the
+tensors a score function captures before it realises them, so a captured tensor that is still
+an unmaterialised expression (the centroids, a mean over one point; tau, cast from the bf16
+projection) fails the compile with "NoValidChoicesError". The CUDA lowering realises them
+first, so the fixture does the same before the CPU template runs (`realised_captures`); the
+step itself is compiled as it is. So one DaS layer compiles and matches SDPA in fp32 to bf16
+rounding (and is 2 off when the bias's sign is flipped). The whole step now compiles too,
+but on PyTorch 2.13 its compiled code aborts the process in a later fused CPU kernel (the
+grid's and boxes' post-processing), not yet understood: the test does not pass today. On
+CUDA the same is checked by tools/flex_attention_check.py (part first of
+tools/gpu_checks.sh)."""
 import os
 
 import numpy as np
 import pytest
 import torch
+from torch._inductor.kernel.flex import flex_attention as flex_lowering
+from torch._inductor.kernel.flex.common import maybe_realize
 
 from odg_ros.config import load_preset
 from odg_ros.network import ODG, das_attention
@@ -54,6 +63,16 @@ def outputs_of(step, images, packed):
     return labels.numpy().copy(), confidence.numpy().astype(int), boxes.float().numpy()
 
 
+def realised_captures(lower_cpu):
+    """Inductor's CPU FlexAttention lowering, with the score function's captured tensors
+    realised first, as the CUDA lowering does."""
+    def lower(query, key, value, subgraph, block_mask, scale, kernel_options, score_others,
+              mask_others):
+        return lower_cpu(query, key, value, subgraph, block_mask, scale, kernel_options,
+                         maybe_realize(list(score_others)), maybe_realize(list(mask_others)))
+    return lower
+
+
 @pytest.fixture(scope="module")
 def steps():
     """(fp32 eager SDPA, bf16 eager SDPA, bf16 compiled FlexAttention) outputs of two steps,
@@ -76,6 +95,7 @@ def steps():
     patch.setattr(das_attention, "use_flex_attention",
                   lambda query, training: not training and torch.compiler.is_compiling())
     patch.setattr(das_attention, "flex_das_attention", counted)
+    patch.setattr(flex_lowering, "lower_cpu", realised_captures(flex_lowering.lower_cpu))
     torch._dynamo.reset()
     try:
         compiled = torch.compile(flex, fullgraph=True, dynamic=False)
@@ -96,7 +116,8 @@ def agreement(a, b) -> float:
 
 def test_the_compiled_step_traced_flex_attention_at_odg_t_sizes(steps):
     _, traced, cfg = steps
-    assert len(traced) == cfg.num_layers              # every layer's attention, once
+    # every layer's attention, once per trace (Dynamo may trace the step more than once)
+    assert len(traced) >= cfg.num_layers and len(traced) % cfg.num_layers == 0, len(traced)
     assert all(tuple(s) == (1, cfg.num_heads, QUERIES, HEAD_DIM) for s in traced)
 
 
