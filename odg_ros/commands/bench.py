@@ -170,7 +170,7 @@ def run_step_command(args) -> int:
     for warning in slow:
         print(f"odg bench: {warning}", file=sys.stderr)
     if slow:
-        result["warning"] = "\n".join(slow)
+        result["warnings"] = slow
     if args.json:
         print(json.dumps(result, indent=2))
     else:
