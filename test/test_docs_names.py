@@ -44,8 +44,14 @@ def missing_paths(text: str, root: Path = ROOT) -> list[str]:
         path = match.group(1).rstrip(".")
         if PLACEHOLDER.search(text[match.start():match.end() + 1]) or path in RENAMED:
             continue
-        found += [p for p in expand(path) if not (root / p).exists()]
+        found += [p for p in expand(path) if not named_files(root / p)]
     return found
+
+
+def named_files(path: Path) -> bool:
+    """The path exists, or it is an output stem (``--out docs/results/planner``) whose files
+    (``planner.md``, ``planner_curve.png``) do."""
+    return path.exists() or any(path.parent.glob(path.name + ".*"))
 
 
 def _defines(source: str, name: str) -> bool:

@@ -333,7 +333,7 @@ def verdicts(summaries: list[dict], long_enough_s: float = 600.0,
     return out
 
 
-def plot(records: list[dict], path: Path) -> Path:
+def plot_soak(records: list[dict], path: Path) -> Path:
     """Resident memory and wall latency over time, one colour per run."""
     import matplotlib
     matplotlib.use("Agg")

@@ -33,7 +33,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="rosbag2 bags or folders of bags, looped in this order")
     parser.add_argument("--synthetic", type=Path, default=None, metavar="DIR",
                         help="loop synthetic scenes of three kinds (city, open road, dense "
-                             "traffic), made in DIR by odg synth + odg bag if not there yet")
+                             "traffic), made in DIR by odg synth + odg bag if not there yet "
+                             "(default: none; the BAG arguments are played)")
     parser.add_argument("--scene-seconds", type=positive_float, default=20.0,
                         help="length of each synthetic scene")
     parser.add_argument("--image-size", type=positive_int, nargs=2, default=None,
@@ -44,7 +45,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="one run: the replay rate and its wall-clock minutes; repeat "
                              "(default: 1 5, 2 5, 4 5; none with --restarts)")
     parser.add_argument("--params-file", default=None,
-                        help="the node's params file (e.g. config/bags/foxglove.yaml)")
+                        help="the node's params file (e.g. config/bags/foxglove.yaml; default: "
+                             "none, the node's defaults)")
     parser.add_argument("-p", "--param", action="append", default=[], metavar="NAME:=VALUE",
                         help="a node parameter; repeat")
     parser.add_argument("--topics", nargs="+", default=None, metavar="TOPIC",
@@ -67,11 +69,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
     parser.add_argument("--from-json", type=Path, default=None, metavar="JSON",
                         help="write the report again from an earlier soak's records "
-                             "(LOGS/DATE-soak-records.json; nothing is run)")
+                             "(LOGS/DATE-soak-records.json; nothing is run; default: none, a "
+                             "soak is run)")
 
 
 def run(args) -> int:
-    from odg_ros.ros.dds import use_localhost_dds
+    from ..ros.dds import use_localhost_dds
 
     if args.from_json is not None:
         document = json.loads(args.from_json.read_text())
@@ -86,7 +89,7 @@ def run(args) -> int:
         return 0
     bags = list(args.bags)
     if args.synthetic is not None:
-        from odg_ros.bench.soak import synthetic_scenes
+        from ..bench.soak import synthetic_scenes
         bags += synthetic_scenes(args.synthetic, args.scene_seconds, args.image_size,
                                  progress=not args.quiet)
     if not bags:
@@ -129,7 +132,7 @@ def run(args) -> int:
 def _one_run(bags, rate: float, minutes: float, node_args, args, logs: Path) -> dict:
     from tqdm import tqdm
 
-    from odg_ros.ros.soak import soak_run
+    from ..ros.soak import soak_run
 
     seconds = minutes * 60
     bar = tqdm(total=round(seconds), desc=f"soak {rate:g}x", unit="s", disable=args.quiet)
@@ -148,7 +151,7 @@ def _one_run(bags, rate: float, minutes: float, node_args, args, logs: Path) -> 
 
 
 def _restarts(bags, node_args, args, logs: Path) -> dict:
-    from odg_ros.ros.soak import restart_run
+    from ..ros.soak import restart_run
     print(f"odg soak: {args.restarts} restarts at 1x", file=sys.stderr, flush=True)
     try:
         return restart_run(bags, node_args, log_path=logs / "node_restarts.log",
@@ -162,7 +165,7 @@ def _node_parameter(args, name: str):
     """A parameter's value as the node gets it: -p, else the params file, else its default."""
     import yaml
 
-    from odg_ros.online.parameters import load_schema, params_file_parameters
+    from ..online.parameters import load_schema, params_file_parameters
     values = params_file_parameters(args.params_file) if args.params_file else {}
     for item in args.param:
         key, _, text = item.partition(":=")
@@ -173,7 +176,7 @@ def _node_parameter(args, name: str):
 def _reference_image(args) -> tuple[str, bool]:
     """The node's first camera's image topic (its stamp is the outputs'), and whether it
     is compressed. A relative topic is in the soak's node namespace."""
-    from odg_ros.ros.soak import NAMESPACE
+    from ..ros.soak import NAMESPACE
     camera = _node_parameter(args, "camera_names")[0]
     topic = _node_parameter(args, "image_topic").format(camera=camera)
     if not topic.startswith("/"):
@@ -203,14 +206,14 @@ def _save(out: Path, context: dict, records: list[dict], restarts: dict | None =
 def write_report(records: list[dict], context: dict, out: Path, warmup_s: float,
                  restart_record: dict | None = None) -> list[Path]:
     """The dated JSON (figures), PNG and Markdown report in ``out``."""
-    from odg_ros.bench.soak import plot, summarize, summarize_restarts, verdicts
+    from ..bench.soak import plot_soak, summarize, summarize_restarts, verdicts
 
     summaries = [summarize(r, warmup_s) for r in records]
     restarts = summarize_restarts(restart_record) if restart_record else None
     checks = verdicts(summaries, restarts=restarts)
     out.mkdir(parents=True, exist_ok=True)
     stem = out / f"{context['date']}-soak"
-    picture = plot(records, stem.with_suffix(".png"))
+    picture = plot_soak(records, stem.with_suffix(".png"))
     document = dict(context, targets=checks, runs=summaries, restarts=restarts)
     stem.with_suffix(".json").write_text(json.dumps(document, indent=1, default=str))
     stem.with_suffix(".md").write_text(markdown(summaries, checks, context, picture.name,

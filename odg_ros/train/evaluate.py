@@ -234,21 +234,15 @@ def evaluate(model, cfg, infos, occ_root=None, save_pred: str | None = None, dev
              budget=None, min_clear: float = DEFAULT_MIN_CLEAR, bev_band=BEV_BAND,
              **decode_options) -> dict:
     """infos: one split (a path or the loaded dict), or {name: split} of several (scene
-    classes), scored each and together (``sets``: the result of each by name; the rest of
-    the result is over all of them). limit: the first N keyframes of each split.
-    frames: history length fed to the model (<= cfg.num_frames; the model repeats the
-    oldest frame for the rest). miou_convention: see metrics/miou.py. budget: a
-    ``network.budget.QueryBudget`` for every keyframe, or an ``online.budget_policy.
-    BudgetPolicy`` (query_budget auto), or None (every query); the result then says which
-    budgets ran (``query_budget``). decode_options go to ``ODG.decode``. The result also
-    says whether the grid was padded and, with save_pred, where the predictions went
-    (``predictions``: folder, files).
-
-    What a planner reads (metrics/planner.py), with the grid published as the node
-    publishes it (``PublishedGrid``: visibility with ``min_clear``, the calibrated
-    confidence): ``visibility`` (against mask_camera, voxels and the BEV of height
-    ``bev_band``; beside it the same from the ground-truth grid, the method's ceiling),
-    ``confidence`` (expected calibration error, reliability) and ``stability`` (label flips
+    classes), scored each (``sets``) and together. limit: the first N keyframes of each.
+    frames: history length (<= cfg.num_frames; the oldest frame repeats for the rest).
+    miou_convention: metrics/miou.py. budget: a ``QueryBudget``, a ``BudgetPolicy``
+    (query_budget auto) or None (every query); ``query_budget`` then says which ran.
+    decode_options go to ``ODG.decode``. Also: whether the grid was padded, where
+    save_pred wrote (``predictions``), and what a planner reads of the grid as the node
+    publishes it (``PublishedGrid``, metrics/planner.py): ``visibility`` against
+    mask_camera (voxels, the BEV of height ``bev_band``, the ground-truth grid's beside
+    them as the ceiling), ``confidence`` (calibration error) and ``stability`` (label flips
     between consecutive keyframes at voxels static in the ground truth)."""
     named = isinstance(infos, dict) and "infos" not in infos
     sets = dict(infos) if named else {None: infos}
