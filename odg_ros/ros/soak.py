@@ -412,13 +412,16 @@ def restart_run(bags: Sequence[Path], node_args: Sequence[str], *, log_path: Pat
             session.node.kill()
             killed = time.monotonic()
             outputs, reports = len(watcher.outputs), len(watcher.diagnostics)
+            # the killed node's output count: the new node's reports start below it
+            killed_count = watcher.diagnostics[-1][3].get("outputs") if reports else None
             session.node = NodeProcess(session.node_args, session.namespace, log_path,
                                        session.env).start()
             started = session.node.started
             # the new node's first report (one of the killed node's may still come in)
-            _spin_until(watcher, lambda: _first_report(watcher, reports) is not None,
-                        timeout, "the restarted node's first diagnostics", session.node)
-            reports = _first_report(watcher, reports)
+            _spin_until(watcher, lambda: _first_report(watcher, reports, killed_count)
+                        is not None, timeout, "diagnostics from the restarted node",
+                        session.node)
+            reports = _first_report(watcher, reports, killed_count)
             up = watcher.diagnostics[reports][0]
             _spin_until(watcher, lambda: len(watcher.outputs) > outputs, timeout,
                         "the restarted node's first output", session.node)
@@ -435,10 +438,13 @@ def restart_run(bags: Sequence[Path], node_args: Sequence[str], *, log_path: Pat
     return record
 
 
-def _first_report(watcher: Watcher, after: int) -> int | None:
-    """The index of the first diagnostics report from ``after`` on with no output yet."""
+def _first_report(watcher: Watcher, after: int, killed_count: int | None) -> int | None:
+    """The index of the restarted node's first diagnostics report from ``after`` on: the
+    first that counts fewer outputs than the killed node had (one of the killed node's may
+    still come in; the new one may have published before its first report when loaded)."""
+    below = 1 if not killed_count else killed_count
     return next((i for i in range(after, len(watcher.diagnostics))
-                 if watcher.diagnostics[i][3].get("outputs", 1) == 0), None)
+                 if watcher.diagnostics[i][3].get("outputs", below) < below), None)
 
 
 def _spin_until(watcher: Watcher, done: Callable[[], bool], timeout: float, what: str,
