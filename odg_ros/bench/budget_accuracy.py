@@ -19,16 +19,16 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from odg_ros.data.batch import collate, to_device
-from odg_ros.data.dataset import OccDataset, load_infos_file
-from odg_ros.metrics.rayiou import LidarOrigins
-from odg_ros.metrics.score import OccScore
-from odg_ros.network.budget import budget_ladder, needed_queries
-from odg_ros.network.postprocess import box_list
-from odg_ros.online.budget_policy import BudgetPolicy
-from odg_ros.train import budget_heads as heads
-from odg_ros.train.evaluate import predicted_grid
-from odg_ros.bench.sweep import query_budget as smaller_query_set
+from ..data.batch import collate, to_device
+from ..data.dataset import OccDataset, load_infos_file
+from ..metrics.rayiou import LidarOrigins
+from ..metrics.score import OccScore
+from ..network.budget import budget_ladder, needed_queries
+from ..network.postprocess import box_list
+from ..online.budget_policy import BudgetPolicy
+from ..train import budget_heads as heads
+from ..train.evaluate import predicted_grid
+from .sweep import query_budget as smaller_query_set
 
 
 def scene_classes(infos_path) -> dict[str, dict]:

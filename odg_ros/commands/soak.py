@@ -71,7 +71,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args) -> int:
-    from odg_ros.ros.dds import use_localhost_dds
+    from ..ros.dds import use_localhost_dds
 
     if args.from_json is not None:
         document = json.loads(args.from_json.read_text())
@@ -86,7 +86,7 @@ def run(args) -> int:
         return 0
     bags = list(args.bags)
     if args.synthetic is not None:
-        from odg_ros.bench.soak import synthetic_scenes
+        from ..bench.soak import synthetic_scenes
         bags += synthetic_scenes(args.synthetic, args.scene_seconds, args.image_size,
                                  progress=not args.quiet)
     if not bags:
@@ -129,7 +129,7 @@ def run(args) -> int:
 def _one_run(bags, rate: float, minutes: float, node_args, args, logs: Path) -> dict:
     from tqdm import tqdm
 
-    from odg_ros.ros.soak import soak_run
+    from ..ros.soak import soak_run
 
     seconds = minutes * 60
     bar = tqdm(total=round(seconds), desc=f"soak {rate:g}x", unit="s", disable=args.quiet)
@@ -148,7 +148,7 @@ def _one_run(bags, rate: float, minutes: float, node_args, args, logs: Path) -> 
 
 
 def _restarts(bags, node_args, args, logs: Path) -> dict:
-    from odg_ros.ros.soak import restart_run
+    from ..ros.soak import restart_run
     print(f"odg soak: {args.restarts} restarts at 1x", file=sys.stderr, flush=True)
     try:
         return restart_run(bags, node_args, log_path=logs / "node_restarts.log",
@@ -162,7 +162,7 @@ def _node_parameter(args, name: str):
     """A parameter's value as the node gets it: -p, else the params file, else its default."""
     import yaml
 
-    from odg_ros.online.parameters import load_schema, params_file_parameters
+    from ..online.parameters import load_schema, params_file_parameters
     values = params_file_parameters(args.params_file) if args.params_file else {}
     for item in args.param:
         key, _, text = item.partition(":=")
@@ -173,7 +173,7 @@ def _node_parameter(args, name: str):
 def _reference_image(args) -> tuple[str, bool]:
     """The node's first camera's image topic (its stamp is the outputs'), and whether it
     is compressed. A relative topic is in the soak's node namespace."""
-    from odg_ros.ros.soak import NAMESPACE
+    from ..ros.soak import NAMESPACE
     camera = _node_parameter(args, "camera_names")[0]
     topic = _node_parameter(args, "image_topic").format(camera=camera)
     if not topic.startswith("/"):
@@ -203,7 +203,7 @@ def _save(out: Path, context: dict, records: list[dict], restarts: dict | None =
 def write_report(records: list[dict], context: dict, out: Path, warmup_s: float,
                  restart_record: dict | None = None) -> list[Path]:
     """The dated JSON (figures), PNG and Markdown report in ``out``."""
-    from odg_ros.bench.soak import plot, summarize, summarize_restarts, verdicts
+    from ..bench.soak import plot, summarize, summarize_restarts, verdicts
 
     summaries = [summarize(r, warmup_s) for r in records]
     restarts = summarize_restarts(restart_record) if restart_record else None
