@@ -38,7 +38,7 @@ import torch
 
 from odg_ros.config import load_preset
 from odg_ros.data.batch import collate, to_device
-from odg_ros.train.census import (
+from odg_ros.bench.census import (
     Census,
     CensusMode,
     batch_host_tensors,

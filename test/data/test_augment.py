@@ -233,7 +233,7 @@ def test_augmentation_never_waits_for_the_device(flip_probability):
     # with the CUDA paths forced every tensor counts as a device tensor, except those a CUDA
     # run keeps on the host: the render targets (to_device leaves them) and host draws
     from odg_ros.data.batch import collate, to_device
-    from odg_ros.train.census import Census, CensusMode, batch_host_tensors
+    from odg_ros.bench.census import Census, CensusMode, batch_host_tensors
     batch = to_device(collate([make_batch(0), make_batch(1)]), "cpu")
     augment_batch(batch, PC_RANGE, flip_probability=1.0)   # a first step makes the constants
     census = Census()

@@ -252,7 +252,7 @@ def test_min_clear_is_a_probability():
 
 
 def test_no_host_read_inside_it():
-    from odg_ros.train.census import Census, CensusMode
+    from odg_ros.bench.census import Census, CensusMode
     ego2img = forward_camera()[None]
     visibility = Visibility(SHAPE, PC_RANGE, 0.4, FREE, 0.8)
     args = (torch.from_numpy(ground().reshape(-1)), torch.tensor(ego2img, dtype=torch.float32),
