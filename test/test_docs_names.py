@@ -1,6 +1,6 @@
 """What the docs name exists: every repository path (``odg_ros/online/step.py``,
 ``config/odg.yaml``), every dotted module or module attribute (``odg_ros.network.budget``,
-``odg_ros.online.predictor.resolve_budget``), every ``odg`` subcommand and each of its
+``odg_ros.online.execution.resolve_budget``), every ``odg`` subcommand and each of its
 ``--options`` written in code in README.md and docs/ (the living docs, the results pages and
 the dated reports). A renamed file, a removed option or a moved function shows here instead
 of in a user's shell.

@@ -35,7 +35,8 @@ from ..config import ModelConfig
 from ..network import ODG
 from ..network.precision import resolve_precision
 from ..online.marks import LAYER_PARTS, STEP_STAGES, DecoderMarks, MarkRecorder
-from ..online.predictor import OnlinePredictor, resolve_mode
+from ..online.execution import resolve_mode
+from ..online.predictor import OnlinePredictor
 from ..rig import ring_ego2img
 
 # the node's parameters that shape its step and history (their defaults: the schema's)
