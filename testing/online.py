@@ -14,7 +14,7 @@ from odg_ros.geometry import make_transform
 from odg_ros.network import ODG
 from odg_ros.network.precision import precision_context
 from odg_ros.online.images import EncodedImage
-from odg_ros.online.rig import load_rig, set_ego2img
+from odg_ros.online.camera_calibration import load_rig, set_ego2img
 from odg_ros.preprocess import adjust_intrinsics
 from odg_ros.resources import resource_path
 from testing.helpers import tiny_config

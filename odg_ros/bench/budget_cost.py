@@ -20,7 +20,7 @@ import torch
 from torch.utils._python_dispatch import TorchDispatchMode
 from torch.utils.flop_counter import flop_registry, shape_wrapper
 
-from .step import (Variant, node_inputs, node_predictor, node_settings,
+from .step_timing import (Variant, node_inputs, node_predictor, node_settings,
                                 stage_summary, take_turns)
 from .sweep import query_budget
 from ..network.budget import budget_ladder

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import torch
 
-from ..config import load_preset
+from ..model_config import load_preset
 from ..data.batch import collate
 from ..bench.census import PHASES, census_of_steps
 from ..train.trainer import Trainer, TrainOptions, training_renderer

@@ -17,7 +17,7 @@ from typing import Callable
 
 import torch
 
-from ..config import ModelConfig
+from ..model_config import ModelConfig
 from ..training_phases import training_phase
 from ..transfer import upload
 from .box import box_loss, match_layers, matched_normaliser

@@ -40,7 +40,7 @@ from .mailbox import LatestMailbox
 from .pacing import DecodePacing
 from .poses import PoseBuffer
 from .predictor import OnlinePredictor
-from .rig import CameraCalibration, IntrinsicsRange, check_intrinsics, set_ego2img
+from .camera_calibration import CameraCalibration, IntrinsicsRange, check_intrinsics, set_ego2img
 from .sync import CameraSet, CameraSetSync
 from ..network.visibility import image_bounds
 from .waiting import FAILED, PENDING, READY, WaitingSets

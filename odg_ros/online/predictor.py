@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from ..config import ModelConfig
+from ..model_config import ModelConfig
 from ..geometry import invert_projections
 from ..network.postprocess import box_dicts
 from ..network.precision import resolve_precision

@@ -43,7 +43,7 @@ import torch.distributed as dist
 from torch.nn.parallel import DistributedDataParallel
 from tqdm import tqdm
 
-from ..config import ModelConfig
+from ..model_config import ModelConfig
 from ..data.augment import augment_batch
 from ..data.batch import collate, to_device
 from ..data.dataset import OccDataset, replay_history_draws

@@ -8,7 +8,7 @@ import torch
 from odg_ros.data.augment import (augment_batch, flip_sample, photometric_distortion,
                                   resize_crop_sample)
 from odg_ros.geometry import ego_to_image, invert_transform
-from odg_ros.rig import ring_cameras
+from odg_ros.nuscenes_cameras import ring_cameras
 
 HW = (48, 96)
 PC_RANGE = (-40.0, -40.0, -1.0, 40.0, 40.0, 5.4)
