@@ -62,7 +62,7 @@ TORCH211_TESTS := test/network/test_das_one_answer.py test/network/test_network.
 	test/online/test_graph_replay_standin.py test/online/test_predictor_budget.py \
 	test/online/test_online_predictor.py test/online/test_online_step.py \
 	test/online/test_onnx_export.py test/commands/test_export.py \
-	test/train/test_census_spellings.py test/tools/test_gpu_checks.py
+	test/bench/test_census_spellings.py test/tools/test_gpu_checks.py
 
 $(VENV_TORCH211)/.setup-done: Makefile setup.py
 	test -x $(VENV_TORCH211)/bin/python || $(TORCH211_PYTHON) -m venv $(VENV_TORCH211)

@@ -1,6 +1,6 @@
 """What the docs name exists: every repository path (``odg_ros/online/step.py``,
 ``config/odg.yaml``), every dotted module or module attribute (``odg_ros.network.budget``,
-``odg_ros.online.predictor.resolve_budget``), every ``odg`` subcommand and each of its
+``odg_ros.online.execution.resolve_budget``), every ``odg`` subcommand and each of its
 ``--options`` written in code in README.md and docs/ (the living docs, the results pages and
 the dated reports). A renamed file, a removed option or a moved function shows here instead
 of in a user's shell.
@@ -44,14 +44,10 @@ def missing_paths(text: str, root: Path = ROOT) -> list[str]:
         path = match.group(1).rstrip(".")
         if PLACEHOLDER.search(text[match.start():match.end() + 1]) or path in RENAMED:
             continue
-        found += [p for p in expand(path) if not named_files(root / p)]
+        # a path prefix of results (``--out docs/results/planner``) names its files
+        found += [p for p in expand(path) if not (root / p).exists()
+                  and not any((root / p).parent.glob((root / p).name + ".*"))]
     return found
-
-
-def named_files(path: Path) -> bool:
-    """The path exists, or it is an output stem (``--out docs/results/planner``) whose files
-    (``planner.md``, ``planner_curve.png``) do."""
-    return path.exists() or any(path.parent.glob(path.name + ".*"))
 
 
 def _defines(source: str, name: str) -> bool:
@@ -120,7 +116,7 @@ def test_what_the_docs_name_exists(doc):
 def test_a_stale_name_in_the_docs_is_caught():
     planted = ("The step (`odg_ros/benchmark.py`, `odg_ros/online/step.py`, "
                "`docs/results/census/odg_cpu.{txt,csv}`) runs `odg_ros.online.step.OnlineStep`, "
-               "`odg_ros.network.budget.scatter_queries`, odg_ros.demo.world.\n\n"
+               "`odg_ros.network.budget.scatter_queries`, odg_ros.demo.demo_world.\n\n"
                "```bash\nodg eval --checkpoint model/odg_cpu.pt --query-budget auto \\\n"
                "    --keyframes 8\nodg benchmark --json\n```\n"
                "and `odg bench --sweep --configs a.json`, `tools/<name>.py`, `odg_ros/*.py`.")

@@ -18,7 +18,7 @@ from odg_ros import geometry
 from odg_ros.network import ODG
 from odg_ros.network.sampling import (DEPTH_EPS, SpatioTemporalSampling, first_visible_camera,
                                       project_to_cameras, warp_points)
-from odg_ros.rig import ring_ego2img
+from odg_ros.nuscenes_cameras import ring_ego2img
 
 from testing.hard_cases import FEW, HARD, all_finite, log_uniform, rotation_matrix
 from testing.helpers import model_inputs as random_inputs
@@ -124,7 +124,7 @@ def test_rigid_mask_is_is_rigid_on_a_stack():
 @HARD
 @given(seed=st.integers(0, 2**32 - 1), far=st.floats(1.0, 1e7))
 def test_stacked_inverses_and_ego2img_equal_the_one_matrix_functions(seed, far):
-    from odg_ros.online.rig import set_ego2img
+    from odg_ros.online.camera_calibration import set_ego2img
     rng = np.random.default_rng(seed)
     poses = np.stack([geometry.make_transform(q, far * rng.uniform(-1, 1, 3))
                       for q in rng.normal(size=(7, 4))])

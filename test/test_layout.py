@@ -4,8 +4,9 @@ functions or classes share a name, no two functions share a body (a copy with ot
 still a copy), no function runs past ~80 lines without saying why, the package never imports
 the maintainer scripts (``tools/``) or the test helpers (``testing/``), every benchmark times
 the one step the node runs (``OnlinePredictor``), never an assembly of its parts; the package
-imports itself relatively, and tests share helpers through ``testing/``, never by importing
-another test module.
+imports itself relatively, tests share helpers through ``testing/``, never by importing
+another test module, and no two modules of the package share a file name (the commands,
+named after the ``odg`` subcommand each implements, aside).
 
 Each rule is checked by a function that takes the parsed package, so the tests below also
 plant a violation and see each rule catch it."""
@@ -145,6 +146,24 @@ def shared_public_names(modules: dict[str, ast.Module]) -> dict[str, list[str]]:
     return {n: places for n, places in where.items() if len(places) > 1}
 
 
+# a command module is named after its ``odg`` subcommand (commands/score.py: odg score), so
+# it may share the name of the module that does the work
+NAMED_AFTER_COMMANDS = "odg_ros.commands."
+MODULE_NAMES_ANYWHERE = {"__init__", "__main__"}
+
+
+def shared_module_names(module_names) -> dict[str, list[str]]:
+    """File name -> the modules of that name, where more than one module has it."""
+    where: dict[str, list[str]] = {}
+    for name in sorted(module_names):
+        path = PACKAGE.parent / (name.replace(".", "/") + ".py")
+        base = "__init__" if not path.exists() and (path.with_suffix("") / "__init__.py").exists() \
+            else name.rsplit(".", 1)[-1]
+        if base not in MODULE_NAMES_ANYWHERE and not name.startswith(NAMED_AFTER_COMMANDS):
+            where.setdefault(base, []).append(name)
+    return {base: names for base, names in where.items() if len(names) > 1}
+
+
 def long_functions(modules: dict[str, ast.Module]) -> list[tuple[int, str]]:
     """(lines, where) of every function longer than LONGEST_FUNCTION lines whose docstring
     does not say why it is long ("Long because" / "Long for")."""
@@ -246,7 +265,7 @@ def test_an_upward_import_or_a_library_import_of_a_tool_is_caught():
     planted = {("odg_ros.network.decoder", "odg_ros.online.step"),      # up
                ("odg_ros.train.trainer", "odg_ros.losses.criterion"),   # down: fine
                ("odg_ros.data.dataset", "odg_ros.metrics.score"),       # sibling
-               ("odg_ros.ros.node", "odg_ros.bench.step"),              # a tool, not from the
+               ("odg_ros.ros.node", "odg_ros.bench.step_timing"),              # a tool, not from the
                ("odg_ros.geometry", "odg_ros.network.odg")}             # demo session; base up
     problems = layering_violations(planted)
     assert len(problems) == 4 and not any("train.trainer" in p for p in problems), problems
@@ -268,6 +287,14 @@ def test_no_two_public_functions_or_classes_share_a_name(modules):
     planted = dict(modules, **{"odg_ros.extra": ast.parse("def build_world():\n    pass\n"),
                                "odg_ros.other": ast.parse("def build_world():\n    pass\n")})
     assert list(shared_public_names(planted)) == ["build_world"]
+
+
+def test_no_two_modules_share_a_file_name(modules):
+    assert shared_module_names(modules) == {}
+    planted = list(modules) + ["odg_ros.online.rig", "odg_ros.synth_extra.rig",
+                               "odg_ros.commands.soak_extra", "odg_ros.bench.soak_extra"]
+    assert shared_module_names(planted) == {"rig": ["odg_ros.online.rig",
+                                                    "odg_ros.synth_extra.rig"]}
 
 
 def test_no_function_is_long_without_saying_why(modules):
@@ -303,7 +330,7 @@ def parse_tools() -> dict[str, ast.Module]:
 def test_every_benchmark_times_the_nodes_own_step(modules):
     benchmarks = {**modules, **parse_tools()}
     assert {n for n in benchmarks if n.startswith(BENCHMARKS)} >= {
-        "odg_ros.bench.step", "odg_ros.bench.sweep", "odg_ros.bench.budget_cost"}
+        "odg_ros.bench.step_timing", "odg_ros.bench.sweep", "odg_ros.bench.budget_cost"}
     assert step_assemblies(benchmarks) == []
     assert set(COMPONENT_BENCHMARKS) <= set(benchmarks)
     planted = {"odg_ros.bench.fast": ast.parse(

@@ -155,6 +155,6 @@ def test_rviz_config_shows_the_node_outputs():
                       "Map": "/odg_node/occupancy/bev",
                       "MarkerArray": "/odg_node/objects/markers"}
     assert config["Global Options"]["Fixed Frame"] == load_schema()["base_frame"].default
-    node_source = (ROOT / "odg_ros/ros/messages.py").read_text()      # the node's Outputs
+    node_source = (ROOT / "odg_ros/ros/output_messages.py").read_text()      # the node's Outputs
     for topic in topics.values():
         assert f'"~/{topic.removeprefix("/odg_node/")}"' in node_source, topic

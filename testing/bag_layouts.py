@@ -39,11 +39,11 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from odg_ros.bags import messages as bag_messages
+from odg_ros.bags import bag_messages as bag_messages
 from odg_ros.bags.nuscenes_source import LIDAR_CHANNEL, SensorRecord
 from odg_ros.bags.writer import rosbags_qos, write_scene_bag
 from odg_ros.online.poses import interpolate_pose
-from odg_ros.rig import CAMERA_NAMES
+from odg_ros.nuscenes_cameras import CAMERA_NAMES
 
 LAYOUTS = ("odg", "foxglove", "chris7462", "nuscenes2bag")
 CAN_HZ = 50

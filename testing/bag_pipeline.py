@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from odg_ros.bags.messages import deserialize
+from odg_ros.bags.bag_messages import deserialize
 from odg_ros.bags.reader import open_bag
 from odg_ros.online import node_setup
 from odg_ros.online.errors import BadInput

@@ -2,7 +2,7 @@
 model inputs, a driving-like occupancy scene, and comparisons of outputs."""
 import pickle
 
-from odg_ros.config import load_preset
+from odg_ros.model_config import load_preset
 
 
 def tiny_config(**overrides):
@@ -20,7 +20,7 @@ def model_inputs(cfg, frames=None, seed=0, batch=1):
     apart -> (images, ego2img, ego_warp, time_delta), the model's positional inputs."""
     import torch
 
-    from odg_ros.rig import ring_ego2img
+    from odg_ros.nuscenes_cameras import ring_ego2img
     frames = frames or cfg.num_frames
     g = torch.Generator().manual_seed(seed)
     images = torch.randn(batch, frames, cfg.num_cams, 3, *cfg.image_size, generator=g)

@@ -7,7 +7,7 @@ import math
 import torch
 
 from odg_ros.classes import OCC_CLASS_WEIGHTS
-from odg_ros.config import ModelConfig
+from odg_ros.model_config import ModelConfig
 from odg_ros.losses.focal import sigmoid_focal_loss
 from odg_ros.network.outputs import LayerOutput, ODGOutput
 

@@ -4,7 +4,6 @@ its outputs, the ego path the inputs follow, and stopping and waiting on the pro
 from __future__ import annotations
 
 import io
-import signal
 import subprocess
 import sys
 import time
@@ -17,19 +16,14 @@ from PIL import Image as PILImage
 
 from odg_ros.geometry import make_transform
 from odg_ros.resources import resource_path
+from odg_ros.ros.soak_run import stop_process
 from testing.helpers import write_tiny_checkpoint
 from testing.online import CAMS, HW, OFFSETS, png, scaled_K, set_images
 
 
 def stop(child, timeout=15):
     """SIGINT, as ros2 launch stops a node; killed if it has not exited after ``timeout`` s."""
-    if child.poll() is None:
-        child.send_signal(signal.SIGINT)
-        try:
-            child.wait(timeout=timeout)
-        except subprocess.TimeoutExpired:
-            child.kill()
-            child.wait()
+    stop_process(child, timeout)
 
 
 def spin_until(executor, predicate, timeout, child=None, log=None) -> bool:

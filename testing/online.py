@@ -14,7 +14,7 @@ from odg_ros.geometry import make_transform
 from odg_ros.network import ODG
 from odg_ros.network.precision import precision_context
 from odg_ros.online.images import EncodedImage
-from odg_ros.online.rig import load_rig, set_ego2img
+from odg_ros.online.camera_calibration import load_rig, set_ego2img
 from odg_ros.preprocess import adjust_intrinsics
 from odg_ros.resources import resource_path
 from testing.helpers import tiny_config
@@ -171,7 +171,7 @@ class RecordedGraph:
     the function: a tensor that existed before the capture (a static input buffer, a weight,
     the feature ring's memory) is the very tensor of the capture, every later one is the
     replay's own, and the results are copied into the capture's output tensors. So, as on a
-    GPU, a buffer reassigned after the capture (``ring._memory = ...``, ``_packed = ...``) is
+    GPU, a buffer reassigned after the capture (``ring.use_memory(...)``, ``_packed = ...``) is
     neither read nor written by a replay, a Python value read during the capture (which
     budget, which slot) is frozen into the graph, an op that waits for the device fails the
     capture, and a result not copied out is overwritten by the next replay. Each instance is

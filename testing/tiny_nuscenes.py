@@ -14,7 +14,7 @@ import numpy as np
 from PIL import Image
 
 from odg_ros import geometry
-from odg_ros.rig import CAMERA_NAMES
+from odg_ros.nuscenes_cameras import CAMERA_NAMES
 
 VERSION = "v1.0-tiny"
 WIDTH, HEIGHT = 64, 36

@@ -8,7 +8,7 @@ from PIL import Image
 from odg_ros import geometry
 from odg_ros.classes import FREE_LABEL
 from odg_ros.data import lidar
-from odg_ros.rig import CAMERA_NAMES
+from odg_ros.nuscenes_cameras import CAMERA_NAMES
 
 IMAGE_HW = (90, 160)
 FOCAL, CX, CY = 100.0, 80.0, 45.0

@@ -27,7 +27,7 @@ from pathlib import Path
 
 import torch
 
-from odg_ros.config import load_preset
+from odg_ros.model_config import load_preset
 from odg_ros.preprocess import normalize
 from odg_ros.train import trainer as current
 

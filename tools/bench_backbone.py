@@ -22,7 +22,7 @@ from pathlib import Path
 
 import torch
 
-from odg_ros.config import load_preset
+from odg_ros.model_config import load_preset
 from odg_ros.network.backbone import ResNet, folded_for_inference
 from odg_ros.network.precision import half_dtype
 

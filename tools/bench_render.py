@@ -5,7 +5,7 @@ earlier revision of odg_ros/render/splat.py, in one process, interleaved, median
         [--chunk 1000000] [--repeats 12] [--scenes 1]
 
 Scene: six cameras around the ego, random Gaussians in a 20 x 20 x 4 m box, random pixels.
-Host syncs are counted with the CUDA paths forced (odg_ros.train.census); a smaller --chunk
+Host syncs are counted with the CUDA paths forced (odg_ros.bench.census); a smaller --chunk
 makes more depth batches. --scenes K renders K such scenes of their own Gaussians (as the
 render loss renders its decoder layers): in one render_scenes call where the code has it,
 else in K render_cameras calls.
@@ -19,7 +19,7 @@ import torch
 
 from tools.revision import module_at
 from odg_ros.render import splat
-from odg_ros.train.census import Census, CensusMode
+from odg_ros.bench.census import Census, CensusMode
 
 HEIGHT, WIDTH = 64, 176
 

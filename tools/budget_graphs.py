@@ -35,7 +35,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from odg_ros.config import load_preset
+from odg_ros.model_config import load_preset
 from odg_ros.network import ODG
 from odg_ros.network.budget import budget_ladder
 from odg_ros.network.precision import precision_context

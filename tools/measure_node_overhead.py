@@ -37,7 +37,7 @@ from odg_ros.geometry import make_transform
 from odg_ros.online.images import EncodedImage                     
 from odg_ros.online.pipeline import OnlinePipeline, PipelineSettings
 from odg_ros.online.predictor import OnlinePredictor               
-from odg_ros.online.rig import load_rig                            
+from odg_ros.online.camera_calibration import load_rig                            
 from odg_ros.resources import resource_path                        
 
 RIG = load_rig(resource_path("config/rig_nuscenes.yaml"))
@@ -95,7 +95,7 @@ def ros_publisher_self(cfg, stats):
     None where rclpy is not importable."""
     try:
         import rclpy
-        from odg_ros.ros import messages as messages_module
+        from odg_ros.ros import output_messages as messages_module
         from odg_ros.ros.dds import use_localhost_dds
     except ImportError as error:
         print(f"rclpy not importable ({error}): publish times packing only")

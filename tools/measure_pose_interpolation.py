@@ -38,7 +38,7 @@ import math
 import numpy as np
 from tqdm import tqdm
 
-from odg_ros.data.synth import rig
+from odg_ros.data.synth import sensor_rig
 from odg_ros.data.synth.city import SceneKind
 from odg_ros.data.synth.generate import camera_time, keyframe_time, scene_world
 from odg_ros.geometry import invert_transform
@@ -153,7 +153,7 @@ def main(argv=None) -> int:
     parser.add_argument("--json", help="write the summary here")
     parser.add_argument("--plot", help="draw p50 / p95 per gap into this PNG")
     args = parser.parse_args(argv)
-    cameras = rig.cameras()
+    cameras = sensor_rig.cameras()
     results, rejected = {}, {}
     jobs = [(roads, index) for roads in args.roads for index in range(args.scenes)]
     pooled = {(roads, gap, subset): {m: [] for m in METRICS} for roads in args.roads

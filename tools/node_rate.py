@@ -172,7 +172,7 @@ def main(argv=None) -> int:
         os.environ["OMP_NUM_THREADS"] = str(args.threads)
 
     from odg_ros.data.synth.generate import DEFAULT_IMAGE_HW
-    from odg_ros.demo.world import WorldSpec, build_demo_world, resolve_checkpoint
+    from odg_ros.demo.demo_world import WorldSpec, build_demo_world, resolve_checkpoint
 
     checkpoint = resolve_checkpoint(args.checkpoint)
     world = build_demo_world(args.out, WorldSpec(image_hw=tuple(DEFAULT_IMAGE_HW)), log=log)

@@ -11,7 +11,7 @@ import argparse
 import json
 import sys
 
-from odg_ros.bench.budget_plot import plot
+from odg_ros.bench.budget_plot import plot_budget_study
 
 
 def main(argv=None) -> int:
@@ -26,7 +26,7 @@ def main(argv=None) -> int:
             classes.update(json.load(f)["classes"])
     with open(args.profile) as f:
         profile = json.load(f)[0]
-    plot(classes, profile, args.out)
+    plot_budget_study(classes, profile, args.out)
     return 0
 
 

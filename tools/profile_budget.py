@@ -14,7 +14,7 @@ import sys
 import torch
 
 from odg_ros.bench.budget_cost import profile_preset, summary
-from odg_ros.config import load_preset
+from odg_ros.model_config import load_preset
 from odg_ros.network import ODG
 from odg_ros.network.checkpoint import load_model
 

@@ -36,9 +36,9 @@ from pathlib import Path
 
 import torch
 
-from odg_ros.config import load_preset
+from odg_ros.model_config import load_preset
 from odg_ros.data.batch import collate, to_device
-from odg_ros.train.census import (
+from odg_ros.bench.census import (
     Census,
     CensusMode,
     batch_host_tensors,

@@ -32,7 +32,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from odg_ros.config import load_preset
+from odg_ros.model_config import load_preset
 from odg_ros.data.dataset import OccDataset
 from odg_ros.network.visibility import DEFAULT_MIN_CLEAR, Visibility, image_bounds
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from ..rig import CAMERA_NAMES
+from ..nuscenes_cameras import CAMERA_NAMES
 
 
 @dataclass(frozen=True)

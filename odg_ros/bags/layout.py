@@ -19,7 +19,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from ..rig import CAMERA_NAMES
+from ..nuscenes_cameras import CAMERA_NAMES
 
 MAP_FRAME = "map"
 BASE_FRAME = "base_link"

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import geometry
-from ..rig import CAMERA_NAMES
+from ..nuscenes_cameras import CAMERA_NAMES
 from .layout import LIDAR_NAME
 
 LIDAR_CHANNEL = LIDAR_NAME

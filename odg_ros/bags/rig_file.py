@@ -14,7 +14,7 @@ import numpy as np
 from PIL import Image
 
 from .. import geometry
-from ..rig import CAMERA_NAMES
+from ..nuscenes_cameras import CAMERA_NAMES
 from .converters import Converter
 from .nuscenes_source import SensorRecord
 

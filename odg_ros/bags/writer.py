@@ -22,7 +22,7 @@ from tqdm import tqdm
 from .. import geometry
 from ..data.lidar import load_points
 from . import layout
-from .messages import (camera_info_message, compressed_image_message, ego_twists, odometry_message,
+from .bag_messages import (camera_info_message, compressed_image_message, ego_twists, odometry_message,
                        point_cloud_message, tf_message, transform_stamped, typestore)
 from .nuscenes_source import LIDAR_CHANNEL, SensorRecord
 

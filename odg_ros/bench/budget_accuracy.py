@@ -28,7 +28,7 @@ from ..network.postprocess import box_list
 from ..online.budget_policy import BudgetPolicy
 from ..train import budget_heads as heads
 from ..train.evaluate import predicted_grid
-from ..bench.sweep import query_budget as smaller_query_set
+from .sweep import query_budget as smaller_query_set
 
 
 def scene_classes(infos_path) -> dict[str, dict]:

@@ -20,12 +20,12 @@ import torch
 from torch.utils._python_dispatch import TorchDispatchMode
 from torch.utils.flop_counter import flop_registry, shape_wrapper
 
-from ..bench.step import (Variant, node_inputs, node_predictor, node_settings,
+from .step_timing import (Variant, node_inputs, node_predictor, node_settings,
                                 stage_summary, take_turns)
-from ..bench.sweep import query_budget
+from .sweep import query_budget
 from ..network.budget import budget_ladder
 from ..online.marks import LAYER_PARTS
-from ..train.census import Census, CensusMode
+from .census import Census, CensusMode
 
 aten = torch.ops.aten
 # decoder source files -> the part of a layer they hold (census lines are per file)

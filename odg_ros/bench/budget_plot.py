@@ -30,7 +30,7 @@ def auto_cost(profile: dict, refined: float) -> float:
     return float(np.interp(refined, *zip(*points)))
 
 
-def plot(classes: dict, profile: dict, out: str) -> None:
+def plot_budget_study(classes: dict, profile: dict, out: str) -> None:
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt

@@ -48,7 +48,7 @@ from tqdm import tqdm
 from ..network.precision import PRECISIONS
 from ..online.step import MODES
 from ..train.evaluate import add_box_list, dynamic_class_miou
-from .step import Variant, node_predictor, node_settings, peak_memory_mb
+from .step_timing import Variant, node_predictor, node_settings, peak_memory_mb
 
 SUBSETS = ("all", "quiet", "busy")
 
@@ -173,7 +173,7 @@ def is_checkpoint(model: str) -> bool:
 
 def model_config(checkpoint, preset: str | None):
     """The ModelConfig of ``checkpoint`` (its weights are not built), else of ``preset``."""
-    from ..config import ModelConfig, load_preset
+    from ..model_config import ModelConfig, load_preset
     if checkpoint is None:
         return load_preset(preset)
     payload = torch.load(checkpoint, map_location="cpu", weights_only=False)

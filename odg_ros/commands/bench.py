@@ -5,7 +5,7 @@
               [--no-visibility] [--data INFOS] [--compiled-step FILE.pt2] [--json]
     odg bench --sweep --data INFOS [--checkpoint CKPT] [--out DIR] [--limit N] [--configs ...]
 
-Both time ``OnlinePredictor.step``, what the node runs per camera set (odg_ros/bench/step.py,
+Both time ``OnlinePredictor.step``, what the node runs per camera set (odg_ros/bench/step_timing.py,
 odg_ros/bench/sweep.py), at the node's settings unless an option says otherwise.
 """
 from __future__ import annotations
@@ -146,7 +146,7 @@ def run(args) -> int:
 
 
 def run_step_command(args) -> int:
-    from ..bench.step import bench_node_step, data_camera_sets, node_settings
+    from ..bench.step_timing import bench_node_step, data_camera_sets, node_settings
     from ..network.precision import slow_precision_warning
     modes, precisions = _variants(args)
     settings = node_settings(query_budget=args.query_budget,

@@ -116,7 +116,7 @@ def infos_file(text: str) -> str:
 
 def preset(text: str) -> str:
     """A preset name (model/<name>.yaml) or the path of a preset YAML file."""
-    from ..config import PRESET_NAMES
+    from ..model_config import PRESET_NAMES
     if text in PRESET_NAMES or (Path(text).suffix in (".yaml", ".yml") and Path(text).is_file()):
         return text
     raise argparse.ArgumentTypeError(f"unknown preset {text!r}: one of "
@@ -162,7 +162,7 @@ def add_device_option(parser, default: str = "auto", help: str | None = None) ->
 
 
 def add_preset_option(parser, default: str | None = "odg_cpu", help: str | None = None) -> None:
-    from ..config import PRESET_NAMES
+    from ..model_config import PRESET_NAMES
     parser.add_argument("--preset", type=preset, default=default,
                         help=help or f"model preset ({', '.join(PRESET_NAMES)}) or a preset "
                                      "YAML file")

@@ -25,7 +25,7 @@ from pathlib import Path
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from ..demo.world import DEFAULT_OUT, DEFAULT_RATE, DEFAULT_SECONDS, DEFAULT_SEED
+    from ..demo.demo_world import DEFAULT_OUT, DEFAULT_RATE, DEFAULT_SECONDS, DEFAULT_SEED
 
     from .common import add_device_option, add_json_option, existing_file, positive_float, \
         positive_int
@@ -81,7 +81,7 @@ def _run(args, log) -> int:
     from ..demo.picture import draw_demo_png, pick_keyframe
     from ..demo.records import bag_camera_sets
     from ..demo.report import format_summary, score_keyframes, summarize_session, write_json
-    from ..demo.world import WorldSpec, build_demo_world, resolve_checkpoint
+    from ..demo.demo_world import WorldSpec, build_demo_world, resolve_checkpoint
 
     started = time.monotonic()
     out = args.out

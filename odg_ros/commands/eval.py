@@ -18,7 +18,7 @@ from ..metrics.score import format_table
 from ..network.checkpoint import load_model
 from ..network.precision import NODE_PRECISIONS, resolve_device, resolve_precision
 from ..network.visibility import DEFAULT_MIN_CLEAR
-from ..online.predictor import resolve_budget
+from ..online.execution import resolve_budget
 from ..train.evaluate import BEV_BAND, evaluate
 from .common import (UserError, add_device_option, add_json_option, add_set_option,
                      config_overrides, existing_dir, existing_file, infos_file, positive_int,

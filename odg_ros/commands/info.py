@@ -6,8 +6,8 @@ import json
 
 from torch.utils.flop_counter import FlopCounterMode
 
-from ..rig import online_inputs
-from ..config import load_preset
+from ..nuscenes_cameras import online_inputs
+from ..model_config import load_preset
 from ..network import ODG
 from .common import add_json_option, add_preset_option
 

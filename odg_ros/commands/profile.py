@@ -1,5 +1,5 @@
 """``odg profile train --preset P --data INFOS [--cuda-paths]``: the ops a training step
-launches and the host syncs it makes, by phase and by source line (odg_ros/train/census.py);
+launches and the host syncs it makes, by phase and by source line (odg_ros/bench/census.py);
 on a GPU also the kernel time against the wall time of a step."""
 from __future__ import annotations
 
@@ -11,9 +11,9 @@ from pathlib import Path
 
 import torch
 
-from ..config import load_preset
+from ..model_config import load_preset
 from ..data.batch import collate
-from ..train.census import PHASES, census_of_steps
+from ..bench.census import PHASES, census_of_steps
 from ..train.trainer import Trainer, TrainOptions, training_renderer
 from .common import (add_backbone_start_options, add_device_option, add_preset_option,
                      add_render_pixels_option, infos_file, positive_int)

@@ -89,7 +89,7 @@ def run(args) -> int:
         return 0
     bags = list(args.bags)
     if args.synthetic is not None:
-        from ..bench.soak import synthetic_scenes
+        from ..bench.soak_report import synthetic_scenes
         bags += synthetic_scenes(args.synthetic, args.scene_seconds, args.image_size,
                                  progress=not args.quiet)
     if not bags:
@@ -132,7 +132,7 @@ def run(args) -> int:
 def _one_run(bags, rate: float, minutes: float, node_args, args, logs: Path) -> dict:
     from tqdm import tqdm
 
-    from ..ros.soak import soak_run
+    from ..ros.soak_run import soak_run
 
     seconds = minutes * 60
     bar = tqdm(total=round(seconds), desc=f"soak {rate:g}x", unit="s", disable=args.quiet)
@@ -151,7 +151,7 @@ def _one_run(bags, rate: float, minutes: float, node_args, args, logs: Path) -> 
 
 
 def _restarts(bags, node_args, args, logs: Path) -> dict:
-    from ..ros.soak import restart_run
+    from ..ros.soak_run import restart_run
     print(f"odg soak: {args.restarts} restarts at 1x", file=sys.stderr, flush=True)
     try:
         return restart_run(bags, node_args, log_path=logs / "node_restarts.log",
@@ -176,7 +176,7 @@ def _node_parameter(args, name: str):
 def _reference_image(args) -> tuple[str, bool]:
     """The node's first camera's image topic (its stamp is the outputs'), and whether it
     is compressed. A relative topic is in the soak's node namespace."""
-    from ..ros.soak import NAMESPACE
+    from ..ros.soak_run import NAMESPACE
     camera = _node_parameter(args, "camera_names")[0]
     topic = _node_parameter(args, "image_topic").format(camera=camera)
     if not topic.startswith("/"):
@@ -206,7 +206,7 @@ def _save(out: Path, context: dict, records: list[dict], restarts: dict | None =
 def write_report(records: list[dict], context: dict, out: Path, warmup_s: float,
                  restart_record: dict | None = None) -> list[Path]:
     """The dated JSON (figures), PNG and Markdown report in ``out``."""
-    from ..bench.soak import plot_soak, summarize, summarize_restarts, verdicts
+    from ..bench.soak_report import plot_soak, summarize, summarize_restarts, verdicts
 
     summaries = [summarize(r, warmup_s) for r in records]
     restarts = summarize_restarts(restart_record) if restart_record else None

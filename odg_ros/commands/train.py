@@ -10,7 +10,7 @@ import sys
 import traceback
 from pathlib import Path
 
-from ..config import load_preset
+from ..model_config import load_preset
 from ..train.budget_heads import BudgetHeadTraining, train_budget_heads
 from ..train.trainer import Trainer, TrainOptions, end_distributed
 from .common import (add_backbone_start_options, add_device_option, add_preset_option,

@@ -51,8 +51,8 @@ import numpy as np
 import torch
 
 from .. import geometry, preprocess
-from ..config import ModelConfig
-from ..rig import CAMERA_NAMES
+from ..model_config import ModelConfig
+from ..nuscenes_cameras import CAMERA_NAMES
 from . import lidar, occ_io
 from .decode import read_image
 from .lidarseg import lidarseg_to_occ

@@ -22,7 +22,7 @@ from tqdm import tqdm
 
 from ..classes import BOX_CLASSES
 from ..geometry import invert_transform, quaternion_to_matrix
-from ..rig import CAMERA_NAMES
+from ..nuscenes_cameras import CAMERA_NAMES
 from ..rotation import yaw_of
 from .nuscenes_tables import CATEGORY_TO_BOX_CLASS, NuScenesTables, pose_matrix
 

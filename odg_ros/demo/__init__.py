@@ -2,7 +2,7 @@
 
 ``odg demo`` (odg_ros/commands/demo.py) runs::
 
-    world.py             odg synth (1 scene) -> odg prepare --split all -> odg bag synth
+    demo_world.py        odg synth (1 scene) -> odg prepare --split all -> odg bag synth
     ros/demo_session.py  odg_node (own process) + odg replay --clock (own process) + a
                          planner stand-in that receives every output (this process), into
                          records.py's SessionRecord

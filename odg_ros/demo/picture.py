@@ -51,7 +51,7 @@ def unknown_columns(labels: np.ndarray, observed: np.ndarray) -> np.ndarray:
     """bool [X, Y]: the columns the node's ~/occupancy/bev marks unknown (-1) for this grid
     and observed mask, with its default height band."""
     from ..bev import bev_fields
-    from ..config import load_preset
+    from ..model_config import load_preset
     from ..online.parameters import load_schema
     cfg, schema = load_preset("odg_cpu"), load_schema()
     fields = bev_fields(np.asarray(labels), cfg.pc_range, cfg.voxel_size,

@@ -17,7 +17,8 @@ from typing import Callable
 
 import torch
 
-from ..config import ModelConfig
+from ..model_config import ModelConfig
+from ..training_phases import training_phase
 from ..transfer import upload
 from .box import box_loss, match_layers, matched_normaliser
 from .chamfer import occupancy_loss, occupancy_target
@@ -71,12 +72,14 @@ class ODGCriterion:
                  "boxes_matched": 0, "nonfinite_match_costs": 0, "nonfinite_box_targets": 0,
                  "render_pixels": 0, "render_labelled_pixels": 0}
         if self.use_render:
-            render_inputs = self._render_inputs(batch, device)
+            with training_phase("render"):
+                render_inputs = self._render_inputs(batch, device)
         self._check_outputs(output, device)
         boxes = self._match_boxes(output, batch, device) if self.use_boxes else None
         rendered, targets_finite = None, torch.ones((), dtype=torch.bool, device=device)
         if self.use_render:
-            rendered, targets_finite = self._render(output, *render_inputs)
+            with training_phase("render"):
+                rendered, targets_finite = self._render(output, *render_inputs)
         losses = self._layer_losses(output, targets, boxes, rendered, stats)
         self._check_losses(losses, targets_finite, stats)
         self.last_stats = stats

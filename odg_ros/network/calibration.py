@@ -30,7 +30,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from ..config import HAZARD_RATES, check_calibration, rate_lengths  # noqa: F401
+from ..model_config import HAZARD_RATES, check_calibration, rate_lengths  # noqa: F401
 
 # the hazard's floor inside the free voxels' logistic map: log(0) would be -inf
 HAZARD_FLOOR = 1e-4

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import torch
 
-from ..config import ModelConfig, load_preset
+from ..model_config import ModelConfig, load_preset
 from .odg import ODG
 
 

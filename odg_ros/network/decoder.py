@@ -15,7 +15,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from ..config import ModelConfig
+from ..model_config import ModelConfig
 from .box_head import BoxEncoder, BoxHead
 from .budget import AFTER_LAYER, BudgetHeads, QueryBudget, gather_queries, ranked_queries
 from .das_attention import DaSAttention

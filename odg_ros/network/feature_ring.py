@@ -80,6 +80,17 @@ class FeatureRing:
         """L levels [capacity*B*G, c, N*(h+1), w] over every slot, filled or not."""
         return [camera_rows_view(memory) for memory in self._memory or []]
 
+    @property
+    def memory(self) -> list[torch.Tensor]:
+        """The storage of every level, L x [capacity*B*G, N*(h+1), w, c] (none before the
+        first push): what a compiled or exported step takes as inputs and writes in place."""
+        return list(self._memory or [])
+
+    def use_memory(self, memory: list[torch.Tensor]) -> None:
+        """Read and write ``memory`` (laid out as ``memory``) from now on: the compiled and
+        exported steps pass the ring's storage in as their inputs."""
+        self._memory = list(memory)
+
     def slots(self) -> list[int]:
         """Storage slot of each cached frame, newest first."""
         return [(self._head - t) % self.capacity for t in range(self._count)]

@@ -10,7 +10,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from ..config import ModelConfig
+from ..model_config import ModelConfig
 from .backbone import ResNet
 from .decoder import Decoder
 from .fpn import FPN

@@ -17,7 +17,7 @@ import numpy as np
 import torch
 
 from ..classes import BOX_CLASSES
-from ..config import ModelConfig
+from ..model_config import ModelConfig
 from .outputs import ODGOutput
 
 

@@ -48,7 +48,7 @@ class RingInputStep(nn.Module):
         self.step = step
 
     def forward(self, images: torch.Tensor, packed: torch.Tensor, *ring: torch.Tensor):
-        self.step.ring._memory = list(ring)
+        self.step.ring.use_memory(ring)
         return self.step(images, packed)
 
 
@@ -88,7 +88,7 @@ def export_artifact(model: nn.Module, cfg, path, capacity: int | None = None, de
     images = torch.zeros(cfg.num_cams, H, W, 3, dtype=torch.uint8, device=device)
     packed = torch.zeros(step.layout.size)
     step.layout.pack(packed.numpy(), 0.0, np.broadcast_to(np.eye(4), (k, 4, 4)), 0.0, 0, 0)
-    example = (images, packed.to(device), *step.ring._memory)
+    example = (images, packed.to(device), *step.ring.memory)
     with torch.no_grad():
         exported = torch.export.export(RingInputStep(step).eval(), example, strict=False)
         files = torch._inductor.aot_compile(exported.module(check_guards=False), example,

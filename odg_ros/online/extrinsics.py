@@ -29,7 +29,7 @@ import numpy as np
 
 from ..geometry import invert_transform
 from .errors import BadInput
-from .rig import Rig
+from .camera_calibration import Rig
 from .transforms import TransformBuffer
 
 SOURCES = ("auto", "rig", "tf")

@@ -10,14 +10,32 @@ import threading
 from typing import Any
 
 
-class LatestMailbox:
-    """Thread-safe: ``put`` from any thread, ``get`` from the worker."""
+class HandOff:
+    """What a hand-off between threads has: one condition, and a close that wakes the
+    consumer for good."""
 
     def __init__(self):
         self._condition = threading.Condition()
+        self._closed = False
+
+    def close(self) -> None:
+        """Wake the consumer for good (shutdown); later ``get`` calls return None at once."""
+        with self._condition:
+            self._closed = True
+            self._condition.notify_all()
+
+    @property
+    def closed(self) -> bool:
+        return self._closed
+
+
+class LatestMailbox(HandOff):
+    """Thread-safe: ``put`` from any thread, ``get`` from the worker."""
+
+    def __init__(self):
+        super().__init__()
         self._item: Any = None
         self._full = False
-        self._closed = False
         self.dropped = 0    # items replaced before the worker took them
         self.delivered = 0
 
@@ -41,13 +59,3 @@ class LatestMailbox:
             item, self._item, self._full = self._item, None, False
             self.delivered += 1
             return item
-
-    def close(self) -> None:
-        """Wake the worker for good (shutdown); later ``get`` calls return None at once."""
-        with self._condition:
-            self._closed = True
-            self._condition.notify_all()
-
-    @property
-    def closed(self) -> bool:
-        return self._closed

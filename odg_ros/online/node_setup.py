@@ -17,7 +17,7 @@ from .errors import BadInput
 from .extrinsics import CameraExtrinsics
 from .pipeline import OnlinePipeline, PipelineSettings
 from .predictor import OnlinePredictor
-from .rig import CameraCalibration, IntrinsicsRange, load_rig
+from .camera_calibration import CameraCalibration, IntrinsicsRange, load_rig
 from .transforms import TransformBuffer
 
 SHIPPED_RIG = "config/rig_nuscenes.yaml"

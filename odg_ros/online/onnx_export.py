@@ -117,7 +117,7 @@ class NamedInputStep(nn.Module):
         # current set replaces the newest frame; the step then writes slot 0
         source = (self.frames - (~replace_newest).long()).clamp(min=0)
         memory = [h.index_select(0, source) for h in history]
-        self.step.ring._memory = [m.flatten(0, 1) for m in memory]    # views: written in place
+        self.step.ring.use_memory([m.flatten(0, 1) for m in memory])    # views: written in place
         # time step t reads frame t, or the oldest in use where the history is shorter
         frame_index = torch.minimum(self.steps, history_length.clamp(1, k) - 1)
         parts = {"ego2img": ego2img, "ego_warp": ego_warp, "time_delta": time_delta,
@@ -147,7 +147,7 @@ def example_inputs(step: OnlineStep, seed: int = 0) -> dict[str, torch.Tensor]:
         "img2ego": torch.eye(4).expand(N, 4, 4).contiguous(),
         "image_bounds": torch.tensor([0.0, 0.0, W, H]).expand(N, 4).contiguous(),
     }
-    for name, m in zip(feature_names(len(step.ring._memory)), step.ring._memory):
+    for name, m in zip(feature_names(len(step.ring.memory)), step.ring.memory):
         inputs[name] = torch.randn(k, m.shape[0] // k, *m.shape[1:],
                                    generator=generator).to(m.dtype)
     return inputs
@@ -169,7 +169,7 @@ def export_onnx(model: nn.Module, cfg, path, capacity: int | None = None, opset:
     step = OnlineStep(model.eval(), cfg, k, "cpu", min_clear=min_clear).eval()
     named = NamedInputStep(step).eval()
     inputs = example_inputs(step)
-    levels = len(step.ring._memory)
+    levels = len(step.ring.memory)
     outputs = list(GRID_OUTPUTS) + feature_names(levels, "_out")
     # the math attention traces to plain ops: the CPU flash kernel's decomposition gives
     # strides its reshape cannot view

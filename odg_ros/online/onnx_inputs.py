@@ -36,7 +36,7 @@ import numpy as np
 from ..geometry import invert_projections, is_rigid
 from ..preprocess import adjust_intrinsics, image_bounds, resize_crop
 from .history import Frame, FrameHistory, history_geometry
-from .rig import IntrinsicsRange, check_intrinsics, set_ego2img
+from .camera_calibration import IntrinsicsRange, check_intrinsics, set_ego2img
 
 # the node's defaults (config/odg_node.schema.yaml: history_max_gap, max_speed,
 # history_interval); a test keeps them equal

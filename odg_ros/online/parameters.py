@@ -16,7 +16,7 @@ from pathlib import Path
 
 import yaml
 
-from ..config import preset_names
+from ..model_config import preset_names
 from ..resources import resource_path
 
 SCHEMA = "config/odg_node.schema.yaml"
@@ -234,7 +234,7 @@ def model_settings(schema: dict[str, Parameter] | None = None) -> dict[str, Para
     score threshold keeps the checkpoint's own)."""
     import dataclasses
 
-    from ..config import ModelConfig
+    from ..model_config import ModelConfig
     schema = load_schema() if schema is None else schema
     kinds = {"str": "string", "bool": "bool", "int": "int", "float": "float",
              "tuple[int, int]": "int_array", "tuple[int, ...]": "int_array",

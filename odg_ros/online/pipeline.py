@@ -40,7 +40,7 @@ from .mailbox import LatestMailbox
 from .pacing import DecodePacing
 from .poses import PoseBuffer
 from .predictor import OnlinePredictor
-from .rig import CameraCalibration, IntrinsicsRange, check_intrinsics, set_ego2img
+from .camera_calibration import CameraCalibration, IntrinsicsRange, check_intrinsics, set_ego2img
 from .sync import CameraSet, CameraSetSync
 from ..network.visibility import image_bounds
 from .waiting import FAILED, PENDING, READY, WaitingSets
@@ -140,7 +140,7 @@ class OnlinePipeline:
                                 max_interpolation_gap=settings.max_pose_gap,
                                 time_jump=settings.time_jump, max_speed=settings.max_speed,
                                 max_acceleration=settings.max_acceleration)
-        predictor.history.max_speed = settings.max_speed    # a teleport restarts the history
+        predictor.restart_above_speed(settings.max_speed)
         self.pose_lookup = pose_lookup if pose_lookup is not None else self._buffer_lookup
         self.sync = CameraSetSync(self.camera_names, settings.slop, time_jump=settings.time_jump)
         # complete sets, not decoded yet, waiting for their poses / extrinsics if need be

@@ -8,7 +8,7 @@ gives the same result as running the model offline over the same k sets
 (test_online_predictor.py), at the cost of one backbone pass per set instead of k.
 
 The device work of a step is one static-shape function (step.OnlineStep), run eagerly,
-compiled, or replayed as a CUDA graph (``compile``); the host packs the geometry into one
+compiled, or replayed as a CUDA graph (``compile``, execution.py); the host packs the geometry into one
 buffer, copies it and the images up, and reads the results back with one wait.
 """
 from __future__ import annotations
@@ -20,20 +20,16 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from ..config import ModelConfig
+from ..model_config import ModelConfig
 from ..geometry import invert_projections
 from ..network.postprocess import box_dicts
 from ..network.precision import resolve_precision
-from ..network.budget import QueryBudget, budget_ladder, budget_of
-from .budget_policy import BudgetPolicy
-from .history import Frame, FrameHistory, history_geometry
-from .step import MODES, OnlineStep
 from ..network.visibility import DEFAULT_MIN_CLEAR
+from .execution import CudaGraphStep, load_compiled_step, resolve_budget, resolve_mode
+from .history import Frame, FrameHistory, history_geometry
+from .step import OnlineStep
 
 LOG = logging.getLogger(__name__)
-# compile="auto": graphs on CUDA; on the CPU the mode measured fastest for odg_cpu
-# (docs/compiled_node.md)
-CPU_DEFAULT_MODE = "eager"
 
 
 @dataclass
@@ -56,74 +52,6 @@ class Prediction:
     query_budget: str = "full"
     refined_fraction: float = 1.0
     observed: np.ndarray | None = None
-
-
-def resolve_mode(mode: str, device, compiled_step: bool = False) -> str:
-    """compile parameter -> eager | compiled | graphs ("auto": graphs on CUDA; with a
-    compiled step file, compiled on the CPU: that file is what runs)."""
-    device = torch.device(device)
-    if mode == "auto":
-        if device.type == "cuda":
-            return "graphs"
-        return "compiled" if compiled_step else CPU_DEFAULT_MODE
-    if mode not in MODES:
-        raise ValueError(f"compile {mode!r}: expected auto or one of {MODES}")
-    if mode == "eager" and compiled_step:
-        raise ValueError("compile eager runs no compiled step: leave compiled_step empty, "
-                         "or use compile auto, compiled or graphs")
-    if mode == "graphs" and device.type != "cuda":
-        raise ValueError("compile=graphs replays CUDA graphs: it needs a CUDA device "
-                         "(use compiled or eager on the CPU)")
-    return mode
-
-
-class CudaGraphStep:
-    """The step captured once into a CUDA graph, after two runs on a side stream (cuBLAS and
-    the allocator settle there). The graph reads the static input buffers it was captured
-    with, and ``replay()`` returns the output tensors of the capture, rewritten: a result
-    must be copied out before the next replay."""
-
-    def __init__(self, function, images: torch.Tensor, packed: torch.Tensor, device):
-        side = torch.cuda.Stream(device)
-        side.wait_stream(torch.cuda.current_stream(device))
-        with torch.cuda.stream(side):
-            for _ in range(2):
-                function(images, packed)
-        torch.cuda.current_stream(device).wait_stream(side)
-        self.graph = torch.cuda.CUDAGraph()
-        with torch.cuda.graph(self.graph):
-            self.outputs = function(images, packed)
-
-    def replay(self):
-        self.graph.replay()
-        return self.outputs
-
-
-def resolve_budget(query_budget, model, cfg):
-    """query_budget "full" | "auto" | a fraction in (0, 1] | one ``QueryBudget`` (a rung of
-    the ladder, bench/budget_cost.py) -> (the budgets the step runs, None standing for the
-    full one; the ``BudgetPolicy`` of "auto" or None)."""
-    if query_budget in ("full", None):
-        return [None], None
-    heads = model.decoder.budget_heads
-    if isinstance(query_budget, QueryBudget):
-        ladder, policy = [query_budget], None
-    elif query_budget == "auto":
-        ladder = budget_ladder(cfg)
-        policy = BudgetPolicy(ladder)
-    else:
-        try:
-            fraction = float(query_budget)
-        except (TypeError, ValueError):
-            raise ValueError(f"query_budget {query_budget!r}: expected full, auto or a "
-                             "fraction in (0, 1]") from None
-        if fraction == 1.0:
-            return [None], None
-        ladder, policy = [budget_of(cfg, fraction)], None
-    if not heads.is_trained:
-        raise ValueError(f"query_budget {query_budget}: this checkpoint's keep-score and skip "
-                         "heads are not trained; use query_budget full")
-    return ladder, policy
 
 
 class OnlinePredictor:
@@ -189,7 +117,9 @@ class OnlinePredictor:
         self._packed = self._packed_host.to(self.device)
         self._function = self.online_step
         if compiled_step is not None:
-            self._function = self._load_compiled_step(compiled_step, model, k, self.precision)
+            self._function = load_compiled_step(
+                compiled_step, self.online_step, model, self.precision, self.visibility,
+                self.min_clear, for_cuda_graph=self.mode == "graphs")
         elif self.mode != "eager":
             self._function = torch.compile(self.online_step, fullgraph=True, dynamic=False)
         self._graphs, self._host_outputs = {}, {}
@@ -199,18 +129,10 @@ class OnlinePredictor:
                  f" from {compiled_step}" if compiled_step is not None else "",
                  self.startup_seconds)
 
-    def _load_compiled_step(self, path, model, capacity: int, precision: str):
-        """The .pt2 step, checked against this predictor -> f(images, packed) on the ring."""
-        from .artifact import load_artifact, step_signature
-        compiled = load_artifact(path, step_signature(model, self.cfg, capacity, self.device,
-                                                      precision, self.visibility,
-                                                      self.min_clear),
-                                 for_cuda_graph=self.mode == "graphs")
-        ring = self.ring
-
-        def run(images, packed):
-            return compiled(images, packed, *ring._memory)
-        return run
+    def restart_above_speed(self, max_speed: float) -> None:
+        """Restart the history where the ego moved between two sets faster than ``max_speed``
+        (m/s): a teleport, not a drive (history.FrameHistory)."""
+        self.history.max_speed = float(max_speed)
 
     def reset(self) -> None:
         self.history.clear()

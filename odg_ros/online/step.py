@@ -25,7 +25,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from ..config import ModelConfig
+from ..model_config import ModelConfig
 from ..network.backbone import folded_for_inference
 from ..network.budget import QueryBudget, needed_queries
 from ..network.calibration import Calibration

@@ -44,6 +44,8 @@ import time
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
+from .mailbox import HandOff
+
 
 READY, FAILED, PENDING = "ready", "failed", "pending"
 
@@ -62,7 +64,7 @@ class _Entry:
     expired: bool = field(default=False)
 
 
-class WaitingSets:
+class WaitingSets(HandOff):
     def __init__(self, probe: Callable[[Any, bool], str], wait: float,
                  clock: Callable[[], float] | None = None, capacity: int = 16,
                  poll: float = 0.05, steady: Callable[[], float] = time.monotonic,
@@ -77,10 +79,9 @@ class WaitingSets:
         self._stamp_of = stamp_of
         self.capacity = int(capacity)
         self.poll = float(poll)
-        self._condition = threading.Condition()
+        super().__init__()
         self._entries: list[_Entry] = []        # ascending stamps
         self._news = 0                          # puts and notifies: probe only after news
-        self._closed = False
         self.dropped = 0     # stale: a newer set was taken first, or no longer in stamp order
         self.delivered = 0
         self.waited = 0      # sets handed on after waiting
@@ -204,16 +205,6 @@ class WaitingSets:
     def __len__(self) -> int:
         with self._condition:
             return len(self._entries)
-
-    def close(self) -> None:
-        """Wake the consumer for good (shutdown); later ``get`` calls return None at once."""
-        with self._condition:
-            self._closed = True
-            self._condition.notify_all()
-
-    @property
-    def closed(self) -> bool:
-        return self._closed
 
     # ---------------------------------------------------------------------------- clock
     def _node_now(self) -> float:

@@ -18,7 +18,7 @@ renderers differ:
 Everything else is the same convention (projection and its Jacobian clamp, the 0.3 px^2 blur,
 the 1/255 skip, the 1e-4 transmittance stop, depth weighted like the features, not
 normalised). gsplat's rasteriser has CUDA kernels only: on CPU this raises (the census counts
-it through stand-ins of its kernels, ``train/gsplat_stand_in.py``).
+it through stand-ins of its kernels, ``bench/gsplat_stand_in.py``).
 """
 from __future__ import annotations
 

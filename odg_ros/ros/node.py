@@ -67,7 +67,7 @@ from ..online.poses import pose_from_xyz_xyzw
 from ..online.predictor import OnlinePredictor
 from ..online.sync import stamp_to_seconds
 from ..resources import shipped_checkpoint
-from . import messages
+from . import output_messages
 
 NODE_NAME = "odg_node"
 
@@ -78,7 +78,7 @@ _PARAMETER_TYPES = {"bool": ParameterType.PARAMETER_BOOL,
                     "string": ParameterType.PARAMETER_STRING,
                     "string_array": ParameterType.PARAMETER_STRING_ARRAY}
 
-OUTPUT_QOS = messages.OUTPUT_QOS
+OUTPUT_QOS = output_messages.OUTPUT_QOS
 TF_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
                     reliability=ReliabilityPolicy.RELIABLE)
 TF_STATIC_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
@@ -135,7 +135,7 @@ class OdgNode(Node):
         self.pipeline = node_setup.build_pipeline(predictor, p, cameras, found, self.stats,
                                                   clock=self.now_seconds)
         self._bad_input_loggers = {}
-        self.outputs = messages.Outputs(self, self.cfg, self.output_frame,
+        self.outputs = output_messages.Outputs(self, self.cfg, self.output_frame,
                                         (float(p["bev_min_z"]), float(p["bev_max_z"])))
         self._subscribe(p, cameras)
 
@@ -348,7 +348,7 @@ class OdgNode(Node):
         if self.internal_errors:
             status["level"] = max(status["level"], 2)      # DiagnosticStatus.ERROR
             status["message"] += f"; {self.internal_errors} internal errors (see the log)"
-        self.outputs.diagnostics.publish(messages.diagnostic_array(
+        self.outputs.diagnostics.publish(output_messages.diagnostic_array(
             self.get_clock().now().to_msg(), f"{self.get_fully_qualified_name()}: pipeline",
             str(self.pipeline.predictor.device), status))
         self.outputs.fps.publish(Float32(data=float(self.stats.rate_hz())))

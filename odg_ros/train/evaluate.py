@@ -301,6 +301,11 @@ def evaluate(model, cfg, infos, occ_root=None, save_pred: str | None = None, dev
     if named:
         result["sets"] = {name: s.result(cfg, min_clear, calibrated)
                           for name, s in per_set.items()}
+    return _with_budget_and_predictions(result, use, save_pred, saved)
+
+
+def _with_budget_and_predictions(result: dict, use, save_pred: str | None, saved: int) -> dict:
+    """``result`` with which budgets ran (``query_budget``) and where the predictions went."""
     if use is not None:
         result["query_budget"] = use.result()
     if save_pred:

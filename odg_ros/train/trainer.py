@@ -43,7 +43,7 @@ import torch.distributed as dist
 from torch.nn.parallel import DistributedDataParallel
 from tqdm import tqdm
 
-from ..config import ModelConfig
+from ..model_config import ModelConfig
 from ..data.augment import augment_batch
 from ..data.batch import collate, to_device
 from ..data.dataset import OccDataset, replay_history_draws
@@ -52,6 +52,7 @@ from ..losses.criterion import ODGCriterion
 from ..network import ODG
 from ..network.backbone_weights import backbone_start, load_backbone_weights
 from ..network.checkpoint import load_weights, read_checkpoint, save_checkpoint, tensor_bytes
+from ..training_phases import training_phase
 from .schedule import warmup_cosine
 
 log = logging.getLogger(__name__)
@@ -481,15 +482,18 @@ class Trainer:
         """One step, queued on the device without waiting for it (the criterion's checks
         aside) -> its loss terms, gradient norm and applied flag, still on the device. A step
         whose loss or gradient is not finite is skipped on the device."""
-        batch = self._load_batch(batch)
+        with training_phase("data"):
+            batch = self._load_batch(batch)
         self.optimizer.zero_grad(set_to_none=True)
         (self.ddp or self.model).train()
         # BatchNorm statistics change in the forward pass already; a skipped step must leave
         # them as they were (a NaN batch would otherwise poison every later inference).
         buffers = {name: b.detach().clone() for name, b in self._training_statistics()}
-        output = self._forward(batch)
+        with training_phase("forward"):
+            output = self._forward(batch)
         try:
-            losses, loss = self._losses(output, batch)
+            with training_phase("losses"):
+                losses, loss = self._losses(output, batch)
             finite = torch.isfinite(loss.detach())
         except FloatingPointError as err:
             log.warning("step %d: %s", self.step + 1, err)
@@ -498,8 +502,10 @@ class Trainer:
             loss = zero_weight_anchor(output)
             losses = {"loss": torch.full((), math.nan, device=loss.device)}
             finite = torch.zeros((), dtype=torch.bool, device=loss.device)
-        self._backward(loss)
-        return self._optimizer_step(losses, finite, buffers)
+        with training_phase("backward"):
+            self._backward(loss)
+        with training_phase("optimizer"):
+            return self._optimizer_step(losses, finite, buffers)
 
     def _training_statistics(self):
         """(name, buffer) of the BatchNorm layers that update their statistics in this step:
@@ -510,7 +516,6 @@ class Trainer:
                 for buffer_name, buffer in module.named_buffers(recurse=False):
                     yield f"{name}.{buffer_name}", buffer
 
-    # The phases of a step, each its own method so that a census can tell them apart.
     def _load_batch(self, batch: dict) -> dict:
         # fit's batches come uploaded (DevicePrefetcher), for which to_device does nothing
         batch = to_device(batch, self.device)

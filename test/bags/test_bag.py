@@ -14,7 +14,7 @@ from PIL import Image
 from testing import tiny_nuscenes
 from odg_ros import geometry
 from odg_ros.bags import layout
-from odg_ros.bags.messages import deserialize, ego_twists
+from odg_ros.bags.bag_messages import deserialize, ego_twists
 from odg_ros.bags.reader import bag_topics, iter_bag
 from odg_ros.bags.writer import write_scene_bag
 from odg_ros.bags.nuscenes_source import NuScenesSensorTables

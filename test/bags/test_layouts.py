@@ -14,12 +14,12 @@ import pytest
 import yaml
 
 from odg_ros.bags.converters import CONVERTERS
-from odg_ros.bags.messages import deserialize
+from odg_ros.bags.bag_messages import deserialize
 from odg_ros.bags.reader import bag_topics, open_bag
 from odg_ros.online.parameters import load_schema
-from odg_ros.online.rig import load_rig
+from odg_ros.online.camera_calibration import load_rig
 from odg_ros.resources import resource_path
-from odg_ros.rig import CAMERA_NAMES
+from odg_ros.nuscenes_cameras import CAMERA_NAMES
 from testing.bag_layouts import GAPS, keyframe_gaps, keyframe_groups
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -1,4 +1,4 @@
-"""odg soak's figures from hand-made records (odg_ros/bench/soak.py): scenes told apart by the
+"""odg soak's figures from hand-made records (odg_ros/bench/soak_report.py): scenes told apart by the
 outputs' stamps, every history reset explained by a new scene or by outputs further apart than
 history_max_gap or else unexplained, the wall latency of a looping replay's repeated stamps,
 memory growth after the warm-up, the rate the replay achieved."""
@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import pytest
 
-from odg_ros.bench.soak import (achieved_rate, output_scenes, summarize, verdicts,
+from odg_ros.bench.soak_report import (achieved_rate, output_scenes, summarize, verdicts,
                                 wall_latencies)
 
 A, B = 1000.0, 5000.0          # two bags of 10 s each, far apart in time
@@ -109,7 +109,7 @@ def test_the_node_latency_of_an_output_published_after_a_jump_is_left_out():
 
 
 def test_a_restart_output_made_of_an_image_from_before_the_restart_is_stale():
-    from odg_ros.bench.soak import summarize_restarts
+    from odg_ros.bench.soak_report import summarize_restarts
     r = record([(10.0, A + 1.0), (30.0, A + 5.0), (31.0, A + 6.0)],
                processing=[(10.0, 500.0), (30.0, 500.0), (31.0, 500.0)])
     r["restarts"] = [{"killed_s": 20.0, "started_s": 20.5, "up_after_s": 5.0,

@@ -8,7 +8,7 @@ import torch
 from odg_ros.data.augment import (augment_batch, flip_sample, photometric_distortion,
                                   resize_crop_sample)
 from odg_ros.geometry import ego_to_image, invert_transform
-from odg_ros.rig import ring_cameras
+from odg_ros.nuscenes_cameras import ring_cameras
 
 HW = (48, 96)
 PC_RANGE = (-40.0, -40.0, -1.0, 40.0, 40.0, 5.4)
@@ -233,7 +233,7 @@ def test_augmentation_never_waits_for_the_device(flip_probability):
     # with the CUDA paths forced every tensor counts as a device tensor, except those a CUDA
     # run keeps on the host: the render targets (to_device leaves them) and host draws
     from odg_ros.data.batch import collate, to_device
-    from odg_ros.train.census import Census, CensusMode, batch_host_tensors
+    from odg_ros.bench.census import Census, CensusMode, batch_host_tensors
     batch = to_device(collate([make_batch(0), make_batch(1)]), "cpu")
     augment_batch(batch, PC_RANGE, flip_probability=1.0)   # a first step makes the constants
     census = Census()

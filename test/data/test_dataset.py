@@ -13,10 +13,10 @@ from PIL import Image
 
 from odg_ros import geometry, preprocess
 from odg_ros.classes import FREE_LABEL
-from odg_ros.config import ModelConfig
+from odg_ros.model_config import ModelConfig
 from odg_ros.data import lidar
 from odg_ros.data.batch import collate
-from odg_ros.rig import CAMERA_NAMES
+from odg_ros.nuscenes_cameras import CAMERA_NAMES
 from odg_ros.data.dataset import OccDataset, select_history
 from testing.tiny_world import CAM_OFFSET_US, CAM_T, CX, CY, FOCAL, IMAGE_HW, NEAR, ORIGIN, R_ego_from_front_cam, Rz, SET_PERIOD_US, SPEED, build_world, colour, lidar_points_ego
 

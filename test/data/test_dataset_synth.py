@@ -11,9 +11,9 @@ import torch
 from odg_ros import geometry, preprocess
 from odg_ros.classes import FREE_LABEL, OCC_CLASSES
 from odg_ros.commands import main as odg
-from odg_ros.config import ModelConfig
+from odg_ros.model_config import ModelConfig
 from odg_ros.data.dataset import OccDataset
-from odg_ros.data.synth import rig, sensors
+from odg_ros.data.synth import sensor_rig, sensors
 from odg_ros.data.synth.generate import camera_time, keyframe_time, scene_world
 
 SEED, SECONDS, HW, INPUT_HW = 3, 1.0, (54, 96), (48, 96)
@@ -69,7 +69,7 @@ def test_ego2img_matches_the_simulator_cameras(dataset, samples):
         refs = [key_ref, history_ref, history_ref]
         sets = [6 * k, 0, 0]
         for t in range(3):
-            for n, cam in enumerate(rig.cameras(HW)):
+            for n, cam in enumerate(sensor_rig.cameras(HW)):
                 pts_cam = np.c_[rng.uniform(-5, 5, (50, 2)), rng.uniform(2, 40, 50)]
                 T_global_cam = world.ego_pose(camera_time(sets[t], cam.name)) @ cam.T_ego_from_cam
                 pts_ref = geometry.invert_transform(refs[t]) @ T_global_cam @ np.c_[pts_cam, np.ones(50)].T
@@ -150,7 +150,7 @@ def test_render_target_depth_matches_the_simulator_cameras(samples):
     up, hw = 4, (HW[0] * 4, HW[1] * 4)
     for k, s in enumerate(samples):
         errors = []
-        for n, cam in enumerate(rig.cameras(HW)):
+        for n, cam in enumerate(sensor_rig.cameras(HW)):
             t_cam = camera_time(6 * k, cam.name)
             K = cam.intrinsics.copy()
             K[:2] *= up

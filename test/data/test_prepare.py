@@ -11,10 +11,10 @@ import pytest
 
 from odg_ros.classes import BOX_CLASSES
 from odg_ros.commands import main as cli_main
-from odg_ros.rig import CAMERA_NAMES
+from odg_ros.nuscenes_cameras import CAMERA_NAMES
 from odg_ros.data.nuscenes_tables import CATEGORY_TO_BOX_CLASS
 from odg_ros.data.prepare import build_infos, load_infos, save_infos
-from odg_ros.data.synth import rig
+from odg_ros.data.synth import sensor_rig
 from odg_ros.data.synth.generate import camera_time, generate, keyframe_time, scene_world
 from odg_ros.geometry import invert_transform, is_rigid
 
@@ -69,12 +69,12 @@ def test_official_splits_without_splits_json(world_dir, tmp_path):
 
 
 def test_poses_intrinsics_and_paths_match_the_generator(infos, world_dir):
-    cams = rig.cameras(HW)
+    cams = sensor_rig.cameras(HW)
     for info in infos["infos"]:
         world = world_of(info["scene_name"])
         k = info["frame_index"]
         assert np.allclose(info["ego_pose"], world.ego_pose(keyframe_time(k)))
-        assert np.allclose(info["lidar2ego"], rig.lidar_T_ego_from_lidar())
+        assert np.allclose(info["lidar2ego"], sensor_rig.lidar_T_ego_from_lidar())
         assert os.path.exists(os.path.join(world_dir, info["lidar_path"]))
         assert os.path.exists(os.path.join(world_dir, info["lidarseg_path"]))
         assert os.path.exists(os.path.join(world_dir, "gts", info["occ_path"]))
@@ -158,7 +158,7 @@ def test_save_load_roundtrip_and_cli(infos, world_dir, tmp_path):
 
 def test_dataset_reads_the_infos(infos):
     """The OccDataset (data/dataset.py) turns these infos into model-ready samples."""
-    from odg_ros.config import load_preset
+    from odg_ros.model_config import load_preset
     from odg_ros.data.dataset import OccDataset
     ds = OccDataset(infos, load_preset("odg_cpu"))
     sample = ds[2]

@@ -11,11 +11,11 @@ import pytest
 from odg_ros.classes import FREE_LABEL, OCC_CLASSES
 from odg_ros.data import lidarseg
 from odg_ros.data.nuscenes_tables import NuScenesTables, pose_matrix
-from odg_ros.data.synth import occupancy, rig, sensors
+from odg_ros.data.synth import occupancy, sensor_rig, sensors
 from odg_ros.data.synth.generate import (DEFAULT_IMAGE_HW, camera_image, camera_time, generate,
                                          keyframe_time, scene_world)
 from odg_ros.data.synth.primitives import BOX, ELLIPSOID, FRUSTUM, Primitives, contains, make
-from odg_ros.data.synth.raycast import _intersect
+from odg_ros.data.synth.scene_raycast import _intersect
 from odg_ros.data.synth.shapes import CATEGORY_TO_OCC
 from odg_ros.data.synth.world import GROUND_CLASS
 from odg_ros.geometry import invert_transform, quaternion_to_matrix
@@ -123,10 +123,10 @@ def test_keyframes_and_timing(tables):
     the LiDAR sweep start (= its stamp - 50 ms); cameras at 12 Hz, LiDAR at 20 Hz."""
     for sample in tables.tables["sample"]:
         sds = tables.keyframe_data[sample["token"]]
-        assert set(sds) == set(rig.CAMERA_DELAY_S) | {"LIDAR_TOP"}
+        assert set(sds) == set(sensor_rig.CAMERA_DELAY_S) | {"LIDAR_TOP"}
         t_lidar = sds["LIDAR_TOP"]["timestamp"]
         assert t_lidar == sample["timestamp"]
-        offsets = sorted((sds[c]["timestamp"] - (t_lidar - 50_000)) / 1e3 for c in rig.CAMERA_DELAY_S)
+        offsets = sorted((sds[c]["timestamp"] - (t_lidar - 50_000)) / 1e3 for c in sensor_rig.CAMERA_DELAY_S)
         assert 6.5 < offsets[0] and offsets[-1] < 50.0
     for channel, period in (("CAM_FRONT", 1e6 / 12), ("LIDAR_TOP", 1e6 / 20)):
         stamps = sorted(sd["timestamp"] for sd in tables.tables["sample_data"]
@@ -148,9 +148,9 @@ def test_calibration_is_the_nuscenes_rig_scaled(tables):
     for c in tables.tables["calibrated_sensor"]:
         channel = tables.get("sensor", c["sensor_token"])["channel"]
         if channel == "LIDAR_TOP":
-            assert c["camera_intrinsic"] == [] and np.allclose(c["translation"], rig.LIDAR_CALIBRATION[0])
+            assert c["camera_intrinsic"] == [] and np.allclose(c["translation"], sensor_rig.LIDAR_CALIBRATION[0])
             continue
-        t, q, K = rig.CAMERA_CALIBRATION[channel]
+        t, q, K = sensor_rig.CAMERA_CALIBRATION[channel]
         K = np.array(K)
         K[0] *= HW[1] / 1600
         K[1] *= HW[0] / 900
@@ -260,7 +260,7 @@ def test_rendered_depth_matches_gt_voxels(world_dir, tables):
     T_eg = invert_transform(T_ge)
     occupied = gt["semantics"] != FREE_LABEL
     err, cos, same_label = [], [], []
-    for cam in rig.cameras((72, 128)):
+    for cam in sensor_rig.cameras((72, 128)):
         T = T_ge @ cam.T_ego_from_cam
         hits, dirs = sensors.render_camera(prims, T, cam.intrinsics, (72, 128))
         origin_e = (T_eg @ T)[:3, 3]
@@ -302,7 +302,7 @@ def test_camera_mask_covers_what_the_cameras_see_and_not_inside_solids(world_dir
     sample, gt = _keyframe(tables, world_dir, 0, 1)
     mask = gt["mask_camera"].astype(bool)
     T_eg = invert_transform(world.ego_pose(keyframe_time(1)))
-    cam = rig.cameras(HW)[0]
+    cam = sensor_rig.cameras(HW)[0]
     t_cam = camera_time(6, cam.name)
     T = world.ego_pose(t_cam) @ cam.T_ego_from_cam
     hits, dirs = sensors.render_camera(world.prims_at(t_cam), T, cam.intrinsics, HW)
@@ -389,10 +389,10 @@ def test_lidar_files(world_dir, tables):
     raw = np.fromfile(os.path.join(world_dir, lidar["filename"]), np.float32)
     assert raw.size % 5 == 0
     pts = raw.reshape(-1, 5)
-    assert 8000 < len(pts) <= 32 * rig.LIDAR_AZIMUTHS
+    assert 8000 < len(pts) <= 32 * sensor_rig.LIDAR_AZIMUTHS
     assert set(np.unique(pts[:, 4])) <= set(range(32)) and 0 <= pts[:, 3].min() and pts[:, 3].max() <= 255
     rng = np.linalg.norm(pts[:, :3], axis=1)
-    assert rng.min() >= rig.LIDAR_MIN_RANGE - 0.1 and rng.max() <= rig.LIDAR_MAX_RANGE + 0.1
+    assert rng.min() >= sensor_rig.LIDAR_MIN_RANGE - 0.1 and rng.max() <= sensor_rig.LIDAR_MAX_RANGE + 0.1
     seg = np.fromfile(os.path.join(world_dir, tables.lidarseg[lidar["token"]]), np.uint8)
     # flat points lie on the ground plane z = 0 (global) within the range noise
     T = tables.ego_pose(lidar) @ pose_matrix(tables.calibration(lidar))
@@ -485,7 +485,7 @@ def test_card_worlds_are_the_ones_the_shipped_checkpoint_was_scored_on(seed):
         assert np.arctan2(T[1, 0], T[0, 0]) == pytest.approx(ego_yaw, abs=2e-4)
         assert len(world.boxes(t)[0]) == things
     # the pictures the network sees: shading, textures, noise and camera rig
-    cam = rig.cameras(DEFAULT_IMAGE_HW)[0]
+    cam = sensor_rig.cameras(DEFAULT_IMAGE_HW)[0]
     assert cam.name == "CAM_FRONT"
     *_, image = camera_image(world, seed, 0, 0, 0, cam, DEFAULT_IMAGE_HW)
     pixels = image.reshape(-1, 3)

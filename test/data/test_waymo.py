@@ -9,7 +9,7 @@ import yaml
 
 from odg_ros.classes import WAYMO_OCC_CLASSES
 from odg_ros.commands import main as cli_main
-from odg_ros.config import load_preset
+from odg_ros.model_config import load_preset
 from odg_ros.data.dataset import OccDataset
 from odg_ros.data.prepare import build_infos
 from odg_ros.data.prepare_waymo import (WAYMO_CAMERA_NAMES, build_waymo_infos, opencv_sensor2ego,

@@ -16,7 +16,7 @@ from odg_ros.demo.picture import UNKNOWN_COLOR, bev_rgb, unknown_columns
 from odg_ros.demo.records import CameraSets, ReceivedGrid, SessionRecord, bag_camera_sets
 from odg_ros.demo.report import (format_summary, grid_latencies_ms, keyframes_by_stamp,
                                  score_keyframes, summarize_session)
-from odg_ros.demo.world import WorldSpec, build_demo_world, resolve_checkpoint, world_is_built
+from odg_ros.demo.demo_world import WorldSpec, build_demo_world, resolve_checkpoint, world_is_built
 from odg_ros.classes import OCC_CLASSES
 from testing.helpers import write_tiny_checkpoint
 

@@ -209,7 +209,7 @@ def test_device_blocks_bounded_and_search_free_of_host_syncs():
     assert chamfer_module.block_rows(5000, 3000, 100_000) * 3000 <= 100_000
     assert chamfer_module.block_rows(5000, 300_000, 100_000) == 1      # a row is one block
     assert chamfer_module.block_rows(7, 3, 1 << 20) == 7
-    from odg_ros.train.census import Census, CensusMode
+    from odg_ros.bench.census import Census, CensusMode
     g = torch.Generator().manual_seed(4)
     q, r = torch.rand(2000, 3, generator=g), torch.rand(1500, 3, generator=g)
     census = Census()

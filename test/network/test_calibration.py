@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from odg_ros.config import load_preset
+from odg_ros.model_config import load_preset
 from odg_ros.network.calibration import (ABOVE_HIGH, ABOVE_LOW, HAZARD_FLOOR, HAZARD_RATES,
                                          INSIDE, OCCUPIED, UNDER, Calibration,
                                          column_features, hazard_indicators, rate_lengths)
@@ -210,7 +210,7 @@ def test_the_calibration_and_the_hazard_visibility_export_to_onnx(tmp_path):
     from odg_ros.online.onnx_export import _searchsorted
     from odg_ros.network.visibility import Visibility, image_bounds
     from testing.helpers import driving_scene
-    from odg_ros.rig import ring_ego2img
+    from odg_ros.nuscenes_cameras import ring_ego2img
     rates = {name: [0.002] * n for name, n in rate_lengths(C).items()}
     cfg = config(**rates)
 

@@ -18,7 +18,7 @@ from odg_ros.network import ODG
 from odg_ros.network.budget import budget_ladder
 from odg_ros.network.feature_ring import FeatureRing
 from odg_ros.network.sampling import SpatioTemporalSampling, camera_rows_layout
-from odg_ros.rig import ring_cameras
+from odg_ros.nuscenes_cameras import ring_cameras
 
 from testing.helpers import model_inputs, tiny_config
 

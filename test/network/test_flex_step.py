@@ -30,7 +30,7 @@ import torch
 from torch._inductor.kernel.flex import flex_attention as flex_lowering
 from torch._inductor.kernel.flex.common import maybe_realize
 
-from odg_ros.config import load_preset
+from odg_ros.model_config import load_preset
 from odg_ros.network import ODG, das_attention
 from odg_ros.online.step import OnlineStep
 from testing.online import make_sets

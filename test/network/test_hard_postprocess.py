@@ -12,7 +12,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from odg_ros.classes import FREE_LABEL
-from odg_ros.config import load_preset
+from odg_ros.model_config import load_preset
 from odg_ros.network.outputs import LayerOutput, ODGOutput
 from odg_ros.network.postprocess import box_list, decode_box_code, occupancy_grid
 

@@ -17,7 +17,7 @@ from odg_ros.network import ODG
 from odg_ros.network.postprocess import occupancy_grid
 from odg_ros.network.sampling import first_visible_camera, warp_points
 from odg_ros.render import render_cameras
-from odg_ros.rig import ring_ego2img
+from odg_ros.nuscenes_cameras import ring_ego2img
 
 from testing.hard_cases import all_finite
 from testing.helpers import model_inputs, tiny_config

@@ -8,7 +8,7 @@ import torch
 from odg_ros.geometry import ego_to_image, ego_warp, make_transform
 from odg_ros.network.sampling import (SpatioTemporalSampling, project_to_cameras,
                                       warp_points)
-from odg_ros.rig import ring_cameras
+from odg_ros.nuscenes_cameras import ring_cameras
 
 HW = (64, 176)
 

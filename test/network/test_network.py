@@ -4,15 +4,15 @@ import pytest
 import torch
 from torch import nn
 
-from odg_ros.rig import online_inputs
+from odg_ros.nuscenes_cameras import online_inputs
 from odg_ros.classes import FREE_LABEL
-from odg_ros.config import PRESET_NAMES, load_preset
+from odg_ros.model_config import PRESET_NAMES, load_preset
 from odg_ros.network import ODG
 from odg_ros.network.das_attention import DaSAttention
 from odg_ros.rotation import normalise_quaternions
 from odg_ros.network.outputs import LayerOutput, ODGOutput
 from odg_ros.network.postprocess import box_list, decode_box_code, occupancy_grid
-from odg_ros.rig import ring_ego2img
+from odg_ros.nuscenes_cameras import ring_ego2img
 
 from testing.helpers import model_inputs, tiny_config
 
@@ -217,7 +217,7 @@ def test_online_inputs_geometry_is_consistent():
     """The benchmark's drive: 10 m/s straight ahead, so a static point x metres ahead now was
     x + 10 dt ahead of the past ego; a point straight ahead of the front camera projects to
     its image centre in every frame."""
-    from odg_ros.rig import ring_cameras
+    from odg_ros.nuscenes_cameras import ring_cameras
     cfg = tiny_config()
     _, e2i, warp, dt = online_inputs(cfg, 3, "cpu")
     assert e2i.shape == (1, 3, 6, 4, 4) and warp.shape == (1, 3, 4, 4) and dt.shape == (1, 3)

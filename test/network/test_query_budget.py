@@ -9,7 +9,7 @@ from odg_ros.network.budget import (QueryBudget, budget_ladder, budget_of, gathe
                                     ranked_queries)
 from odg_ros.network.checkpoint import load_model, save_checkpoint
 from odg_ros.network.sampling import camera_rows_layout
-from odg_ros.train.census import Census, CensusMode
+from odg_ros.bench.census import Census, CensusMode
 from testing.helpers import model_inputs, tiny_config
 
 

@@ -252,7 +252,7 @@ def test_min_clear_is_a_probability():
 
 
 def test_no_host_read_inside_it():
-    from odg_ros.train.census import Census, CensusMode
+    from odg_ros.bench.census import Census, CensusMode
     ego2img = forward_camera()[None]
     visibility = Visibility(SHAPE, PC_RANGE, 0.4, FREE, 0.8)
     args = (torch.from_numpy(ground().reshape(-1)), torch.tensor(ego2img, dtype=torch.float32),
@@ -274,7 +274,7 @@ def test_agreement_with_a_synthetic_worlds_mask_camera(tmp_path):
     0.85 there)."""
     import os
     from odg_ros.data.occ_io import load_occ
-    from odg_ros.data.synth import generate as G, rig
+    from odg_ros.data.synth import generate as G, sensor_rig
     from odg_ros.data.synth.tables import token
     G.generate(str(tmp_path), scenes=1, seconds=0.5, seed=3, image_hw=(54, 96),
                progress=False)
@@ -283,7 +283,7 @@ def test_agreement_with_a_synthetic_worlds_mask_camera(tmp_path):
                                                token(3, "sample", 0, 0), "labels.npz"))
     T_ego_global = invert_transform(world.ego_pose(G.keyframe_time(0)))
     ego2img = []
-    for cam in rig.cameras((54, 96)):
+    for cam in sensor_rig.cameras((54, 96)):
         T = T_ego_global @ world.ego_pose(G.camera_time(0, cam.name)) @ cam.T_ego_from_cam
         K4 = np.eye(4)
         K4[:3, :3] = adjust_intrinsics(cam.intrinsics, (54, 96), INPUT_HW)

@@ -99,7 +99,7 @@ def test_compiled_step_equals_eager_and_loads_in_seconds(tmp_path, capsys):
         assert [x["label"] for x in a.boxes] == [x["label"] for x in b.boxes] != []
         np.testing.assert_allclose([x["center"] for x in a.boxes],
                                    [x["center"] for x in b.boxes], atol=1e-4)
-        for m, n in zip(eager.ring._memory, loaded.ring._memory):   # written in place
+        for m, n in zip(eager.ring.memory, loaded.ring.memory):   # written in place
             torch.testing.assert_close(m, n, atol=1e-5, rtol=1e-5)
     # the same file under other thresholds (constants inside it): refused, not run
     other, cfg_other = load_model(checkpoint, score_threshold=0.3)

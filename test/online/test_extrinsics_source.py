@@ -8,7 +8,7 @@ import pytest
 from odg_ros.geometry import make_transform
 from odg_ros.online.errors import BadInput
 from odg_ros.online.extrinsics import CameraExtrinsics, transform_difference
-from odg_ros.online.rig import Rig
+from odg_ros.online.camera_calibration import Rig
 from odg_ros.online.transforms import TransformBuffer
 from testing.online import CAMS, RIG
 

@@ -89,15 +89,15 @@ def test_a_static_buffer_reassigned_after_the_capture_gives_stale_results(record
 
 
 def test_a_replay_writes_the_ring_memory_of_its_capture(recorded_graphs):
-    """The feature ring reassigned after the capture (``ring._memory = ...``): the graph
+    """The feature ring reassigned after the capture (``ring.use_memory(...)``): the graph
     still writes each set's features into the memory it was captured with."""
     model, cfg = make_model()
     replayed = OnlinePredictor(model, cfg, "cpu", max_gap=1.0, compile="graphs")
-    captured = replayed.ring._memory
+    captured = replayed.ring.memory
     before = [m.clone() for m in captured]
-    replayed.ring._memory = [m.clone() for m in captured]
+    replayed.ring.use_memory([m.clone() for m in captured])
     replayed.step(*make_sets(cfg, 1)[0])
-    assert all(torch.equal(m, b) for m, b in zip(replayed.ring._memory, before))
+    assert all(torch.equal(m, b) for m, b in zip(replayed.ring.memory, before))
     assert any(not torch.equal(m, b) for m, b in zip(captured, before))
 
 

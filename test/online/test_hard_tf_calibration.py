@@ -26,7 +26,7 @@ from odg_ros.online.images import EncodedImage, decode_for_input
 from odg_ros.online.pipeline import OnlinePipeline, PipelineSettings
 from odg_ros.online.poses import PoseBuffer
 from odg_ros.online.predictor import OnlinePredictor
-from odg_ros.online.rig import check_intrinsics
+from odg_ros.online.camera_calibration import check_intrinsics
 from odg_ros.online.sync import stamp_to_seconds
 from odg_ros.online.transforms import TransformBuffer
 from testing.online import CAMS, HW, OFFSETS, RIG, feed_set, png, scaled_K, set_images

@@ -8,7 +8,7 @@ import math
 import pytest
 import yaml
 
-from odg_ros.config import load_preset
+from odg_ros.model_config import load_preset
 from odg_ros.network.precision import NODE_PRECISIONS
 from odg_ros.online import parameters
 from odg_ros.online.extrinsics import SOURCES as EXTRINSICS_SOURCES

@@ -9,7 +9,7 @@ from odg_ros.geometry import ego_to_image, invert_transform, make_transform
 from odg_ros.online.errors import BadInput
 from odg_ros.online.images import EncodedImage, decode, decode_compressed, decode_for_input, \
     decode_raw, to_network_input
-from odg_ros.online.rig import check_intrinsics, load_rig, set_ego2img
+from odg_ros.online.camera_calibration import check_intrinsics, load_rig, set_ego2img
 from odg_ros.preprocess import adjust_intrinsics, resize_crop
 from odg_ros.resources import resource_path
 

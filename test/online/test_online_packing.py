@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from odg_ros.classes import FREE_LABEL, OCC_CLASSES, WAYMO_OCC_CLASSES
-from odg_ros.config import load_preset
+from odg_ros.model_config import load_preset
 from odg_ros.online import diagnostics
 from odg_ros.bev import bev_fields
 from odg_ros.online.packing import CLOUD_DTYPE, cloud_fields, object_fields, \

@@ -16,7 +16,7 @@ from odg_ros.online.errors import BadInput
 from odg_ros.online.images import EncodedImage
 from odg_ros.online.pipeline import OnlinePipeline, PipelineSettings
 from odg_ros.online.predictor import OnlinePredictor
-from odg_ros.online.rig import set_ego2img
+from odg_ros.online.camera_calibration import set_ego2img
 from odg_ros.preprocess import adjust_intrinsics, resize_crop
 from odg_ros.geometry import make_transform
 from testing.online import CAMS, HW, OFFSETS, RIG, feed_set, png, scaled_K, set_images

@@ -175,7 +175,7 @@ def test_static_postprocess_equals_the_loop_postprocess(classes):
 
 
 def test_bench_times_the_predictor_step_and_its_stages_from_the_marks():
-    from odg_ros.bench.step import bench_node_step
+    from odg_ros.bench.step_timing import bench_node_step
     model, cfg = make_model()
     # fp32: eager agrees with the reference exactly (precision auto may pick bf16 here)
     result = bench_node_step(cfg, "cpu", ("eager",), iters=2, warmup=1, precisions=("fp32",),

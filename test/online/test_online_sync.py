@@ -128,7 +128,7 @@ def test_sets_dropped_for_room_are_forgotten_after_the_time_jump_window():
     assert len(sync._evicted) <= 13                                 # 1 s of sets at 12 Hz
 
 
-# The demo bag's rig (odg_ros/data/synth/rig.py, as nuScenes): the cameras fire 0..42.6 ms
+# The demo bag's rig (odg_ros/data/synth/sensor_rig.py, as nuScenes): the cameras fire 0..42.6 ms
 # after the set start, in this order, and the next set starts 40.7 ms after the last camera:
 # closer than the slop, so the last camera of a set also fits the first ones of the next.
 BAG_OFFSETS = {"CAM_FRONT_LEFT": 0.0, "CAM_FRONT": 0.0076, "CAM_FRONT_RIGHT": 0.0155,

@@ -112,7 +112,7 @@ def test_exported_step_fed_by_the_builder_gives_the_node_grids(tmp_path, capfd):
         np.testing.assert_allclose(got["boxes"][valid, :3],
                                    [b["center"] for b in node.boxes], atol=1e-3)
         # the history the graph returns is the node's ring, frame t in slot t
-        for level, memory in enumerate(node_ring._memory):
+        for level, memory in enumerate(node_ring.memory):
             ring = memory.view(node_ring.capacity, -1, *memory.shape[1:]).numpy()
             for t, slot in enumerate(node_ring.slots()):
                 np.testing.assert_allclose(got[f"features_{level}_out"][t], ring[slot],
@@ -153,7 +153,7 @@ def test_builder_inputs_are_the_node_geometry():
     pipeline = node_pipeline(ODG(cfg).eval(), cfg)
     predictor = pipeline.predictor
     k = predictor.layout.capacity
-    shapes = [(k, m.shape[0] // k, *m.shape[1:]) for m in predictor.ring._memory]
+    shapes = [(k, m.shape[0] // k, *m.shape[1:]) for m in predictor.ring.memory]
     feeder = StepInputs(cfg.num_cams, cfg.image_size, shapes)
     for i, start in enumerate(STARTS):
         images = set_images(i)

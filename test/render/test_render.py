@@ -183,7 +183,7 @@ def test_host_reads_per_call_two_plus_one_per_depth_batch(monkeypatch):
     candidates, one read of every size and check before compositing, and one read per depth
     batch (its kept pairs' count with the next batch's bounds); the backward pass none. The
     later batches take what the memory allows: two batches whatever the first one's size."""
-    from odg_ros.train.census import Census, CensusMode
+    from odg_ros.bench.census import Census, CensusMode
     batches = []
     candidate_pairs = splat_module._candidate_pairs
     monkeypatch.setattr(splat_module, "_candidate_pairs",

@@ -21,7 +21,7 @@ import pytest
 import torch
 
 from odg_ros.geometry import ego_warp
-from odg_ros.online.rig import set_ego2img
+from odg_ros.online.camera_calibration import set_ego2img
 from odg_ros.preprocess import adjust_intrinsics, normalize, resize_crop
 from testing.node_harness import (FAST, NODE, Harness, checkpoint, jpeg,  # noqa: F401
                                   pose_at, start_node, tf_transform)

@@ -1,4 +1,4 @@
-"""The node's Outputs (ros/messages.py) refill the same grid and object messages for every
+"""The node's Outputs (ros/output_messages.py) refill the same grid and object messages for every
 result: what they publish must equal, after serialisation, the messages built anew, field by
 field, for each result, whatever the results before them (more boxes, another grid).
 (Compared as deserialised messages: the serialised bytes hold uninitialised CDR padding.)"""
@@ -63,7 +63,7 @@ def built_anew(res, frame: str):
 
 def test_refilled_messages_are_sent_like_new_ones(rclpy_module):
     from rclpy.serialization import deserialize_message, serialize_message
-    from odg_ros.ros import messages as messages_module
+    from odg_ros.ros import output_messages as messages_module
 
     def sent(msg):
         return deserialize_message(serialize_message(msg), type(msg))
@@ -105,7 +105,7 @@ def test_refilled_messages_are_sent_like_new_ones(rclpy_module):
 
 def test_grid_fields_are_copied_once_into_the_reused_field(rclpy_module):
     import array
-    from odg_ros.ros.messages import refilled_u8 as _refilled_u8
+    from odg_ros.ros.output_messages import refilled_u8 as _refilled_u8
     field = array.array("B", bytes(6))
     values = np.arange(6, dtype=np.uint8)
     assert _refilled_u8(field, values) is field and field.tolist() == list(range(6))

@@ -16,7 +16,7 @@ import sys
 
 import pytest
 
-from odg_ros.bench.soak import TARGET_RESTART_S, TARGET_RSS_GROWTH_MB
+from odg_ros.bench.soak_report import TARGET_RESTART_S, TARGET_RSS_GROWTH_MB
 from odg_ros.online.errors import BAD_INPUT_KINDS
 from testing.helpers import write_tiny_checkpoint
 
@@ -29,7 +29,7 @@ TOLERANT = ("-p", "no_output_timeout:=30.0")
 
 @pytest.fixture(scope="module")
 def scenes(tmp_path_factory):
-    from odg_ros.bench.soak import synthetic_scenes
+    from odg_ros.bench.soak_report import synthetic_scenes
     return synthetic_scenes(tmp_path_factory.mktemp("soak_scenes"), seconds=3,
                             image_hw=(45, 80), kinds=(("normal", "city"),
                                                       ("quiet", "open-road")),

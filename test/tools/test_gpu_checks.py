@@ -168,7 +168,7 @@ def test_report_tables_from_the_results_of_a_run(tmp_path):
     """tools/gpu_report.py: training seconds after the warm-up steps, samples/s from the batch
     in the run's name, GPU utilisation, the profile and a real node bench result."""
     from tools.gpu_report import report
-    from odg_ros.bench.step import bench_node_step
+    from odg_ros.bench.step_timing import bench_node_step
     from testing.online import make_model
 
     model, cfg = make_model()

@@ -9,10 +9,10 @@ import torch
 
 from testing.helpers import tiny_config, write_tiny_split
 from odg_ros.commands import main
-from odg_ros.config import load_preset
+from odg_ros.model_config import load_preset
 from odg_ros.data.batch import collate
 from odg_ros.network.backbone import ResNet
-from odg_ros.train.census import census_of_steps
+from odg_ros.bench.census import census_of_steps
 from odg_ros.train.trainer import Trainer, TrainOptions
 
 # Host waits per step, pinned where the step is (so that they can only go down), the same at

@@ -21,7 +21,7 @@ from odg_ros.losses.criterion import ODGCriterion
 from odg_ros.network import ODG
 from odg_ros.network.checkpoint import load_model, save_checkpoint
 from odg_ros.train import trainer as trainer_module
-from odg_ros.train.census import Census, CensusMode, force_cuda_paths
+from odg_ros.bench.census import Census, CensusMode, force_cuda_paths
 from odg_ros.train.schedule import warmup_cosine
 from odg_ros.train.trainer import (StepLog, Trainer, TrainOptions, process_device,
                                   training_dataset, training_renderer)

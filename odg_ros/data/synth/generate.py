@@ -24,9 +24,9 @@ from PIL import Image
 from tqdm import tqdm
 
 from ...geometry import invert_transform, matrix_to_quaternion
-from ...rig import CAMERA_NAMES
+from ...nuscenes_cameras import CAMERA_NAMES
 from ...rotation import yaw_to_quaternion
-from . import occupancy, pictures, rig, sensors, shading
+from . import occupancy, pictures, sensor_rig, sensors, shading
 from .city import SceneKind, build_world
 from .tables import Tables, link_chain, save_npz, token, visibility_token
 from .world import World
@@ -37,7 +37,7 @@ ANNOTATION_RANGE = 60.0        # annotate things whose centre is this close to t
 BASE_TIMESTAMP_US = 1_533_000_000_000_000
 
 
-def mask_ray_grid(cam: rig.Camera):
+def mask_ray_grid(cam: sensor_rig.Camera):
     """(intrinsics, (h, w)) of the depth map cast for mask_camera: the camera's field of view
     sampled every MASK_RAY_STEP radians, independent of the image size."""
     h, w = cam.image_hw
@@ -50,7 +50,7 @@ def mask_ray_grid(cam: rig.Camera):
 
 
 def num_keyframes(seconds: float) -> int:
-    return max(1, int(round(seconds * rig.KEYFRAME_HZ)))
+    return max(1, int(round(seconds * sensor_rig.KEYFRAME_HZ)))
 
 
 def scene_name(index: int) -> str:
@@ -59,22 +59,22 @@ def scene_name(index: int) -> str:
 
 def scene_world(seed: int, index: int, seconds: float, kind: SceneKind = SceneKind()) -> World:
     """The world of scene ``index`` exactly as ``generate`` builds it (tests rebuild it)."""
-    duration = (num_keyframes(seconds) - 1) / rig.KEYFRAME_HZ + 0.2
+    duration = (num_keyframes(seconds) - 1) / sensor_rig.KEYFRAME_HZ + 0.2
     return build_world(np.random.SeedSequence([seed, index]), scene_name(index), duration,
                        kind)
 
 
 def keyframe_time(k: int) -> float:
     """Seconds from the scene start to keyframe k's LiDAR stamp (end of its sweep)."""
-    return (k * rig.SWEEPS_PER_KEYFRAME + 1) / rig.LIDAR_HZ
+    return (k * sensor_rig.SWEEPS_PER_KEYFRAME + 1) / sensor_rig.LIDAR_HZ
 
 
 def camera_time(m: int, name: str) -> float:
     """Seconds from the scene start to camera ``name``'s exposure in camera set m."""
-    return m / rig.CAMERA_HZ + rig.CAMERA_DELAY_S[name]
+    return m / sensor_rig.CAMERA_HZ + sensor_rig.CAMERA_DELAY_S[name]
 
 
-def camera_image(world: World, seed: int, index: int, m: int, ci: int, cam: rig.Camera, hw):
+def camera_image(world: World, seed: int, index: int, m: int, ci: int, cam: sensor_rig.Camera, hw):
     """Camera ``cam`` (rig index ci) of camera set m of scene ``index``, exactly as ``generate``
     renders it: (exposure time, primitives then, ray hits, RGB uint8 image)."""
     t = camera_time(m, cam.name)
@@ -111,8 +111,8 @@ class _SceneWriter:
         self.keyframes = num_keyframes(seconds)
         self.world: World = scene_world(seed, index, seconds, kind)
         self.hw = tuple(int(v) for v in image_hw)
-        self.cams = rig.cameras(self.hw)
-        self.T_ego_lidar = rig.lidar_T_ego_from_lidar()
+        self.cams = sensor_rig.cameras(self.hw)
+        self.T_ego_lidar = sensor_rig.lidar_T_ego_from_lidar()
         self.t0_us = BASE_TIMESTAMP_US + (seed % 1000) * 10 ** 10 + index * 10 ** 9
         self.logfile = f"synth{seed}-{self.name}"
         self.scene_token = token(seed, "scene", index)
@@ -138,13 +138,13 @@ class _SceneWriter:
             T.add("calibrated_sensor", {
                 "token": tok, "sensor_token": token("sensor", cam.name),
                 "translation": [float(v) for v in cam.T_ego_from_cam[:3, 3]],
-                "rotation": [float(v) for v in rig.CAMERA_CALIBRATION[cam.name][1]],
+                "rotation": [float(v) for v in sensor_rig.CAMERA_CALIBRATION[cam.name][1]],
                 "camera_intrinsic": [[float(v) for v in row] for row in cam.intrinsics]})
             self.calib[cam.name] = tok
         tok = token(self.seed, "calibrated_sensor", self.index, "LIDAR_TOP")
         T.add("calibrated_sensor", {"token": tok, "sensor_token": token("sensor", "LIDAR_TOP"),
-                                    "translation": list(rig.LIDAR_CALIBRATION[0]),
-                                    "rotation": list(rig.LIDAR_CALIBRATION[1]), "camera_intrinsic": []})
+                                    "translation": list(sensor_rig.LIDAR_CALIBRATION[0]),
+                                    "rotation": list(sensor_rig.LIDAR_CALIBRATION[1]), "camera_intrinsic": []})
         self.calib["LIDAR_TOP"] = tok
 
     def stamp(self, t):
@@ -179,7 +179,7 @@ class _SceneWriter:
         return out
 
     def lidar_sweep(self, j, k, key):
-        t = (j + 1) / rig.LIDAR_HZ   # stamped at the end of the rotation
+        t = (j + 1) / sensor_rig.LIDAR_HZ   # stamped at the end of the rotation
         prims = self.world.prims_at(t)
         T_global_lidar = self.world.ego_pose(t) @ self.T_ego_lidar
         hits, dirs_g, dirs_l = sensors.scan_lidar(prims, T_global_lidar)
@@ -314,7 +314,7 @@ def generate(out: str, scenes: int = 8, seconds: float = 6.0, seed: int = 0, ima
     for i in range(scenes):
         w = _SceneWriter(out, version, tables, seed, i, seconds, image_hw, kind)
         names.append(w.name)
-        cps, lps = rig.CAMERA_SETS_PER_KEYFRAME, rig.SWEEPS_PER_KEYFRAME
+        cps, lps = sensor_rig.CAMERA_SETS_PER_KEYFRAME, sensor_rig.SWEEPS_PER_KEYFRAME
         for k in range(w.keyframes):
             cam_data = []
             for m in range(max(0, cps * (k - 1) + 1), cps * k + 1):

@@ -5,7 +5,7 @@ import numpy as np
 from PIL import Image, ImageDraw
 
 from ...classes import FREE_LABEL, OCC_CLASSES, OCC_COLORS
-from ...rig import CAMERA_NAMES
+from ...nuscenes_cameras import CAMERA_NAMES
 
 # mosaic layout as the cameras look around the car: front row left to right, back row mirrored
 MOSAIC_ORDER = (("CAM_FRONT_LEFT", "CAM_FRONT", "CAM_FRONT_RIGHT"),

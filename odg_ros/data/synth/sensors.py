@@ -3,9 +3,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import rig
+from . import sensor_rig
 from .primitives import Primitives
-from .raycast import Hits, cast, rect_pairs
+from .scene_raycast import Hits, cast, rect_pairs
 
 NEAR = 0.05
 # corner index pairs of the 12 edges of Primitives.corners() (corner k has bits x=k>>2, y=k>>1&1, z=k&1)
@@ -72,8 +72,8 @@ def render_camera(prims: Primitives, T_global_from_cam, K, hw, max_dist=250.0):
 def lidar_grid_dirs() -> np.ndarray:
     """Unit directions [32 * A, 3] of the LiDAR's beams x azimuth columns in the LiDAR frame,
     row-major (beam, column); column c has azimuth -pi + (c + 0.5) * 2 pi / A."""
-    el = np.deg2rad(rig.LIDAR_ELEVATIONS_DEG)[:, None]
-    az = -np.pi + (np.arange(rig.LIDAR_AZIMUTHS) + 0.5) * 2 * np.pi / rig.LIDAR_AZIMUTHS
+    el = np.deg2rad(sensor_rig.LIDAR_ELEVATIONS_DEG)[:, None]
+    az = -np.pi + (np.arange(sensor_rig.LIDAR_AZIMUTHS) + 0.5) * 2 * np.pi / sensor_rig.LIDAR_AZIMUTHS
     az = az[None, :]
     d = np.stack(np.broadcast_arrays(np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)), -1)
     return d.reshape(-1, 3)
@@ -84,7 +84,7 @@ _LIDAR_DIRS = lidar_grid_dirs()
 
 def scan_lidar(prims: Primitives, T_global_from_lidar):
     """Cast one LiDAR sweep (instantaneous). Returns (Hits, global dirs, lidar-frame dirs)."""
-    n_el, n_az = len(rig.LIDAR_ELEVATIONS_DEG), rig.LIDAR_AZIMUTHS
+    n_el, n_az = len(sensor_rig.LIDAR_ELEVATIONS_DEG), sensor_rig.LIDAR_AZIMUTHS
     R = T_global_from_lidar[:3, :3]
     origin = T_global_from_lidar[:3, 3]
     dirs_l = _LIDAR_DIRS
@@ -98,7 +98,7 @@ def scan_lidar(prims: Primitives, T_global_from_lidar):
     dmax = d + rxy
     el_hi = np.where(zmax > 0, np.arctan2(zmax, dmin), np.arctan2(zmax, dmax))
     el_lo = np.where(zmin < 0, np.arctan2(zmin, dmin), np.arctan2(zmin, dmax))
-    el = np.deg2rad(rig.LIDAR_ELEVATIONS_DEG)
+    el = np.deg2rad(sensor_rig.LIDAR_ELEVATIONS_DEG)
     step = el[1] - el[0]
     r0 = np.clip(np.floor((el_lo - el[0]) / step), 0, n_el).astype(np.int64)
     r1 = np.clip(np.ceil((el_hi - el[0]) / step) + 1, 0, n_el).astype(np.int64)
@@ -110,10 +110,10 @@ def scan_lidar(prims: Primitives, T_global_from_lidar):
     c0 = np.where(full, 0, np.floor(col(az_c - half))).astype(np.int64)
     c1 = np.where(full, n_az, np.ceil(col(az_c + half)) + 1).astype(np.int64)
     c1 = np.minimum(c1, c0 + n_az)
-    keep = dmin < rig.LIDAR_MAX_RANGE
+    keep = dmin < sensor_rig.LIDAR_MAX_RANGE
     r1 = np.where(keep, r1, r0)
     ray, prim = rect_pairs(r0, r1, c0, c1, n_az, wrap=True)
-    hits = cast(prims, origin, dirs, ray, prim, max_t=rig.LIDAR_MAX_RANGE)
+    hits = cast(prims, origin, dirs, ray, prim, max_t=sensor_rig.LIDAR_MAX_RANGE)
     return hits, dirs, dirs_l
 
 
@@ -125,13 +125,13 @@ def lidar_points(world, prims: Primitives, hits: Hits, dirs_global, dirs_lidar, 
     Range noise sigma 2 cm; intensity from the material's reflectivity and incidence angle.
     """
     from . import materials as M
-    from .raycast import GROUND
+    from .scene_raycast import GROUND
     from .world import GROUND_SEG, NO_PAINT
 
-    n_el, n_az = len(rig.LIDAR_ELEVATIONS_DEG), rig.LIDAR_AZIMUTHS
+    n_el, n_az = len(sensor_rig.LIDAR_ELEVATIONS_DEG), sensor_rig.LIDAR_AZIMUTHS
     order = np.arange(n_el * n_az).reshape(n_el, n_az).T.ravel()   # column-major firing order
     t = hits.t[order]
-    valid = np.isfinite(t) & (t >= rig.LIDAR_MIN_RANGE) & (t <= rig.LIDAR_MAX_RANGE)
+    valid = np.isfinite(t) & (t >= sensor_rig.LIDAR_MIN_RANGE) & (t <= sensor_rig.LIDAR_MAX_RANGE)
     sel = order[valid]
     t = t[valid] + rng.normal(0, 0.02, len(sel))
     prim = hits.prim[sel]

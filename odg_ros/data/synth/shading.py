@@ -10,7 +10,7 @@ import numpy as np
 
 from . import materials as M
 from .primitives import Primitives
-from .raycast import GROUND, SKY, Hits, shadowed
+from .scene_raycast import GROUND, SKY, Hits, shadowed
 from .world import WHITE, YELLOW, World
 
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..motion import Movers
-from .layout import Layout
+from .road_grid import Layout
 
 
 def _circles(shape_wlh, xy, yaw):

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..motion import Path, speed_profile
-from .layout import Layout, lane_path, turn_pieces
+from .road_grid import Layout, lane_path, turn_pieces
 
 
 def ego_speed_profile(rng, duration):

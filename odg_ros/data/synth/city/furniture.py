@@ -16,7 +16,7 @@ from .. import shapes
 from ..motion import Path
 from ..primitives import BOX, ELLIPSOID, FRUSTUM, make
 from ..world import GroundMap
-from .layout import BORDER, Layout, Road
+from .road_grid import BORDER, Layout, Road
 
 MANMADE, VEGETATION = OCC_CLASSES.index("manmade"), OCC_CLASSES.index("vegetation")
 SEG_MANMADE, SEG_VEGETATION = lidarseg_index("static.manmade"), lidarseg_index("static.vegetation")

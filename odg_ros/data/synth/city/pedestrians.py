@@ -5,7 +5,7 @@ import numpy as np
 
 from .. import shapes
 from ..motion import Path, speed_profile
-from .layout import Layout, Road
+from .road_grid import Layout, Road
 
 
 def place_pedestrians(layout: Layout, rng, span, duration, near, density: float = 1.0):

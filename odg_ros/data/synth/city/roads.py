@@ -6,7 +6,7 @@ import numpy as np
 
 from .. import materials as M
 from ..world import NO_PAINT, WHITE, YELLOW, GroundMap
-from .layout import Layout, Road, side
+from .road_grid import Layout, Road, side
 
 
 def pave_roads(layout: Layout, ground: GroundMap, rng, near):

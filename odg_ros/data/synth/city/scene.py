@@ -12,7 +12,7 @@ from ..world import GroundMap, Lighting, Thing, World
 from .collisions import resolve_collisions
 from .ego import NearRoute, ego_route, ego_speed_profile
 from .furniture import fill_blocks, fill_countryside, place_street_furniture
-from .layout import BORDER, Layout, plan_open_road, plan_roads
+from .road_grid import BORDER, Layout, plan_open_road, plan_roads
 from .pedestrians import place_pedestrians
 from .roads import pave_roads
 from .traffic import place_construction_zones, place_traffic

@@ -8,7 +8,7 @@ import numpy as np
 
 from .. import shapes
 from ..motion import Path, speed_profile
-from .layout import Layout, Road, lane_path, side, turn_pieces
+from .road_grid import Layout, Road, lane_path, side, turn_pieces
 
 VEHICLE_MIX = (("car", 0.60), ("truck", 0.09), ("bus", 0.07), ("semi", 0.06), ("motorcycle", 0.08),
                ("construction", 0.03), ("bicycle", 0.07))

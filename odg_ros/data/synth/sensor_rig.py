@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ...geometry import make_transform
-from ...rig import CAMERA_NAMES
+from ...nuscenes_cameras import CAMERA_NAMES
 
 NUSCENES_IMAGE_HW = (900, 1600)
 

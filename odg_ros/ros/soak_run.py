@@ -1,6 +1,6 @@
 """Soak runs: a real odg_node process fed by ``odg replay --loop --clock`` for a while, watched
 as a planner and an operator would watch it. What is recorded (plain values, JSON-ready) is
-summarised by odg_ros/bench/soak.py; ``odg soak`` runs both.
+summarised by odg_ros/bench/soak_report.py; ``odg soak`` runs both.
 
 Per run: the node's resident memory (``/proc/PID/status`` VmRSS) every ``rss_period`` s; every
 output's stamp (``~/objects``, published with every output) and its wall latency (from its

@@ -1,5 +1,6 @@
 """Census of one training step: the ATen ops it launches and the host waits it makes, by phase
-and by source line.
+and by source line. The phases are the ranges the step marks (``training_phases``); an op
+outside every phase is "other". Profiler ranges launch nothing and are not counted.
 
 An op is counted where it reaches a backend (a TorchDispatchMode, below autograd), so on CUDA
 one op is roughly one kernel launch (views, which launch nothing, are not counted). A host
@@ -48,18 +49,17 @@ from torch.utils._python_dispatch import TorchDispatchMode
 
 from .. import transfer
 from ..data.batch import HOST_KEYS, tensors_in
+from ..training_phases import PHASES, PREFIX
 
 aten = torch.ops.aten
-PHASES = ("data", "forward", "losses", "render", "backward", "optimizer")
 WAIT_KINDS = ("read", "download", "shape", "upload")
 _PACKAGE = str(Path(__file__).resolve().parents[1]) + "/"
 # files whose lines a wait is never attributed to: the census and its stand-ins
 _OWN_FILES = {str(Path(__file__).resolve()),
               str(Path(__file__).resolve().with_name("gsplat_stand_in.py"))}
-# Trainer methods, outermost first, and the phase their ops belong to.
-_TRAINER_PHASES = {"_load_batch": "data", "_forward": "forward", "_losses": "losses",
-                   "_backward": "backward", "_optimizer_step": "optimizer"}
-_RENDER_FILES = ("render/", "losses/render_loss.py")
+# the ranges the training step opens and closes around its phases (training_phases.py)
+_PHASE_ENTER = torch.ops.profiler._record_function_enter_new.default
+_PHASE_EXIT = torch.ops.profiler._record_function_exit._RecordFunction
 
 # Ops whose output size or value the host needs before it can go on, by kind.
 _READS = {aten._local_scalar_dense.default, aten.is_nonzero.default, aten.equal.default,
@@ -89,24 +89,17 @@ def _shape_wait(func, args, kwargs) -> bool:
     return False
 
 
-def _where() -> tuple[str, str]:
-    """(phase, source line) of the op being dispatched, from the Python stack."""
-    frame, line, phase, render = sys._getframe(2), None, "other", False
+def _source_line() -> str:
+    """The innermost line of the package (outside the census) that the op being dispatched
+    comes from."""
+    frame = sys._getframe(2)
     while frame is not None:
         filename = frame.f_code.co_filename
         if filename.startswith(_PACKAGE) and filename not in _OWN_FILES:
-            relative = filename[len(_PACKAGE):]
-            if line is None:
-                code = linecache.getline(filename, frame.f_lineno).strip()
-                line = f"{relative}:{frame.f_lineno} {code}"
-            render = render or relative.startswith(_RENDER_FILES)
-            if frame.f_code.co_name in _TRAINER_PHASES and relative == "train/trainer.py":
-                phase = _TRAINER_PHASES[frame.f_code.co_name]
-                break
+            code = linecache.getline(filename, frame.f_lineno).strip()
+            return f"{filename[len(_PACKAGE):]}:{frame.f_lineno} {code}"
         frame = frame.f_back
-    if phase == "losses" and render:
-        phase = "render"
-    return phase, line or "(outside odg_ros)"
+    return "(outside odg_ros)"
 
 
 @dataclass
@@ -185,6 +178,7 @@ class CensusMode(TorchDispatchMode):
         self._pinned: set[int] = set()
         self._kept = []             # marked storages stay alive: their addresses are not reused
         self._quiet = 0
+        self._ranges: list[str | None] = []   # the phase of each open range (None: no phase)
         self.active = False
         for t in host_tensors:
             self._mark(t, self.HOST)
@@ -244,13 +238,31 @@ class CensusMode(TorchDispatchMode):
         self._mark(t, self.DEVICE)                  # made on the device: a device tensor
         return len(new)
 
+    # -------------------------------------------------------------- phases
+    def _range(self, func, args, kwargs):
+        """A profiler range opened or closed (ranges nest: a range closes the innermost one
+        open); a phase of the training step when it is one of ``training_phases``'. A range
+        launches nothing and is not counted."""
+        if func is _PHASE_ENTER:
+            name = args[0]
+            self._ranges.append(name[len(PREFIX):] if name.startswith(PREFIX) else None)
+        elif func is _PHASE_EXIT and self._ranges:
+            self._ranges.pop()
+        return func(*args, **kwargs)
+
+    def _where(self) -> tuple[str, str]:
+        """(phase, source line) of the op being dispatched: the innermost phase open, "other"
+        outside every phase."""
+        phase = next((p for p in reversed(self._ranges) if p is not None), "other")
+        return phase, _source_line()
+
     # -------------------------------------------------------------- counting
     def record(self, ops: int = 0, waits: int = 0, kind: str = "read") -> None:
         """Counts at the current source line while active (stand-ins of kernels that cannot
         run here)."""
         if not self.active:
             return
-        self._add(_where(), ops, [(kind, waits)] if waits else [])
+        self._add(self._where(), ops, [(kind, waits)] if waits else [])
 
     def _add(self, where, ops: int, waits) -> None:
         self.census.ops[where] += ops
@@ -272,10 +284,12 @@ class CensusMode(TorchDispatchMode):
         """One op (unless a view without waits: it launches no kernel) and its waits,
         (kind, number) pairs."""
         if any(number for _, number in waits) or not func.is_view:
-            self._add(_where(), 1, waits)
+            self._add(self._where(), 1, waits)
 
     def __torch_dispatch__(self, func, types, args=(), kwargs=None):
         kwargs = kwargs or {}
+        if func.namespace == "profiler":
+            return self._range(func, args, kwargs)
         if self._quiet:
             return func(*args, **kwargs)
         if func in _FRESH:
@@ -488,7 +502,8 @@ def batch_host_tensors(batch: dict) -> list[torch.Tensor]:
 
 def census_of_steps(trainer, batches, cuda_paths: bool, renderer: str = "torch",
                     warm_up: bool = True) -> Census:
-    """Census of ``trainer.train_step`` over ``batches``. ``warm_up``: the first batch's step
+    """Census of ``trainer.train_step`` over ``batches``, by the phases the step marks
+    (``training_phases``). ``warm_up``: the first batch's step
     is a warm-up, not counted (the first step makes the optimizer's state and the device
     constants that later steps reuse). ``renderer`` (with ``cuda_paths``): ``torch`` ours,
     ``gsplat`` gsplat's rasteriser as it runs on CUDA, its kernels replaced by stand-ins that

@@ -31,12 +31,13 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from ..config import ModelConfig
+from ..model_config import ModelConfig
 from ..network import ODG
 from ..network.precision import resolve_precision
 from ..online.marks import LAYER_PARTS, STEP_STAGES, DecoderMarks, MarkRecorder
-from ..online.predictor import OnlinePredictor, resolve_mode
-from ..rig import ring_ego2img
+from ..online.execution import resolve_mode
+from ..online.predictor import OnlinePredictor
+from ..nuscenes_cameras import ring_ego2img
 
 # the node's parameters that shape its step and history (their defaults: the schema's)
 NODE_SETTINGS = ("precision", "compile", "query_budget", "visibility", "history_interval",

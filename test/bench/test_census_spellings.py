@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from odg_ros.transfer import device_constant, upload
-from odg_ros.train.census import Census, CensusMode
+from odg_ros.bench.census import Census, CensusMode
 
 
 def waits_of(step):
@@ -125,5 +125,5 @@ def test_a_constant_made_in_the_step_is_one_upload_the_first_time():
 
 
 def test_every_kind_is_planted():
-    from odg_ros.train.census import WAIT_KINDS
+    from odg_ros.bench.census import WAIT_KINDS
     assert {kind for kind, _ in PLANTED.values()} == set(WAIT_KINDS)

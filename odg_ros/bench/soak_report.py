@@ -1,4 +1,4 @@
-"""``odg soak``'s figures: what a soak run recorded (odg_ros/ros/soak.py) summarised, checked
+"""``odg soak``'s figures: what a soak run recorded (odg_ros/ros/soak_run.py) summarised, checked
 against the targets, drawn and written up; and the synthetic scenes it can loop.
 
 Per run: resident memory over time and its growth after the warm-up; outputs, completed sets,
@@ -255,7 +255,7 @@ def _latency_drift(latency, warmup: float) -> dict:
 
 
 def summarize_restarts(record: dict) -> dict:
-    """Each restart of a restart run (odg_ros/ros/soak.py restart_run): seconds from the new
+    """Each restart of a restart run (odg_ros/ros/soak_run.py restart_run): seconds from the new
     process's start to its first report and its first output; its outputs until the next
     kill, and those made of an image that reached the machine before the new process
     started (stale; unknown where the image was not seen), and its ERROR reports. A new
