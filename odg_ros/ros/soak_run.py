@@ -32,6 +32,7 @@ from .dds import localhost_dds_env
 NODE_NAME = "odg_node"
 NAMESPACE = "/odg_soak"
 IMAGE_MEMORY_S = 120.0     # how long the watcher remembers when each reference image came
+IN_FLIGHT_S = 0.5          # a killed node's last messages arrive within this
 _PLAYING = re.compile(r"playing (\d+)/(\d+): (\S+)")
 
 
@@ -412,16 +413,17 @@ def restart_run(bags: Sequence[Path], node_args: Sequence[str], *, log_path: Pat
             session.node.kill()
             killed = time.monotonic()
             outputs, reports = len(watcher.outputs), len(watcher.diagnostics)
-            # the killed node's output count: the new node's reports start below it
-            killed_count = watcher.diagnostics[-1][3].get("outputs") if reports else None
             session.node = NodeProcess(session.node_args, session.namespace, log_path,
                                        session.env).start()
             started = session.node.started
             # the new node's first report (one of the killed node's may still come in)
-            _spin_until(watcher, lambda: _first_report(watcher, reports, killed_count)
+            # reports arriving this long after the SIGKILL are the new node's (the killed
+            # one's last may still be in flight; the new one takes seconds to start)
+            not_before = killed + IN_FLIGHT_S
+            _spin_until(watcher, lambda: _first_report(watcher, reports, not_before)
                         is not None, timeout, "diagnostics from the restarted node",
                         session.node)
-            reports = _first_report(watcher, reports, killed_count)
+            reports = _first_report(watcher, reports, not_before)
             up = watcher.diagnostics[reports][0]
             _spin_until(watcher, lambda: len(watcher.outputs) > outputs, timeout,
                         "the restarted node's first output", session.node)
@@ -438,13 +440,11 @@ def restart_run(bags: Sequence[Path], node_args: Sequence[str], *, log_path: Pat
     return record
 
 
-def _first_report(watcher: Watcher, after: int, killed_count: int | None) -> int | None:
-    """The index of the restarted node's first diagnostics report from ``after`` on: the
-    first that counts fewer outputs than the killed node had (one of the killed node's may
-    still come in; the new one may have published before its first report when loaded)."""
-    below = 1 if not killed_count else killed_count
+def _first_report(watcher: Watcher, after: int, not_before: float) -> int | None:
+    """The index of the first diagnostics report from ``after`` on that arrived at
+    ``not_before`` (monotonic seconds) or later."""
     return next((i for i in range(after, len(watcher.diagnostics))
-                 if watcher.diagnostics[i][3].get("outputs", below) < below), None)
+                 if watcher.diagnostics[i][0] >= not_before), None)
 
 
 def _spin_until(watcher: Watcher, done: Callable[[], bool], timeout: float, what: str,
