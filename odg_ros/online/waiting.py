@@ -130,9 +130,11 @@ class WaitingSets(HandOff):
                     return None
                 self._drop_from_before_a_clock_jump()
                 snapshot, news = list(self._entries), self._news
+            # news seen even with no set waiting: else the wait below is skipped and the
+            # consumer spins, holding the GIL the model's thread needs
+            probe, seen = news != seen, news
             if snapshot:
-                chosen, newest_ready = self._choose(snapshot, probe=news != seen)
-                seen = news
+                chosen, newest_ready = self._choose(snapshot, probe=probe)
                 if chosen is not None:
                     with self._condition:
                         if chosen in self._entries:   # not cleared by a time jump meanwhile

@@ -221,6 +221,26 @@ def test_the_consumer_wakes_when_data_arrives():
     assert time.monotonic() - start < 1.0
 
 
+@pytest.mark.parametrize("sets_before", [0, 1])
+def test_the_consumer_sleeps_while_nothing_waits(sets_before):
+    """An empty room (at the start, or once its sets are taken) blocks the consumer until
+    a set comes: a loop instead holds the GIL and slows the model's thread (the first
+    inference of a node took 16 times its time)."""
+    readings = [0]
+
+    def clock():
+        readings[0] += 1
+        return 100.0
+
+    waiting = WaitingSets(lambda item, final: READY, 1.0, clock)
+    for k in range(sets_before):
+        waiting.put(Item(10.0 + k))
+        assert waiting.get(timeout=1.0) is not None
+    readings[0] = 0
+    assert waiting.get(timeout=0.3) is None
+    assert readings[0] < 10, f"{readings[0]} clock readings in 0.3 s of waiting"
+
+
 # ---------------------------------------------------------------- the pipeline, replayed
 def pose_at(t):
     """10 m/s, turning at 0.2 rad/s: linear interpolation over 1 s is off by ~0.25 m."""

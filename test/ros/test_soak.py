@@ -103,6 +103,8 @@ def test_the_node_killed_mid_bag_and_started_again(scenes, rclpy_module, tmp_pat
         # up (its first report: Python, torch and the model loaded) -> its first output:
         # the node's own recovery, within the target; the start-up before it is the
         # machine's (4 s of imports alone on 2 busy shared cores)
-        assert 0 < restart["up_after_s"] < restart["first_output_after_s"] < 60, restart
+        # (its first output may come before its first report: one a diagnostics period)
+        assert 0 < restart["up_after_s"] < 60 and 0 < restart["first_output_after_s"] < 60, \
+            restart
         assert restart["first_output_after_s"] - restart["up_after_s"] <= \
             TARGET_RESTART_S, restart
