@@ -55,7 +55,7 @@ COMPONENT_BENCHMARKS = {
 }
 STEP_PARTS = {"OnlineStep", "FeatureRing", "folded_for_inference", "voxelise", "pad_occupancy",
               "ranked_boxes", "occupancy_grid", "box_list", "Visibility", "online_inputs"}
-MODEL_PATHS = {"decode_ring", "_decode_stored", "extract_features"}
+MODEL_PATHS = {"decode_ring", "decode_stored", "extract_features"}
 
 
 def parse_package(root: Path = PACKAGE) -> dict[str, ast.Module]:

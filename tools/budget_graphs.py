@@ -111,8 +111,8 @@ def decoder_function(predictor, budget):
     def decode(images, packed):
         ego2img, warps, deltas, frame_index, _ = step.layout.unpack(packed)
         with precision_context(step.precision, step.device):
-            output = step.model._decode_stored(step.ring.all_levels(), ego2img, warps, deltas,
-                                               frame_index, False, budget=budget)
+            output = step.model.decode_stored(step.ring.all_levels(), ego2img, warps, deltas,
+                                              frame_index, False, budget=budget)
         return output.last.means, output.last.logits
     return decode
 

@@ -311,8 +311,8 @@ def test_bf16_encoder_step_runs_the_encoder_in_bf16_and_the_decoder_in_fp32():
         online = predictor.step(*s)
     ego2img, warps, deltas, frame_index, _ = step.layout.unpack(predictor._packed)
     with torch.inference_mode():
-        fp32 = model._decode_stored(step.ring.all_levels(), ego2img, warps, deltas,
-                                    frame_index, False)
+        fp32 = model.decode_stored(step.ring.all_levels(), ego2img, warps, deltas,
+                                   frame_index, False)
     grid, confidence = published_grid(fp32, cfg)
     assert (online.grid != cfg.num_classes).sum() > 50                 # a real comparison
     np.testing.assert_array_equal(online.grid, grid[0].numpy())
