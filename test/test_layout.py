@@ -55,7 +55,7 @@ COMPONENT_BENCHMARKS = {
 }
 STEP_PARTS = {"OnlineStep", "FeatureRing", "folded_for_inference", "voxelise", "pad_occupancy",
               "ranked_boxes", "occupancy_grid", "box_list", "Visibility", "online_inputs"}
-MODEL_PATHS = {"decode_ring", "_decode_stored", "extract_features"}
+MODEL_PATHS = {"decode_ring", "decode_stored", "extract_features"}
 
 
 def parse_package(root: Path = PACKAGE) -> dict[str, ast.Module]:
@@ -367,16 +367,22 @@ def absolute_self_imports(modules: dict[str, ast.Module]) -> list[str]:
     return imports_where(modules, lambda target: target.split(".")[0] == "odg_ros")
 
 
+def assert_import_rule(find, files: dict[str, ast.Module], planted: dict[str, str],
+                       expected: list[str]) -> None:
+    """``find`` (an imports_where rule) finds nothing in ``files``, and exactly ``expected``
+    in the ``planted`` sources: the rule holds, and it can fail."""
+    assert find(files) == []
+    assert find({name: ast.parse(source) for name, source in planted.items()}) == expected
+
+
 def test_the_package_imports_itself_relatively(modules):
-    assert absolute_self_imports(modules) == []
-    planted = {"odg_ros.online.extra": ast.parse(
+    assert_import_rule(absolute_self_imports, modules, {"odg_ros.online.extra": (
         "from odg_ros.geometry import make_transform\nimport odg_ros.classes\n"
         "from odg_ros_msgs.msg import SemanticVoxelGrid\nfrom ..geometry import ego_warp\n"
-        "def f():\n    from odg_ros.network import ODG\n")}
-    assert absolute_self_imports(planted) == [
+        "def f():\n    from odg_ros.network import ODG\n")}, [
         "odg_ros.online.extra:1 imports odg_ros.geometry",
         "odg_ros.online.extra:2 imports odg_ros.classes",
-        "odg_ros.online.extra:6 imports odg_ros.network"]
+        "odg_ros.online.extra:6 imports odg_ros.network"])
 
 
 TESTS = PACKAGE.parent / "test"
@@ -393,11 +399,9 @@ def sibling_test_imports(tests: dict[str, ast.Module]) -> list[str]:
 def test_tests_share_helpers_through_testing_only():
     tests = {str(path.relative_to(TESTS)): ast.parse(path.read_text(), filename=str(path))
              for path in sorted(TESTS.rglob("*.py"))}
-    assert sibling_test_imports(tests) == []
-    planted = {"ros/test_a.py": ast.parse(
+    assert_import_rule(sibling_test_imports, tests, {"ros/test_a.py": (
         "from test_node import Harness\nimport test.online.test_step\n"
         "from .test_b import helper\nfrom testing.online import make_sets\n"
-        "from odg_ros.online.step import OnlineStep\n")}
-    assert sibling_test_imports(planted) == [
+        "from odg_ros.online.step import OnlineStep\n")}, [
         "ros/test_a.py:1 imports test_node", "ros/test_a.py:2 imports test.online.test_step",
-        "ros/test_a.py:3 imports .test_b"]
+        "ros/test_a.py:3 imports .test_b"])

@@ -63,6 +63,22 @@ def published_grid(output, cfg):
     return grid, confidence
 
 
+def assert_published_like(online, expected, cfg, atol):
+    """An online step's result publishes what the model output ``expected`` does: the same
+    labels (over enough occupied voxels to be a real comparison), confidence within one
+    step, the same box labels and their centres within ``atol``."""
+    import numpy as np
+    from odg_ros.network.postprocess import box_list
+    grid, confidence = published_grid(expected, cfg)
+    assert (online.grid != cfg.num_classes).sum() > 50
+    np.testing.assert_array_equal(online.grid, grid[0].numpy())
+    assert np.abs(online.confidence.astype(int) - confidence[0].numpy()).max() <= 1
+    boxes = box_list(expected, cfg)[0]
+    assert [b["label"] for b in online.boxes] == [b["label"] for b in boxes]
+    np.testing.assert_allclose([b["center"] for b in online.boxes],
+                               [b["center"] for b in boxes], atol=atol)
+
+
 def assert_layers_close(layers, expected, tol):
     """Every decoder layer's means, logits and boxes within ``tol`` (absolute and relative)."""
     import torch

@@ -57,8 +57,8 @@ def raw_output(predictor, budget=None):
     step = predictor.online_step
     ego2img, warps, deltas, frame_index, _ = step.layout.unpack(predictor._packed)
     with precision_context(predictor.precision, predictor.device):
-        return step.model._decode_stored(step.ring.all_levels(), ego2img, warps, deltas,
-                                         frame_index, False, budget=budget)
+        return step.model.decode_stored(step.ring.all_levels(), ego2img, warps, deltas,
+                                        frame_index, False, budget=budget)
 
 
 def make_sets(cfg, num_sets, seed=0):

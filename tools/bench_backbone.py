@@ -15,16 +15,15 @@ from __future__ import annotations
 
 import argparse
 import copy
-import json
 import statistics
 import sys
-from pathlib import Path
 
 import torch
 
 from odg_ros.model_config import load_preset
 from odg_ros.network.backbone import ResNet, folded_for_inference
 from odg_ros.network.precision import half_dtype
+from tools.gpu_tool import write_json
 
 
 def timed(function, x: torch.Tensor, iters: int, warmup: int, graph: bool) -> float:
@@ -101,8 +100,7 @@ def main(argv=None) -> int:
         result["ms"][mode] = {k: round(v, 3) for k, v in times.items()}
         result["ms"][mode]["ours / fastest reference"] = round(times["ours"] / best, 3)
         print(f"{mode}: " + ", ".join(f"{k} {v:.3f}" for k, v in result["ms"][mode].items()))
-    if args.json:
-        Path(args.json).write_text(json.dumps(result, indent=1))
+    write_json(args.json, result)
     return 0
 
 

@@ -30,9 +30,7 @@ import json
 import statistics
 import sys
 import time
-from pathlib import Path
 
-import numpy as np
 import torch
 
 from odg_ros.model_config import load_preset
@@ -41,6 +39,7 @@ from odg_ros.network.budget import budget_ladder
 from odg_ros.network.precision import precision_context
 from odg_ros.online import predictor as predictor_module
 from odg_ros.online.predictor import OnlinePredictor
+from tools.gpu_tool import parse_args, write_json
 
 # The share of the keyframes at each rung of the ladder (full, middle, smallest) that
 # ``query_budget auto`` ran with the shipped odg_cpu on the held-out open-road world
@@ -112,8 +111,8 @@ def decoder_function(predictor, budget):
     def decode(images, packed):
         ego2img, warps, deltas, frame_index, _ = step.layout.unpack(packed)
         with precision_context(step.precision, step.device):
-            output = step.model._decode_stored(step.ring.all_levels(), ego2img, warps, deltas,
-                                               frame_index, False, budget=budget)
+            output = step.model.decode_stored(step.ring.all_levels(), ego2img, warps, deltas,
+                                              frame_index, False, budget=budget)
         return output.last.means, output.last.logits
     return decode
 
@@ -226,10 +225,8 @@ def main(argv=None) -> int:
                         metavar=("FULL", "MIDDLE", "SMALLEST"),
                         help="share of the steps at each rung for the auto figure (default: "
                              "the open road's)")
-    parser.add_argument("--json", help="also write the result here")
-    args = parser.parse_args(argv)
-    if args.device == "cuda" and not torch.cuda.is_available():
-        print("budget_graphs: no CUDA device here (--device cpu: a dry run)", file=sys.stderr)
+    args = parse_args(parser, argv, "budget_graphs", "--device cpu: a dry run")
+    if args is None:
         return 2
     if abs(sum(args.rung_shares) - 1.0) > 1e-6:
         parser.error("--rung-shares must add up to 1")
@@ -239,8 +236,7 @@ def main(argv=None) -> int:
     for preset in args.preset:
         results.append(measure(preset, args))
         print(json.dumps(results[-1], indent=1))
-        if args.json:                           # each preset as soon as it is measured
-            Path(args.json).write_text(json.dumps(results, indent=1))
+        write_json(args.json, results)          # each preset as soon as it is measured
         road = results[-1]["open_road"]
         print(f"budget_graphs: {preset} decoder, full {road['full_decoder_ms']:.2f} ms, auto on "
               f"the open road {road['auto_decoder_ms']:.2f} ms: {road['speedup']:.2f}x",

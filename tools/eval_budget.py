@@ -8,7 +8,6 @@ with ``--baselines`` / ``--oracles`` / ``--margins`` the rankings and bounds to 
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 
 import torch
@@ -17,6 +16,7 @@ from odg_ros.bench.budget_accuracy import configurations, evaluate_class, scene_
 from odg_ros.commands.common import positive_float
 from odg_ros.data.dataset import load_infos_file
 from odg_ros.network.checkpoint import load_model
+from tools.gpu_tool import write_json
 
 
 def main(argv=None) -> int:
@@ -48,8 +48,7 @@ def main(argv=None) -> int:
                "classes": {}}
     for name, infos in classes.items():
         results["classes"][name] = evaluate_class(name, infos, model, cfg, configs, args.limit)
-        with open(args.out, "w") as f:
-            json.dump(results, f, indent=1)
+        write_json(args.out, results)           # each class as soon as it is scored
         for config, row in results["classes"][name].items():
             print(f"{name:8s} {config:22s} mIoU {row['mIoU']:6.2f} RayIoU {row['RayIoU']:6.2f} "
                   f"refined {row['refined_fraction']:.3f} decoder {row['decoder_ms']:.1f} ms",

@@ -22,12 +22,12 @@ import math
 import statistics
 import sys
 import time
-from pathlib import Path
 
 import torch
 
 from odg_ros.network import das_attention
 from odg_ros.network.das_attention import DaSAttention, flex_das_attention, sdpa_das_attention
+from tools.gpu_tool import parse_args, write_json
 
 # the output's own bf16 rounding is ~2e-3 of its norm; a bias computed in bf16 gives ~3e-2
 BF16_TOLERANCE = 5e-3
@@ -155,11 +155,8 @@ def main(argv=None) -> int:
     parser.add_argument("--iters", type=int, default=20)
     parser.add_argument("--device", default="cuda", choices=("cuda", "cpu"),
                         help="cuda; cpu: a dry run")
-    parser.add_argument("--json", help="also write the result here")
-    args = parser.parse_args(argv)
-    if args.device == "cuda" and not torch.cuda.is_available():
-        print("flex_attention_check: no CUDA device here (--device cpu: a dry run)",
-              file=sys.stderr)
+    args = parse_args(parser, argv, "flex_attention_check", "--device cpu: a dry run")
+    if args is None:
         return 2
     device = torch.device(args.device)
     results = {"device": torch.cuda.get_device_name() if device.type == "cuda" else "cpu",
@@ -167,8 +164,7 @@ def main(argv=None) -> int:
     for queries in args.queries:
         results["sizes"].append(check(queries, args, device))
         print(f"flex_attention_check: {json.dumps(results['sizes'][-1])}", flush=True)
-        if args.json:                          # each size as soon as it is measured
-            Path(args.json).write_text(json.dumps(results, indent=1))
+        write_json(args.json, results)         # each size as soon as it is measured
     return 0 if all(r["within_tolerance"] and r["module_ok"] for r in results["sizes"]) else 1
 
 

@@ -46,6 +46,7 @@ from odg_ros.bench.census import (
     optimizer_host_tensors,
 )
 from odg_ros.train.trainer import Trainer, TrainOptions
+from tools.gpu_tool import parse_args, write_json
 
 PACKAGE = str(Path(__file__).resolve().parents[1] / "odg_ros") + "/"
 
@@ -150,11 +151,9 @@ def main(argv=None) -> int:
     parser.add_argument("--no-cpu-census", action="store_true",
                         help="leave out the census with the CUDA paths on the CPU (minutes at "
                              "batch 4; CI pins it)")
-    parser.add_argument("--json", help="also write the counts here")
-    args = parser.parse_args(argv)
-    if args.device == "cuda" and not torch.cuda.is_available():
-        print("sync_debug_step: no CUDA device here (--device cpu counts the census only)",
-              file=sys.stderr)
+    args = parse_args(parser, argv, "sync_debug_step", "--device cpu counts the census only",
+                      json_help="also write the counts here")
+    if args is None:
         return 2
     results = []
     trainers = {}
@@ -164,8 +163,7 @@ def main(argv=None) -> int:
         trainers["cpu"] = trainer_on("cpu", args)
     for size in args.batch_size:
         results.append(counted(trainers, size, args))
-        if args.json:                             # each batch's result as soon as it is made
-            Path(args.json).write_text(json.dumps(results, indent=1))
+        write_json(args.json, results)            # each batch's result as soon as it is made
     return 0
 
 

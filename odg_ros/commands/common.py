@@ -42,43 +42,38 @@ class DefaultsFormatter(argparse.RawDescriptionHelpFormatter):
         return f"{text} (default: %(default)s)"
 
 
-def _number(text: str, kind, least, strict: bool):
+def _parse_number(text: str, kind):
     try:
-        value = kind(text)
+        return kind(text)
     except ValueError:
         raise argparse.ArgumentTypeError(
             f"expected {'an integer' if kind is int else 'a number'}, got {text!r}") from None
-    if value != value or (value <= least if strict else value < least):     # NaN fails too
-        raise argparse.ArgumentTypeError(f"must be {'>' if strict else '>='} {least}, "
-                                         f"got {text}")
-    return value
 
 
-def positive_int(text: str) -> int:
-    return _number(text, int, 0, strict=True)
+def _bounded(kind, least, strict: bool, name: str):
+    """-> an argument type for a ``kind`` > ``least`` (strict) or >= ``least``; NaN fails."""
+    def parse(text: str):
+        value = _parse_number(text, kind)
+        if value != value or (value <= least if strict else value < least):
+            raise argparse.ArgumentTypeError(f"must be {'>' if strict else '>='} {least}, "
+                                             f"got {text}")
+        return value
+    parse.__name__ = parse.__qualname__ = name          # argparse names the type by it
+    return parse
 
 
-def nonnegative_int(text: str) -> int:
-    return _number(text, int, 0, strict=False)
+positive_int = _bounded(int, 0, strict=True, name="positive_int")
+nonnegative_int = _bounded(int, 0, strict=False, name="nonnegative_int")
+positive_float = _bounded(float, 0.0, strict=True, name="positive_float")
+nonnegative_float = _bounded(float, 0.0, strict=False, name="nonnegative_float")
 
 
 def probability(text: str) -> float:
     """A probability in [0, 1)."""
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
-    if not 0.0 <= value < 1.0:
+    value = _parse_number(text, float)
+    if not 0.0 <= value < 1.0:                                          # NaN fails too
         raise argparse.ArgumentTypeError(f"{text}: expected a probability in [0, 1)")
     return value
-
-
-def positive_float(text: str) -> float:
-    return _number(text, float, 0.0, strict=True)
-
-
-def nonnegative_float(text: str) -> float:
-    return _number(text, float, 0.0, strict=False)
 
 
 # The path types return the text as given (a str, like an option without a type), checked.

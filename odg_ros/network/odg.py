@@ -69,9 +69,9 @@ class ODG(nn.Module):
             G, L = self.cfg.num_groups, len(frame_feats[0])
             mlvl = [camera_rows_layout([feats[level] for feats in frame_feats], G)
                     for level in range(L)]
-            return self._decode_stored(mlvl, ego2img, ego_warp, time_delta,
-                                       self._frame_index(list(range(T)), ego2img.device),
-                                       gaussian_attributes, budget)
+            return self.decode_stored(mlvl, ego2img, ego_warp, time_delta,
+                                      self._frame_index(list(range(T)), ego2img.device),
+                                      gaussian_attributes, budget)
         if missing:
             frame_feats = list(frame_feats) + [frame_feats[-1]] * missing
             ego2img = torch.cat([ego2img, ego2img[:, -1:].expand(-1, missing, -1, -1, -1)], 1)
@@ -88,8 +88,8 @@ class ODG(nn.Module):
                 per_frame.append(f.reshape(B, N, G, C // G, h, w).permute(0, 2, 3, 1, 4, 5))
             stacked = torch.stack(per_frame)                            # [T, B, G, c, N, h, w]
             mlvl.append(stacked.reshape(-1, *stacked.shape[3:]))
-        return self._decode_stored(mlvl, ego2img, ego_warp, time_delta, None,
-                                   gaussian_attributes, budget)
+        return self.decode_stored(mlvl, ego2img, ego_warp, time_delta, None,
+                                  gaussian_attributes, budget)
 
     def decode_ring(self, ring: FeatureRing, ego2img: torch.Tensor, ego_warp: torch.Tensor,
                     time_delta: torch.Tensor, gaussian_attributes: bool | None = None,
@@ -107,11 +107,11 @@ class ODG(nn.Module):
         slots = ring.slots()                       # slots[t]: storage slot of time step t
         order = sorted(range(T), key=lambda t: slots[t])   # time step of each stored slot
         index = self._index_tensor(order, ego2img.device)
-        return self._decode_stored(ring.levels(), ego2img.index_select(1, index),
-                                   ego_warp.index_select(1, index),
-                                   time_delta.index_select(1, index),
-                                   self._frame_index(slots, ego2img.device),
-                                   gaussian_attributes, budget)
+        return self.decode_stored(ring.levels(), ego2img.index_select(1, index),
+                                  ego_warp.index_select(1, index),
+                                  time_delta.index_select(1, index),
+                                  self._frame_index(slots, ego2img.device),
+                                  gaussian_attributes, budget)
 
     def _frame_index(self, slots: list[int], device) -> torch.Tensor | None:
         """Stored frame read by each of the model's ``num_frames`` time steps: ``slots`` for
@@ -129,10 +129,12 @@ class ODG(nn.Module):
             self._index_cache[key] = torch.tensor(index, device=device)
         return self._index_cache[key]
 
-    def _decode_stored(self, mlvl, ego2img, ego_warp, time_delta, frame_index,
-                       gaussian_attributes, budget=None) -> ODGOutput:
-        """mlvl: L levels of F stored frames in a sampling layout; geometry [B, F, ...] in the
-        same storage order; frame_index [num_frames] (see ``SpatioTemporalSampling``)."""
+    def decode_stored(self, mlvl, ego2img, ego_warp, time_delta, frame_index,
+                      gaussian_attributes=None, budget=None) -> ODGOutput:
+        """``decode`` over frames already stored in a sampling layout (what ``decode`` and
+        ``decode_ring`` lay out, or an online step's ``ring.all_levels()``): mlvl, L levels of
+        F stored frames; geometry [B, F, ...] in the same storage order; frame_index
+        [num_frames] (see ``SpatioTemporalSampling``; None: time step t reads frame t)."""
         B = ego2img.shape[0]
         geometry = {"ego2img": ego2img.float(), "ego_warp": ego_warp.float(),
                     "time_delta": time_delta.float(), "image_hw": self.cfg.image_size,

@@ -152,8 +152,8 @@ class OnlineStep(nn.Module):
             x = ((images.float() / 255.0 - self.mean) / self.std).movedim(-1, -3)
             self.ring.write_slot(self.features(x), slot)
         with precision_context(self.precision, self.device), mark("decoder"):
-            output = self.model._decode_stored(self.ring.all_levels(), ego2img, ego_warp,
-                                               time_delta, frame_index, False, budget=budget)
+            output = self.model.decode_stored(self.ring.all_levels(), ego2img, ego_warp,
+                                              time_delta, frame_index, False, budget=budget)
         results = self._results(output, packed)
         if budget is None:
             return results

@@ -10,7 +10,7 @@ from odg_ros.network.feature_ring import FeatureRing
 from odg_ros.network.postprocess import box_list, occupancy_grid
 from odg_ros.online.predictor import OnlinePredictor, resolve_mode
 from odg_ros.preprocess import normalize
-from testing.helpers import assert_layers_close, published_grid
+from testing.helpers import assert_layers_close, assert_published_like
 from testing.online import (HostSyncCounter, make_model, make_sets, raw_output,
                             stepped_predictor)
 
@@ -47,14 +47,7 @@ def test_static_step_equals_the_dynamic_ring_at_every_fill_level(capacity):
         online = predictor.step(*s)
         assert online.num_frames == min(i + 1, capacity)
         assert_layers_close(raw_output(predictor).layers, expected.layers, 1e-5)
-        grid, confidence = published_grid(expected, cfg)
-        assert (online.grid != cfg.num_classes).sum() > 50             # a real comparison
-        np.testing.assert_array_equal(online.grid, grid[0].numpy())
-        assert np.abs(online.confidence.astype(int) - confidence[0].numpy()).max() <= 1
-        boxes = box_list(expected, cfg)[0]
-        assert [b["label"] for b in online.boxes] == [b["label"] for b in boxes]
-        np.testing.assert_allclose([b["center"] for b in online.boxes],
-                                   [b["center"] for b in boxes], atol=1e-4)
+        assert_published_like(online, expected, cfg, atol=1e-4)
 
 
 def test_the_step_reads_nothing_back_and_copies_nothing_up():
@@ -311,16 +304,9 @@ def test_bf16_encoder_step_runs_the_encoder_in_bf16_and_the_decoder_in_fp32():
         online = predictor.step(*s)
     ego2img, warps, deltas, frame_index, _ = step.layout.unpack(predictor._packed)
     with torch.inference_mode():
-        fp32 = model._decode_stored(step.ring.all_levels(), ego2img, warps, deltas,
-                                    frame_index, False)
-    grid, confidence = published_grid(fp32, cfg)
-    assert (online.grid != cfg.num_classes).sum() > 50                 # a real comparison
-    np.testing.assert_array_equal(online.grid, grid[0].numpy())
-    assert np.abs(online.confidence.astype(int) - confidence[0].numpy()).max() <= 1
-    boxes = box_list(fp32, cfg)[0]
-    assert [b["label"] for b in online.boxes] == [b["label"] for b in boxes]
-    np.testing.assert_allclose([b["center"] for b in online.boxes],
-                               [b["center"] for b in boxes], atol=1e-5)
+        fp32 = model.decode_stored(step.ring.all_levels(), ego2img, warps, deltas,
+                                   frame_index, False)
+    assert_published_like(online, fp32, cfg, atol=1e-5)
     features = step.ring.all_levels()[0]
     assert features.dtype == torch.float32 and features.abs().sum() > 0
     assert torch.equal(features, features.bfloat16().float())          # bf16 values

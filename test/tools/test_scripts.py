@@ -19,7 +19,7 @@ HELPERS = sorted(path.stem for path in TOOLS.glob("*.py")
 
 def test_the_scripts_are_found():
     assert {"eval_budget", "profile_budget", "plot_budget", "node_parameters"} <= set(SCRIPTS)
-    assert HELPERS == ["revision"]
+    assert HELPERS == ["gpu_tool", "revision"]
 
 
 @pytest.mark.parametrize("name", SCRIPTS)
