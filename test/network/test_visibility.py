@@ -349,7 +349,7 @@ def test_agreement_with_a_synthetic_worlds_mask_camera(tmp_path):
     observed = observe(semantics, np.stack(ego2img), image_bounds([(54, 96)] * 6, INPUT_HW))
     iou = (observed & mask).sum() / (observed | mask).sum()
     print(f"IoU of observed against mask_camera: {iou:.3f}")
-    assert iou > 0.75                            # 0.78 measured on this keyframe
+    assert iou > 0.75           # 0.760 measured on this keyframe (0.78 with 0.35-voxel balls)
 
 
 def test_the_predictor_without_visibility_returns_none():
