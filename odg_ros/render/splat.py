@@ -27,11 +27,11 @@ survivors get T from a float64 segmented cumulative sum of log(1 - alpha), and p
 reached the early stop leave the rest (in a dense scene the first batch stops most of them).
 The weighted sums are CSR sparse x dense products. The host waits for the device once for
 every size and input check before compositing (visible splats, tile pairs, and the first
-depth batch's bounds from a summed-area table of pixels per tile, in one copy) and, when the
-first batch is not all, once after it (the count of its kept pairs with the rest's size);
-the projection (every camera x Gaussian pair, the others marked invisible) and the rest's
-chunks (stopped pixels and dropped pairs masked, not removed) wait for nothing. So a render
-call waits once or twice, whatever the image and the batch.
+depth batch's bounds from a summed-area table of pixels per tile, in one copy) and once
+after the first batch (the count of its kept pairs with the rest's size); the projection
+(every camera x Gaussian pair, the others marked invisible) and the rest's chunks (stopped
+pixels and dropped pairs masked, not removed) wait for nothing. So a render call waits
+twice, whatever the scene, the image and the batch.
 Memory is O(the first batch's contributing pairs and the rest's candidates) plus one
 chunk's working memory. render_scenes draws several
 independent scenes (the render loss: every decoder layer of every sample) in one such pass, so
@@ -368,30 +368,27 @@ def _composite(splats: Splats, pixel_uv: torch.Tensor, pixel_camera: torch.Tenso
             pair_splat, pair_pixel, kept, stopped = _pairs_of_batch(
                 params, pixel_uv, st_splat[:tile_pairs_first], st_tile[:tile_pairs_first],
                 binned, (0, num_candidates), log_t, stopped)
-        if last == len(splats):             # one batch: its pairs are masked, nothing read
-            composite(pair_splat, pair_pixel, kept)
-        else:
+        with torch.no_grad():
+            # Pixels that stopped leave the rest, whose size comes in the same read as this
+            # batch's kept count: the one wait here, also where the rest is empty (so that
+            # a call waits the same whatever the scene).
+            binned = grid.bin_pixels(pixel_uv, pixel_camera, ~stopped)
+            rest = _pixels_in_boxes(grid, binned[1], splats.camera[last:],
+                                    *(edge[last:] for edge in boxes)).sum()
+            num_kept, rest = torch.stack([kept.sum(), rest]).tolist()
+            kept = _compacted(kept, num_kept)
+            pair_splat, pair_pixel = (x.index_select(0, kept) for x in (pair_splat, pair_pixel))
+        composite(pair_splat, pair_pixel, None)
+        # The rest in chunks of at most later_batch_candidates pairs, front to back, the same
+        # pixel lists throughout: pixels stopping meanwhile are masked, not re-binned, and
+        # pairs not kept masked, not compacted, so that no chunk waits for the device.
+        chunk = later_batch_candidates(device)
+        for start in range(0, rest, chunk):
             with torch.no_grad():
-                # Pixels that stopped leave the rest, whose size comes in the same read as
-                # this batch's kept count: the one wait of the loop.
-                binned = grid.bin_pixels(pixel_uv, pixel_camera, ~stopped)
-                rest = _pixels_in_boxes(grid, binned[1], splats.camera[last:],
-                                        *(edge[last:] for edge in boxes)).sum()
-                num_kept, rest = torch.stack([kept.sum(), rest]).tolist()
-                kept = _compacted(kept, num_kept)
-                pair_splat, pair_pixel = (x.index_select(0, kept) for x in (pair_splat, pair_pixel))
-            composite(pair_splat, pair_pixel, None)
-            # The rest in chunks of at most later_batch_candidates pairs, front to back, the
-            # same pixel lists throughout: pixels stopping meanwhile are masked, not re-binned,
-            # and kept pairs masked, not compacted, so that no chunk waits for the device.
-            chunk = later_batch_candidates(device)
-            for start in range(0, rest, chunk):
-                with torch.no_grad():
-                    pair_splat, pair_pixel, kept, stopped = _pairs_of_batch(
-                        params, pixel_uv, st_splat[tile_pairs_first:],
-                        st_tile[tile_pairs_first:], binned, (start, min(start + chunk, rest)),
-                        log_t, stopped)
-                composite(pair_splat, pair_pixel, kept)
+                pair_splat, pair_pixel, kept, stopped = _pairs_of_batch(
+                    params, pixel_uv, st_splat[tile_pairs_first:], st_tile[tile_pairs_first:],
+                    binned, (start, min(start + chunk, rest)), log_t, stopped)
+            composite(pair_splat, pair_pixel, kept)
     if not weights:
         empty = torch.zeros(0, dtype=torch.long, device=device)
         return params[:0, 0] * 0, empty, empty

@@ -178,11 +178,11 @@ def test_render_scenes_equals_each_scene_alone(monkeypatch, chunk):
             torch.testing.assert_close(a, b, atol=1e-10, rtol=1e-9)
 
 
-def test_host_reads_per_call_at_most_two_whatever_the_depth_batches(monkeypatch):
+def test_host_reads_per_call_two_whatever_the_depth_batches(monkeypatch):
     """What makes the host wait for the device (counted as on CUDA): one read of every size
-    and check before compositing and, when the first depth batch is not all, one read of its
-    kept pairs' count with the rest's size; the projection, the rest's chunks and the
-    backward pass none. So a call waits once or twice, however many chunks the rest takes."""
+    and check before compositing and one read of the first depth batch's kept pairs' count
+    with the rest's size; the projection, the rest's chunks and the backward pass none. So a
+    call waits twice, however many chunks the rest takes, none included."""
     from odg_ros.bench.census import Census, CensusMode
     batches = []
     candidate_pairs = splat_module._candidate_pairs
@@ -204,7 +204,7 @@ def test_host_reads_per_call_at_most_two_whatever_the_depth_batches(monkeypatch)
                                     pixels, HW)
             sum(r[0].depth.sum() + r[0].alpha.sum() for r in results).backward()
         syncs = sum(census.syncs.values())
-        assert syncs == (1 if len(batches) == 1 else 2), census.report()
+        assert syncs == 2, census.report()
         assert len(batches) == {10**9: 1, 300: 2}[first] if later is None else \
             len(batches) > 3, (first, later, len(batches))
 
