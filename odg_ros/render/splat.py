@@ -113,7 +113,8 @@ def render_cameras(means: torch.Tensor, scales: torch.Tensor, rotations: torch.T
                    opacities: torch.Tensor, features: torch.Tensor,
                    cam_from_ego: torch.Tensor, intrinsics: torch.Tensor,
                    pixels: Sequence[torch.Tensor], image_hw: Sequence[int], near: float = 0.05,
-                   tile_size: int = TILE_SIZE) -> list[RenderResult]:
+                   tile_size: int = TILE_SIZE,
+                   wait_free: bool | None = None) -> list[RenderResult]:
     """Render the same Gaussians into N cameras of one size at once (one pass, one sort).
 
     Gaussian tensors as in render_gaussians; cam_from_ego [N, 4, 4]; intrinsics [N, 3, 3];
@@ -122,6 +123,9 @@ def render_cameras(means: torch.Tensor, scales: torch.Tensor, rotations: torch.T
     Gaussians are rendered (and returned) in float32. Projection to pixels needs more than
     bf16's 8 mantissa bits (a 704 px image has a 4 px step there) and the sparse products
     have no half-precision CPU kernels.
+    wait_free: draw what follows the first depth batch without reading the device (its
+    dropped pairs masked, not removed); None: off the CPU only. On the CPU a read costs
+    nothing and removing the dropped pairs saves time, so each chunk is compacted there.
     """
     (height, width), (means, scales, rotations, opacities, features), checks = \
         _gaussians_and_checks(means, scales, rotations, opacities, features, cam_from_ego,
@@ -129,20 +133,20 @@ def render_cameras(means: torch.Tensor, scales: torch.Tensor, rotations: torch.T
     with torch.autocast(means.device.type, enabled=False):
         return _render_scenes(means, scales, rotations, opacities, features, None, None,
                               cam_from_ego, intrinsics, pixels, height, width, near, tile_size,
-                              checks)
+                              checks, wait_free)
 
 
 def render_scenes(scenes: Sequence[Sequence[torch.Tensor]], cam_from_ego: torch.Tensor,
                   intrinsics: torch.Tensor, pixels: Sequence[Sequence[torch.Tensor]],
-                  image_hw: Sequence[int], near: float = 0.05,
-                  tile_size: int = TILE_SIZE) -> list[list[RenderResult]]:
+                  image_hw: Sequence[int], near: float = 0.05, tile_size: int = TILE_SIZE,
+                  wait_free: bool | None = None) -> list[list[RenderResult]]:
     """render_cameras of K independent scenes in one pass: what one call costs the host (its
     reads of sizes from the device) is paid once for all K.
 
     scenes: K tuples (means, scales, rotations, opacities, features) as in render_cameras,
     each with its own number of Gaussians and one dtype and device for all; cam_from_ego
     [K, N, 4, 4], intrinsics [K, N, 3, 3]: scene k seen by its own N cameras; pixels: K lists
-    of N tensors [P, 2]. Returns K lists of N RenderResults, each equal to render_cameras of
+    of N tensors [P, 2]; wait_free as in render_cameras. Returns K lists of N RenderResults, each equal to render_cameras of
     that scene alone (to float64 rounding of the transmittance sums).
     """
     if not scenes:
@@ -158,7 +162,8 @@ def render_scenes(scenes: Sequence[Sequence[torch.Tensor]], cam_from_ego: torch.
     with torch.autocast(means.device.type, enabled=False):
         results = _render_scenes(means, scales, rotations, opacities, features, gaussian_scene,
                                  num_cameras, cam_from_ego.flatten(0, 1), intrinsics.flatten(0, 1),
-                                 flat_pixels, height, width, near, tile_size, checks)
+                                 flat_pixels, height, width, near, tile_size, checks,
+                                 wait_free)
     return [results[k * num_cameras:(k + 1) * num_cameras] for k in range(len(scenes))]
 
 
@@ -212,7 +217,7 @@ def _gaussians_and_checks(means, scales, rotations, opacities, features, cam_fro
 
 def _render_scenes(means, scales, rotations, opacities, features, gaussian_scene,
                    cameras_per_scene, cam_from_ego, intrinsics, pixels, height, width, near,
-                   tile_size, checks) -> list[RenderResult]:
+                   tile_size, checks, wait_free) -> list[RenderResult]:
     """Inputs of one float32/float64 dtype, autocast off, shapes checked; checks: the value
     checks, unread (_check_inputs). gaussian_scene [G] (None: one scene) picks the cameras a
     Gaussian is seen by: the cameras_per_scene of its scene in cam_from_ego [K N, 4, 4]
@@ -237,7 +242,7 @@ def _render_scenes(means, scales, rotations, opacities, features, gaussian_scene
                                                                binned[1], checks)
     splats = candidates.take(keep)
     weights, pair_pixel, pair_splat = _composite(splats, pixel_uv, pixel_camera, grid, binned,
-                                                 boxes, num_tile_pairs, first_batch)
+                                                 boxes, num_tile_pairs, first_batch, wait_free)
 
     # One weighted sum gives features, depth and accumulated alpha (a column of ones).
     values = torch.cat([features[splats.gaussian], splats.depth[:, None],
@@ -314,7 +319,8 @@ def _pixels_in_boxes(grid: "_TileGrid", tile_count: torch.Tensor, camera: torch.
 
 
 def _composite(splats: Splats, pixel_uv: torch.Tensor, pixel_camera: torch.Tensor,
-               grid: "_TileGrid", binned, boxes, num_tile_pairs: int, first_batch):
+               grid: "_TileGrid", binned, boxes, num_tile_pairs: int, first_batch,
+               wait_free: bool | None = None):
     """Compositing weights w = T alpha of every contributing (splat, pixel) pair.
 
     binned: grid.bin_pixels of every pixel; boxes, num_tile_pairs and first_batch: from
@@ -335,7 +341,9 @@ def _composite(splats: Splats, pixel_uv: torch.Tensor, pixel_camera: torch.Tenso
     stopped leave the rest (this is what keeps dense scenes cheap). The rest's chunks are
     positions in one list of its candidate pairs, so their shapes are known without a read;
     pixels stopping within the rest and pairs not kept are masked (weight 0, log T
-    unchanged). T is then computed again, differentiably, from the kept pairs alone.
+    unchanged). Unless ``wait_free`` (None: off the CPU), each chunk's kept pairs are
+    compacted instead, with a read of their count. T is then computed again, differentiably,
+    from the kept pairs alone.
     """
     device = pixel_uv.device
     num_pixels = pixel_uv.shape[0]
@@ -388,6 +396,11 @@ def _composite(splats: Splats, pixel_uv: torch.Tensor, pixel_camera: torch.Tenso
                 pair_splat, pair_pixel, kept, stopped = _pairs_of_batch(
                     params, pixel_uv, st_splat[tile_pairs_first:], st_tile[tile_pairs_first:],
                     binned, (start, min(start + chunk, rest)), log_t, stopped)
+                if not (device.type != "cpu" if wait_free is None else wait_free):
+                    kept = _compacted(kept, int(kept.sum()))
+                    pair_splat, pair_pixel = (x.index_select(0, kept)
+                                              for x in (pair_splat, pair_pixel))
+                    kept = None
             composite(pair_splat, pair_pixel, kept)
     if not weights:
         empty = torch.zeros(0, dtype=torch.long, device=device)
