@@ -39,6 +39,7 @@ from __future__ import annotations
 
 import collections
 import contextlib
+import functools
 import linecache
 import sys
 from dataclasses import dataclass, field
@@ -481,8 +482,9 @@ def force_cuda_paths(trainer, renderer: str = "torch") -> None:
     if renderer == "gsplat":
         from ..render.gsplat_backend import render_scenes_gsplat
         trainer.criterion.renderer = render_scenes_gsplat
-    elif renderer == "torch":
-        trainer.criterion.renderer = None          # ours (the criterion's default)
+    elif renderer == "torch":                      # ours, without the reads it makes on CPUs only
+        from ..render import render_scenes
+        trainer.criterion.renderer = functools.partial(render_scenes, wait_free=True)
     else:
         raise ValueError(f"renderer must be torch or gsplat, got {renderer!r}")
 

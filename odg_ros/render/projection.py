@@ -118,13 +118,14 @@ def project_candidates(means: torch.Tensor, scales: torch.Tensor, rotations: tor
                        intrinsics: torch.Tensor, image_hw, near: float,
                        gaussian_scene: torch.Tensor | None = None,
                        cameras_per_scene: int | None = None) -> tuple[Splats, torch.Tensor]:
-    """Project G Gaussians into N cameras: every (camera, Gaussian) candidate in front of the
-    near plane with opacity >= 1/255 (unsorted), and which of them are visible.
+    """Project G Gaussians into N cameras: every (camera, Gaussian) pair, camera-major, and
+    which of them are visible.
 
     means [G, 3] (ego, m), scales [G, 3] (m), rotations [G, 4] (w, x, y, z), opacities [G],
     cam_from_ego [N, 4, 4], intrinsics [N, 3, 3], image_hw (H, W). Returns (Splats of the
-    candidates, visible [S] bool). Visible: the splat's alpha >= 1/255 box touches the image
-    [0, W] x [0, H].
+    pairs, visible [S] bool). Visible: in front of the near plane, opacity >= 1/255, and the
+    splat's alpha >= 1/255 box touches the image [0, W] x [0, H]; only visible pairs carry
+    meaningful values.
     gaussian_scene [G] long, cameras_per_scene M (optional, together): K = N / M independent
     scenes, scene k seen by cameras k M ... (k + 1) M - 1 only; a Gaussian is projected into
     its own scene's cameras.
@@ -142,8 +143,13 @@ def project_candidates(means: torch.Tensor, scales: torch.Tensor, rotations: tor
             z_axis = cam_rot[:, 2].view(-1, cameras_per_scene, 3)[gaussian_scene]   # [G, M, 3]
             z_all = (torch.einsum("gmj,gj->mg", z_axis, means)
                      + cam_t[:, 2].view(-1, cameras_per_scene)[gaussian_scene].t())
-        candidate = (z_all > near) & (opacities >= ALPHA_MIN)[None, :]
-        camera, gaussian = candidate.nonzero(as_tuple=True)
+        candidate = ((z_all > near) & (opacities >= ALPHA_MIN)[None, :]).flatten()
+        # Every (camera, Gaussian) pair in row-major order (nonzero's order), the others
+        # marked invisible below: a shape known without reading the candidates' count.
+        rows, num_gaussians = z_all.shape
+        camera = torch.arange(rows, device=means.device).repeat_interleave(
+            num_gaussians, output_size=rows * num_gaussians)
+        gaussian = torch.arange(num_gaussians, device=means.device).repeat(rows)
         if gaussian_scene is not None:
             camera = gaussian_scene[gaussian] * cameras_per_scene + camera
 
@@ -151,6 +157,9 @@ def project_candidates(means: torch.Tensor, scales: torch.Tensor, rotations: tor
     p = torch.einsum("sij,sj->si", r, means[gaussian]) + cam_t[camera]
     factor_cam = torch.einsum("sij,sjk->sik", r, factor[gaussian])     # W M, [S0, 3, 3]
     x, y, z = p.unbind(-1)
+    # pairs that are no candidates (behind the near plane, transparent) get a harmless
+    # depth, so that nothing computed for them, gradients included, is inf or NaN
+    z = torch.where(candidate, z, 1.0)
 
     k = intrinsics[camera]
     fx, fy, cx, cy = k[:, 0, 0], k[:, 1, 1], k[:, 0, 2], k[:, 1, 2]
@@ -183,7 +192,8 @@ def project_candidates(means: torch.Tensor, scales: torch.Tensor, rotations: tor
         half_extent = half_extent * 1.001 + 0.01
         lo = mean2d - half_extent
         hi = mean2d + half_extent
-        visible = (hi[:, 0] >= 0) & (lo[:, 0] <= width) & (hi[:, 1] >= 0) & (lo[:, 1] <= height)
+        visible = (candidate & (hi[:, 0] >= 0) & (lo[:, 0] <= width) & (hi[:, 1] >= 0)
+                   & (lo[:, 1] <= height))
         # read together with the renderer's first size, not on its own
         overflow = (~(torch.isfinite(mean2d).all(-1) & torch.isfinite(det)) & visible).any()
     return Splats(camera=camera, gaussian=gaussian, mean2d=mean2d, cov_xx=cov_xx, cov_xy=cov_xy,

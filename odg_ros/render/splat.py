@@ -19,19 +19,21 @@ Projection conventions: see projection.py.
 How it stays fast and bounded without a CUDA kernel (details in _composite): only the
 requested pixels are evaluated. Pixels are binned into 16x16 tiles and each splat is paired
 only with the tiles its alpha >= 1/255 box touches, so only (splat, pixel) pairs in touched
-tiles are ever formed, never a dense Gaussians x pixels tensor. Splats go front to back in
-depth batches: a first one of the front quarter of the candidate pairs (at least ~1M), then
-batches as large as a share of the device's memory allows (later_batch_candidates: one at training sizes); candidates are
-tested without autograd, survivors get T from a float64 segmented cumulative sum of
-log(1 - alpha), and pixels that reached the early stop leave the later batches (in a dense
-scene the first batch stops most of them). The weighted sums are CSR sparse x dense
-products. The host waits for the device once for the projection's candidates, once for
+tiles are ever formed, never a dense Gaussians x pixels tensor. Splats go front to back: a
+first depth batch of the front quarter of the candidate pairs (at least ~1M), then the rest,
+of the pixels still active, in chunks as large as a share of the device's memory allows
+(later_batch_candidates: one at training sizes). Candidates are tested without autograd,
+survivors get T from a float64 segmented cumulative sum of log(1 - alpha), and pixels that
+reached the early stop leave the rest (in a dense scene the first batch stops most of them).
+The weighted sums are CSR sparse x dense products. The host waits for the device once for
 every size and input check before compositing (visible splats, tile pairs, and the first
-depth batch's bounds from a summed-area table of pixels per tile, in one copy) and once per
-depth batch (one read: the count of its kept pairs, those above alpha 1/255 before the early
-stop, with the next batch's bounds); never for the bookkeeping of which pixels are still
-active. So a render call waits 3 times at training sizes, whatever the image and the batch.
-Memory is O(contributing pairs) plus one batch of candidates. render_scenes draws several
+depth batch's bounds from a summed-area table of pixels per tile, in one copy) and once
+after the first batch (the count of its kept pairs with the rest's size); the projection
+(every camera x Gaussian pair, the others marked invisible) and the rest's chunks (stopped
+pixels and dropped pairs masked, not removed) wait for nothing. So a render call waits
+twice, whatever the scene, the image and the batch.
+Memory is O(the first batch's contributing pairs and the rest's candidates) plus one
+chunk's working memory. render_scenes draws several
 independent scenes (the render loss: every decoder layer of every sample) in one such pass, so
 those reads are paid once for all of them.
 
@@ -63,14 +65,14 @@ TRANSMITTANCE_MIN = 1e-4         # a pixel is done once T would reach this (excl
 STOP_LOG_MARGIN = 1e-7
 TILE_SIZE = 16                   # pixel tile edge for culling (as gsplat)
 # The first depth batch: the front FIRST_BATCH_SHARE of all candidate (splat, pixel) pairs,
-# at least CANDIDATE_CHUNK of them. It stops most pixels of a dense scene early; the later
-# batches, of the pixels still active, are as large as the device's memory allows
-# (later_batch_candidates), so that their number, and the host's waits, do not grow with
-# the image or the batch.
+# at least CANDIDATE_CHUNK of them. It stops most pixels of a dense scene early; the rest, of
+# the pixels still active, is sized in the one read after it and drawn in chunks as large as
+# the device's memory allows (later_batch_candidates), which read nothing: the host's waits
+# do not grow with the image or the batch.
 CANDIDATE_CHUNK = 1_000_000
 FIRST_BATCH_SHARE = 0.25
-LATER_CANDIDATE_CHUNK = None     # candidates per later batch; None: sized from the memory
-BATCH_MEMORY_SHARE = 0.1         # of the device's memory a later batch may use
+LATER_CANDIDATE_CHUNK = None     # candidates per chunk of the rest; None: from the memory
+BATCH_MEMORY_SHARE = 0.1         # of the device's memory a chunk may use
 BYTES_PER_CANDIDATE = 200        # a batch's working memory per candidate pair, at most
 CHECK_CSR = False                # the CSR matrices are valid by construction (a test checks)
 
@@ -111,7 +113,8 @@ def render_cameras(means: torch.Tensor, scales: torch.Tensor, rotations: torch.T
                    opacities: torch.Tensor, features: torch.Tensor,
                    cam_from_ego: torch.Tensor, intrinsics: torch.Tensor,
                    pixels: Sequence[torch.Tensor], image_hw: Sequence[int], near: float = 0.05,
-                   tile_size: int = TILE_SIZE) -> list[RenderResult]:
+                   tile_size: int = TILE_SIZE,
+                   wait_free: bool | None = None) -> list[RenderResult]:
     """Render the same Gaussians into N cameras of one size at once (one pass, one sort).
 
     Gaussian tensors as in render_gaussians; cam_from_ego [N, 4, 4]; intrinsics [N, 3, 3];
@@ -120,6 +123,9 @@ def render_cameras(means: torch.Tensor, scales: torch.Tensor, rotations: torch.T
     Gaussians are rendered (and returned) in float32. Projection to pixels needs more than
     bf16's 8 mantissa bits (a 704 px image has a 4 px step there) and the sparse products
     have no half-precision CPU kernels.
+    wait_free: draw what follows the first depth batch without reading the device (its
+    dropped pairs masked, not removed); None: off the CPU only. On the CPU a read costs
+    nothing and removing the dropped pairs saves time, so each chunk is compacted there.
     """
     (height, width), (means, scales, rotations, opacities, features), checks = \
         _gaussians_and_checks(means, scales, rotations, opacities, features, cam_from_ego,
@@ -127,20 +133,20 @@ def render_cameras(means: torch.Tensor, scales: torch.Tensor, rotations: torch.T
     with torch.autocast(means.device.type, enabled=False):
         return _render_scenes(means, scales, rotations, opacities, features, None, None,
                               cam_from_ego, intrinsics, pixels, height, width, near, tile_size,
-                              checks)
+                              checks, wait_free)
 
 
 def render_scenes(scenes: Sequence[Sequence[torch.Tensor]], cam_from_ego: torch.Tensor,
                   intrinsics: torch.Tensor, pixels: Sequence[Sequence[torch.Tensor]],
-                  image_hw: Sequence[int], near: float = 0.05,
-                  tile_size: int = TILE_SIZE) -> list[list[RenderResult]]:
+                  image_hw: Sequence[int], near: float = 0.05, tile_size: int = TILE_SIZE,
+                  wait_free: bool | None = None) -> list[list[RenderResult]]:
     """render_cameras of K independent scenes in one pass: what one call costs the host (its
     reads of sizes from the device) is paid once for all K.
 
     scenes: K tuples (means, scales, rotations, opacities, features) as in render_cameras,
     each with its own number of Gaussians and one dtype and device for all; cam_from_ego
     [K, N, 4, 4], intrinsics [K, N, 3, 3]: scene k seen by its own N cameras; pixels: K lists
-    of N tensors [P, 2]. Returns K lists of N RenderResults, each equal to render_cameras of
+    of N tensors [P, 2]; wait_free as in render_cameras. Returns K lists of N RenderResults, each equal to render_cameras of
     that scene alone (to float64 rounding of the transmittance sums).
     """
     if not scenes:
@@ -156,7 +162,8 @@ def render_scenes(scenes: Sequence[Sequence[torch.Tensor]], cam_from_ego: torch.
     with torch.autocast(means.device.type, enabled=False):
         results = _render_scenes(means, scales, rotations, opacities, features, gaussian_scene,
                                  num_cameras, cam_from_ego.flatten(0, 1), intrinsics.flatten(0, 1),
-                                 flat_pixels, height, width, near, tile_size, checks)
+                                 flat_pixels, height, width, near, tile_size, checks,
+                                 wait_free)
     return [results[k * num_cameras:(k + 1) * num_cameras] for k in range(len(scenes))]
 
 
@@ -210,7 +217,7 @@ def _gaussians_and_checks(means, scales, rotations, opacities, features, cam_fro
 
 def _render_scenes(means, scales, rotations, opacities, features, gaussian_scene,
                    cameras_per_scene, cam_from_ego, intrinsics, pixels, height, width, near,
-                   tile_size, checks) -> list[RenderResult]:
+                   tile_size, checks, wait_free) -> list[RenderResult]:
     """Inputs of one float32/float64 dtype, autocast off, shapes checked; checks: the value
     checks, unread (_check_inputs). gaussian_scene [G] (None: one scene) picks the cameras a
     Gaussian is seen by: the cameras_per_scene of its scene in cam_from_ego [K N, 4, 4]
@@ -235,7 +242,7 @@ def _render_scenes(means, scales, rotations, opacities, features, gaussian_scene
                                                                binned[1], checks)
     splats = candidates.take(keep)
     weights, pair_pixel, pair_splat = _composite(splats, pixel_uv, pixel_camera, grid, binned,
-                                                 boxes, num_tile_pairs, first_batch)
+                                                 boxes, num_tile_pairs, first_batch, wait_free)
 
     # One weighted sum gives features, depth and accumulated alpha (a column of ones).
     values = torch.cat([features[splats.gaussian], splats.depth[:, None],
@@ -312,101 +319,105 @@ def _pixels_in_boxes(grid: "_TileGrid", tile_count: torch.Tensor, camera: torch.
 
 
 def _composite(splats: Splats, pixel_uv: torch.Tensor, pixel_camera: torch.Tensor,
-               grid: "_TileGrid", binned, boxes, num_tile_pairs: int, first_batch):
+               grid: "_TileGrid", binned, boxes, num_tile_pairs: int, first_batch,
+               wait_free: bool | None = None):
     """Compositing weights w = T alpha of every contributing (splat, pixel) pair.
 
     binned: grid.bin_pixels of every pixel; boxes, num_tile_pairs and first_batch: from
-    _visible_splats. Returns weight [M] (differentiable), pixel [M], splat [M] (long).
+    _visible_splats. Returns weight [M] (differentiable; 0 for pairs masked, not removed),
+    pixel [M], splat [M] (long).
 
-    Splats are processed front to back in depth batches of whole splats (a quarter of the
-    candidate pairs, at least CANDIDATE_CHUNK, in the first; later_batch_candidates in
-    each later one). Within a batch: splat -> tiles its alpha box
-    touches -> the still-active requested pixels in those tiles -> pairs sorted by (pixel,
-    depth) -> without autograd, the exact alpha test and T from the pixel's running log
-    transmittance plus an exclusive segmented cumsum of log(1 - alpha), in float64 (a global
-    cumsum minus its value at each pixel's first pair; float64 so the subtraction of large
-    running sums loses nothing; pairs below alpha 1/255 add 0). A pair is kept while it
-    contributes and T (1 - alpha) > 1e-4; T only decreases, so the kept pairs are a prefix
-    of the contributing ones as in the sequential early stop, and one compaction (its size
-    read with the next batch's bounds) keeps them. T is then computed again, differentiably, on the kept pairs alone. A pixel that
-    stopped takes no part in later batches (this is what keeps dense scenes cheap).
+    Splats are processed front to back: a first depth batch of whole splats (a quarter of
+    the candidate pairs, at least CANDIDATE_CHUNK), then the rest in chunks of at most
+    later_batch_candidates pairs. Within each: splat -> tiles its alpha box touches -> the
+    requested pixels binned in those tiles -> pairs sorted by (pixel, depth) -> without
+    autograd, the exact alpha test and T from the pixel's running log transmittance plus an
+    exclusive segmented cumsum of log(1 - alpha), in float64 (a global cumsum minus its value
+    at each pixel's first pair; float64 so the subtraction of large running sums loses
+    nothing; pairs below alpha 1/255 add 0). A pair is kept while it contributes and
+    T (1 - alpha) > 1e-4; T only decreases, so the kept pairs are a prefix of the
+    contributing ones as in the sequential early stop. The first batch's kept pairs are
+    compacted (their count read with the rest's size: the one wait here), and the pixels that
+    stopped leave the rest (this is what keeps dense scenes cheap). The rest's chunks are
+    positions in one list of its candidate pairs, so their shapes are known without a read;
+    pixels stopping within the rest and pairs not kept are masked (weight 0, log T
+    unchanged). Unless ``wait_free`` (None: off the CPU), each chunk's kept pairs are
+    compacted instead, with a read of their count. T is then computed again, differentiably,
+    from the kept pairs alone.
     """
     device = pixel_uv.device
     num_pixels = pixel_uv.shape[0]
     params = torch.stack([splats.mean2d[:, 0], splats.mean2d[:, 1], splats.cov_xy,
                           splats.cov_yy, splats.det, splats.opacity], dim=-1)    # [S, 6]
     weights, pair_pixels, pair_splats = [], [], []
+    log_t = torch.zeros(num_pixels, dtype=torch.float64, device=device)      # running log T
+
+    def composite(pair_splat, pair_pixel, kept):
+        """Differentiable weights of the batch's pairs (kept: which of them count; None:
+        all), appended; the running log T advanced. The kept pairs of a pixel are a prefix
+        of its contributing pairs, so T from the kept pairs alone is the same T."""
+        nonlocal log_t
+        alpha = _pair_alpha(params, pixel_uv, pair_splat, pair_pixel)
+        log_one_minus = torch.log1p(-alpha.double())
+        if kept is not None:
+            log_one_minus = torch.where(kept, log_one_minus, 0.0)
+        weight = alpha * torch.exp(
+            _log_transmittance(log_one_minus, pair_pixel, log_t)).to(alpha.dtype)
+        weights.append(weight if kept is None else torch.where(kept, weight, 0.0))
+        pair_pixels.append(pair_pixel)
+        pair_splats.append(pair_splat)
+        log_t = log_t.index_add(0, pair_pixel, log_one_minus)
+
     if len(splats) and num_pixels:
         st_splat, st_tile = _splat_tiles(splats, grid, boxes, num_tile_pairs)
-        splat_first_st = torch.searchsorted(st_splat, torch.arange(len(splats) + 1, device=device))
-        log_t = torch.zeros(num_pixels, dtype=torch.float64, device=device)  # running log T
-        active = torch.ones(num_pixels, dtype=torch.bool, device=device)
-        pixels_by_tile, tile_count, tile_first = binned
-        first = 0                                       # first splat of the batch
-        bounds = (0, *first_batch)                      # known from the first read
-        later = later_batch_candidates(device)
-        while first < len(splats):
+        tile_pairs_first, last, num_candidates = first_batch
+        stopped = torch.zeros(num_pixels, dtype=torch.bool, device=device)
+        with torch.no_grad():
+            pair_splat, pair_pixel, kept, stopped = _pairs_of_batch(
+                params, pixel_uv, st_splat[:tile_pairs_first], st_tile[:tile_pairs_first],
+                binned, (0, num_candidates), log_t, stopped)
+        with torch.no_grad():
+            # Pixels that stopped leave the rest, whose size comes in the same read as this
+            # batch's kept count: the one wait here, also where the rest is empty (so that
+            # a call waits the same whatever the scene).
+            binned = grid.bin_pixels(pixel_uv, pixel_camera, ~stopped)
+            rest = _pixels_in_boxes(grid, binned[1], splats.camera[last:],
+                                    *(edge[last:] for edge in boxes)).sum()
+            num_kept, rest = torch.stack([kept.sum(), rest]).tolist()
+            kept = _compacted(kept, num_kept)
+            pair_splat, pair_pixel = (x.index_select(0, kept) for x in (pair_splat, pair_pixel))
+        composite(pair_splat, pair_pixel, None)
+        # The rest in chunks of at most later_batch_candidates pairs, front to back, the same
+        # pixel lists throughout: pixels stopping meanwhile are masked, not re-binned, and
+        # pairs not kept masked, not compacted, so that no chunk waits for the device.
+        chunk = later_batch_candidates(device)
+        for start in range(0, rest, chunk):
             with torch.no_grad():
-                pair_splat, pair_pixel, kept, stops, last = _pairs_of_batch(
-                    params, pixel_uv, num_pixels, st_splat, st_tile,
-                    (pixels_by_tile, tile_count, tile_first), bounds, log_t)
-                next_bounds = []
-                if last < len(splats):
-                    # Pixels that stopped leave the later batches, and the next batch's
-                    # bounds come in the same read as this batch's kept count.
-                    active &= stops == 0
-                    pixels_by_tile, tile_count, tile_first = grid.bin_pixels(
-                        pixel_uv, pixel_camera, active)
-                    next_bounds = [_next_batch_bounds(grid, tile_count, splats, boxes, last,
-                                                      splat_first_st, later)]
-                read = torch.cat([kept.sum()[None]] + next_bounds).tolist()   # the one wait
-                kept = _compacted(kept, read[0])
-                pair_splat, pair_pixel = (x.index_select(0, kept) for x in (pair_splat, pair_pixel))
-                bounds = read[1:]
-            first = last
-            if pair_splat.shape[0]:
-                # The kept pairs of a pixel are a prefix of its contributing pairs, so T from
-                # the kept pairs alone is the same T, now differentiable.
-                alpha = _pair_alpha(params, pixel_uv, pair_splat, pair_pixel)
-                log_one_minus = torch.log1p(-alpha.double())
-                weight = alpha * torch.exp(
-                    _log_transmittance(log_one_minus, pair_pixel, log_t)).to(alpha.dtype)
-                weights.append(weight)
-                pair_pixels.append(pair_pixel)
-                pair_splats.append(pair_splat)
-                log_t = log_t.index_add(0, pair_pixel, log_one_minus)
+                pair_splat, pair_pixel, kept, stopped = _pairs_of_batch(
+                    params, pixel_uv, st_splat[tile_pairs_first:], st_tile[tile_pairs_first:],
+                    binned, (start, min(start + chunk, rest)), log_t, stopped)
+                if not (device.type != "cpu" if wait_free is None else wait_free):
+                    kept = _compacted(kept, int(kept.sum()))
+                    pair_splat, pair_pixel = (x.index_select(0, kept)
+                                              for x in (pair_splat, pair_pixel))
+                    kept = None
+            composite(pair_splat, pair_pixel, kept)
     if not weights:
         empty = torch.zeros(0, dtype=torch.long, device=device)
         return params[:0, 0] * 0, empty, empty
     return torch.cat(weights), torch.cat(pair_pixels), torch.cat(pair_splats)
 
 
-def _next_batch_bounds(grid: "_TileGrid", tile_count: torch.Tensor, splats: Splats, boxes,
-                       first: int, splat_first_st: torch.Tensor, candidates: int):
-    """The next depth batch from splat ``first``: whole splats while the active pixels under
-    their boxes add up to at most ``candidates`` (at least one splat). Its bounds in the
-    (splat, tile) list, its end and its candidate count [4], on the device (read with the
-    batch before)."""
-    through = torch.cumsum(_pixels_in_boxes(grid, tile_count, splats.camera[first:],
-                                            *(edge[first:] for edge in boxes)), 0)
-    count = torch.searchsorted(through, through.new_full((1,), candidates),
-                               right=True).clamp_min(1)
-    return torch.cat([splat_first_st[first:first + 1],
-                      splat_first_st.index_select(0, first + count),
-                      first + count,
-                      through.index_select(0, count - 1)])
-
-
-def _pairs_of_batch(params: torch.Tensor, pixel_uv: torch.Tensor, num_pixels: int,
-                    st_splat: torch.Tensor, st_tile: torch.Tensor, binned, bounds,
-                    log_t: torch.Tensor):
-    """One depth batch, without autograd: its candidate (splat, pixel) pairs sorted by
-    (pixel, depth), the exact alpha test and the early stop -> the pairs' splat and pixel,
-    which of them are kept, the stopped pairs per pixel and the batch's end."""
+def _pairs_of_batch(params: torch.Tensor, pixel_uv: torch.Tensor, st_splat: torch.Tensor,
+                    st_tile: torch.Tensor, binned, positions, log_t: torch.Tensor,
+                    stopped: torch.Tensor):
+    """A depth batch, without autograd: the candidate (splat, pixel) pairs at ``positions``
+    (start, stop) of the (splat, tile) pairs' binned pixels, sorted by (pixel, depth), the
+    exact alpha test and the early stop (pixels already ``stopped`` take no part) -> the
+    pairs' splat and pixel, which of them are kept, and the pixels stopped after it."""
     pixels_by_tile, tile_count, tile_first = binned
-    a, b, last, num_candidates = bounds
-    pair_splat, pair_pixel = _candidate_pairs(st_splat[a:b], st_tile[a:b], pixels_by_tile,
-                                              tile_count, tile_first, num_candidates)
+    pair_splat, pair_pixel = _candidate_pairs(st_splat, st_tile, pixels_by_tile, tile_count,
+                                              tile_first, *positions)
     # By pixel, then depth: the candidates come in splat order, which is the depth order, so
     # a stable sort by pixel keeps it within each pixel.
     order = torch.argsort(pair_pixel, stable=True)
@@ -415,10 +426,11 @@ def _pairs_of_batch(params: torch.Tensor, pixel_uv: torch.Tensor, num_pixels: in
     # pairs below alpha 1/255 are skipped: they leave T as it is
     contributes = alpha >= ALPHA_MIN
     log_one_minus = torch.log1p(-torch.where(contributes, alpha, 0).double())
-    include = (_log_transmittance(log_one_minus, pair_pixel, log_t)
-               + log_one_minus > math.log(TRANSMITTANCE_MIN) + STOP_LOG_MARGIN)
-    stops = _counts(pair_pixel, num_pixels, ~include)
-    return pair_splat, pair_pixel, include & contributes, stops, last
+    include = ((_log_transmittance(log_one_minus, pair_pixel, log_t)
+                + log_one_minus > math.log(TRANSMITTANCE_MIN) + STOP_LOG_MARGIN)
+               & ~stopped[pair_pixel])
+    stops = _counts(pair_pixel, stopped.shape[0], ~include)
+    return pair_splat, pair_pixel, include & contributes, stopped | (stops > 0)
 
 
 def _compacted(mask: torch.Tensor, count: int) -> torch.Tensor:
@@ -495,16 +507,16 @@ def _splat_tiles(splats: Splats, grid: _TileGrid, boxes, total: int):
     return st_splat, st_tile
 
 
-def _candidate_pairs(st_splat, st_tile, pixels_by_tile, tile_count, tile_first, total):
-    """(splat, tile) pairs -> (splat, pixel) pairs for every binned pixel of each tile;
-    total = the number of those pairs (known to the caller, so nothing here waits for it)."""
+def _candidate_pairs(st_splat, st_tile, pixels_by_tile, tile_count, tile_first, start, stop):
+    """The (splat, pixel) pairs at positions [start, stop) of the list of every binned pixel
+    of each (splat, tile) pair in order: a shape the caller knows, so nothing here waits."""
     count = tile_count[st_tile]
-    pair_splat = torch.repeat_interleave(st_splat, count, output_size=total)
-    offset = torch.arange(total, device=st_splat.device) - torch.repeat_interleave(
-        torch.cumsum(count, 0) - count, count, output_size=total)
-    pair_pixel = pixels_by_tile[torch.repeat_interleave(tile_first[st_tile], count,
-                                                        output_size=total) + offset]
-    return pair_splat, pair_pixel
+    end = torch.cumsum(count, 0)                          # past each (splat, tile)'s pixels
+    position = torch.arange(start, stop, device=st_splat.device)
+    entry = torch.searchsorted(end, position, right=True)
+    offset = position - (end - count).index_select(0, entry)
+    pair_pixel = pixels_by_tile[tile_first[st_tile.index_select(0, entry)] + offset]
+    return st_splat.index_select(0, entry), pair_pixel
 
 
 def _pair_alpha(params, pixel_uv, pair_splat, pair_pixel):
@@ -578,8 +590,8 @@ def _csr(rows, cols, vals, shape):
 
 
 def later_batch_candidates(device) -> int:
-    """Candidate pairs per depth batch after the first: BATCH_MEMORY_SHARE of the device's
-    memory (the GPU's, or the host's for the CPU), at least CANDIDATE_CHUNK."""
+    """Candidate pairs per chunk of what follows the first depth batch: BATCH_MEMORY_SHARE
+    of the device's memory (the GPU's, or the host's for the CPU), at least CANDIDATE_CHUNK."""
     if LATER_CANDIDATE_CHUNK is not None:
         return LATER_CANDIDATE_CHUNK
     device = torch.device(device)
