@@ -11,6 +11,12 @@ output restarts the history) or by two outputs of one scene further apart than t
 history_max_gap (a node slower than that cannot keep a history), or else unexpected; the
 longest output gap within a scene; the node's ERROR and WARN statuses.
 
+Machine stalls: the soak samples the node's memory about once a second, so a gap of more than
+``STALL_S`` between two samples means the soak's own process stood still too: the whole
+machine stalled (memory pressure, a paused VM), not the node alone. ERROR reports from such a
+stall until ``STALL_RECOVERY_S`` after it are the node reporting that fault (no output while
+the machine stood still, then the backlog); they are counted apart from the others.
+
 Scenes are told apart by the outputs' stamps: a stamp in another bag's time span, or one
 earlier than the last (a loop starting over), begins a new scene.
 """
@@ -32,6 +38,10 @@ SCENE_KINDS = (("normal", "city"), ("quiet", "open-road"), ("dense", "city"))
 TARGET_RSS_GROWTH_MB = 20.0
 TARGET_LATENCY_RATIO = 1.2
 TARGET_RESTART_S = 10.0
+# a gap between two memory samples (taken about once a second) longer than this: a stall of
+# the machine; ERRORs until this long after it are the node's report of it (s)
+STALL_S = 5.0
+STALL_RECOVERY_S = 30.0
 
 
 def percentiles(values, qs=(50, 90, 99)) -> dict[str, float | None]:
@@ -67,6 +77,7 @@ def summarize(record: dict, warmup_s: float = 300.0) -> dict:
         "processing_ms": percentiles(ms for _, ms in record["processing_ms"]),
         "resets": _resets(record, scenes),
         "longest_output_gap": _longest_gap(record, scenes),
+        "machine_stalls": machine_stalls(record["rss"]),
         "statuses": _statuses(record),
         "rss": _rss(record["rss"], wall, warmup_s),
     }
@@ -209,15 +220,41 @@ def _longest_gap(record: dict, scenes: list[int]) -> dict:
     return best
 
 
+def machine_stalls(samples) -> list[dict]:
+    """Stretches in which the soak took no memory sample for over ``STALL_S``: its own
+    process stood still, so the machine did (see the module doc)."""
+    times = [t for t, _ in samples]
+    return [{"at_s": a, "seconds": b - a} for a, b in zip(times, times[1:]) if b - a > STALL_S]
+
+
 def _statuses(record: dict) -> dict:
     levels = Counter(level for _, level, _, _ in record["diagnostics"])
     errors = [(t, message) for t, level, message, _ in record["diagnostics"] if level >= ERROR]
+    stalls = machine_stalls(record["rss"])
+    in_stall = [any(st["at_s"] <= t <= st["at_s"] + st["seconds"] + STALL_RECOVERY_S
+                    for st in stalls) for t, _ in errors]
     warnings = Counter(message.split(":")[0][:60]
                        for _, level, message, _ in record["diagnostics"] if level == WARN)
     return {"reports": len(record["diagnostics"]), "ok": levels.get(0, 0),
             "warn": levels.get(WARN, 0), "error": len(errors),
-            "errors": [{"t": t, "message": m} for t, m in errors[:10]],
+            "error_in_machine_stalls": sum(in_stall),
+            "errors": [{"t": t, "message": m, "in_machine_stall": stalled}
+                       for (t, m), stalled in list(zip(errors, in_stall))[:10]],
             "warnings": dict(warnings.most_common(5))}
+
+
+def _errors_outside_stalls(summary: dict) -> int:
+    return summary["statuses"]["error"] - summary["statuses"].get("error_in_machine_stalls", 0)
+
+
+def _stall_note(summary: dict) -> str:
+    stalls = summary.get("machine_stalls") or []
+    if not stalls:
+        return ""
+    longest = max(st["seconds"] for st in stalls)
+    return (f" ({summary['statuses'].get('error_in_machine_stalls', 0)} more during "
+            f"{len(stalls)} machine stall{'s' * (len(stalls) > 1)}, the longest {longest:.0f} s, "
+            "when the soak's own sampling stopped too)")
 
 
 def _rss(samples, wall: float, warmup_s: float) -> dict:
@@ -300,9 +337,11 @@ def verdicts(summaries: list[dict], long_enough_s: float = 600.0,
         out.append({"target": "no crash", "measured": ", ".join(
             f"{s['rate']:g}x: {'exit ' + str(s['node_exit']) if s['crashed'] else 'ran'}"
             for s in summaries), "met": not any(s["crashed"] for s in summaries)})
-        out.append({"target": "no ERROR status (no fault was injected)", "measured": ", ".join(
-            f"{s['rate']:g}x: {s['statuses']['error']}" for s in summaries),
-            "met": all(s["statuses"]["error"] == 0 for s in summaries)})
+        out.append({"target": "no ERROR status (no fault was injected; a stall of the whole "
+                              "machine is one)", "measured": ", ".join(
+            f"{s['rate']:g}x: {_errors_outside_stalls(s)}" + _stall_note(s)
+            for s in summaries),
+            "met": all(_errors_outside_stalls(s) == 0 for s in summaries)})
         out.append({"target": "every history reset explained (a new scene, or outputs further "
                               "apart than history_max_gap)", "measured": "; ".join(
             f"{s['rate']:g}x: {s['resets']['at_scene_changes']} at new scenes, "

@@ -227,6 +227,11 @@ def _ms(p: dict) -> str:
     return " / ".join("-" if v is None else f"{v:.0f}" for v in p.values())
 
 
+def _in_stalls(summary: dict) -> str:
+    n = summary["statuses"].get("error_in_machine_stalls", 0)
+    return f" ({n} during machine stalls)" if n else ""
+
+
 def summary_lines(summaries: list[dict], checks: list[dict]) -> list[str]:
     lines = []
     for s in summaries:
@@ -238,7 +243,8 @@ def summary_lines(summaries: list[dict], checks: list[dict]) -> list[str]:
             f"{_ms(s['latency_ms_wall'])} ms wall, processing {_ms(s['processing_ms'])} ms; "
             f"history resets {r['at_scene_changes']} at new scenes, "
             f"{r['outputs_further_apart_than_history_max_gap']} after slow outputs, "
-            f"{len(r['unexpected'])} unexplained; ERROR {s['statuses']['error']}; RSS "
+            f"{len(r['unexpected'])} unexplained; ERROR {s['statuses']['error']}"
+            f"{_in_stalls(s)}; RSS "
             f"{s['rss'].get('first_mb', 0):.0f}"
             f" -> {s['rss'].get('last_mb', 0):.0f} MB")
     lines += [f"  {'met' if c['met'] else 'not met' if c['met'] is False else 'n/a':7s} "
@@ -276,7 +282,10 @@ def markdown(summaries: list[dict], checks: list[dict], context: dict, picture: 
         s["longest_output_gap"]["seconds"] is None else
         f"{s['longest_output_gap']['seconds']:.1f} s")
     row("diagnostics OK / WARN / ERROR", lambda s: f"{s['statuses']['ok']} / "
-        f"{s['statuses']['warn']} / {s['statuses']['error']}")
+        f"{s['statuses']['warn']} / {s['statuses']['error']}{_in_stalls(s)}")
+    row("machine stalls (the soak's own sampling stopped)", lambda s: ", ".join(
+        f"{st['seconds']:.0f} s at {st['at_s'] / 60:.1f} min"
+        for st in s.get("machine_stalls") or []) or "none")
     row("RSS first / peak / last, MB", lambda s: f"{s['rss'].get('first_mb', 0):.0f} / "
         f"{s['rss'].get('peak_mb', 0):.0f} / {s['rss'].get('last_mb', 0):.0f}")
     row("RSS growth after warm-up", lambda s: "-" if "growth_after_warmup_mb" not in s["rss"]

@@ -123,3 +123,25 @@ def test_a_restart_output_made_of_an_image_from_before_the_restart_is_stale():
     checks = {c["target"]: c["met"] for c in verdicts([], restarts=summarize_restarts(r))}
     assert checks["after a restart nothing stale is published, no ERROR"] is False
     assert checks["after a SIGKILL, the first output at most 10 s after the restart"] is True
+
+
+def test_errors_during_a_stall_of_the_whole_machine_are_counted_apart():
+    """No memory sample for 10 s (the soak itself stood still): the ERRORs from then until
+    STALL_RECOVERY_S after are the node reporting the stall; one later is not."""
+    stalled = [(float(t), 500 * 2 ** 20) for t in range(60) if not 5 < t < 15]
+    r = record(OUTPUTS, rss=stalled)
+    for t in (15.0, 40.0, 58.0):         # in the stall's wake, its recovery, then after it
+        r["diagnostics"][int(t)] = (t, 2, "no output for 6.0 s while inputs arrive", {})
+    r["diagnostics"][-1] = r["diagnostics"][-2]       # the last report carries the counters
+    summary = summarize(r)
+    assert summary["machine_stalls"] == [{"at_s": 5.0, "seconds": 10.0}]
+    assert summary["statuses"]["error"] == 3
+    assert summary["statuses"]["error_in_machine_stalls"] == 2
+    check = next(c for c in verdicts([summary]) if c["target"].startswith("no ERROR"))
+    assert check["met"] is False and check["measured"].startswith("1x: 1 (2 more during 1")
+    # without the late one, met; without the stall, all three count
+    r["diagnostics"][58] = (58.0, 0, "running", {})
+    assert next(c for c in verdicts([summarize(r)]) if c["target"].startswith("no ERROR"))["met"]
+    r["rss"] = [(float(t), 500 * 2 ** 20) for t in range(60)]
+    summary = summarize(r)
+    assert summary["machine_stalls"] == [] and summary["statuses"]["error_in_machine_stalls"] == 0
