@@ -113,6 +113,28 @@ def depth_order(candidates: Splats, visible: torch.Tensor) -> torch.Tensor:
                                          torch.full_like(candidates.depth, math.inf)), stable=True)
 
 
+@torch.no_grad()
+def _camera_gaussian_pairs(means, opacities, cam_rot, cam_t, near, gaussian_scene,
+                           cameras_per_scene):
+    """(camera [S], gaussian [S], candidate [S] bool) of every (camera, Gaussian) pair in
+    row-major order (nonzero's order); candidate: in front of the near plane and not
+    transparent. All pairs, the others marked: a shape known without reading a count."""
+    if gaussian_scene is None:
+        z_all = torch.einsum("nj,gj->ng", cam_rot[:, 2], means) + cam_t[:, None, 2]
+    else:       # [M, G]: each Gaussian against its own scene's M cameras
+        z_axis = cam_rot[:, 2].view(-1, cameras_per_scene, 3)[gaussian_scene]   # [G, M, 3]
+        z_all = (torch.einsum("gmj,gj->mg", z_axis, means)
+                 + cam_t[:, 2].view(-1, cameras_per_scene)[gaussian_scene].t())
+    candidate = ((z_all > near) & (opacities >= ALPHA_MIN)[None, :]).flatten()
+    rows, num_gaussians = z_all.shape
+    camera = torch.arange(rows, device=means.device).repeat_interleave(
+        num_gaussians, output_size=rows * num_gaussians)
+    gaussian = torch.arange(num_gaussians, device=means.device).repeat(rows)
+    if gaussian_scene is not None:
+        camera = gaussian_scene[gaussian] * cameras_per_scene + camera
+    return camera, gaussian, candidate
+
+
 def project_candidates(means: torch.Tensor, scales: torch.Tensor, rotations: torch.Tensor,
                        opacities: torch.Tensor, cam_from_ego: torch.Tensor,
                        intrinsics: torch.Tensor, image_hw, near: float,
@@ -136,23 +158,9 @@ def project_candidates(means: torch.Tensor, scales: torch.Tensor, rotations: tor
 
     cam_rot = cam_from_ego[:, :3, :3]                                  # [N, 3, 3]
     cam_t = cam_from_ego[:, :3, 3]                                     # [N, 3]
-    with torch.no_grad():
-        if gaussian_scene is None:
-            z_all = torch.einsum("nj,gj->ng", cam_rot[:, 2], means) + cam_t[:, None, 2]
-        else:       # [M, G]: each Gaussian against its own scene's M cameras
-            z_axis = cam_rot[:, 2].view(-1, cameras_per_scene, 3)[gaussian_scene]   # [G, M, 3]
-            z_all = (torch.einsum("gmj,gj->mg", z_axis, means)
-                     + cam_t[:, 2].view(-1, cameras_per_scene)[gaussian_scene].t())
-        candidate = ((z_all > near) & (opacities >= ALPHA_MIN)[None, :]).flatten()
-        # Every (camera, Gaussian) pair in row-major order (nonzero's order), the others
-        # marked invisible below: a shape known without reading the candidates' count.
-        rows, num_gaussians = z_all.shape
-        camera = torch.arange(rows, device=means.device).repeat_interleave(
-            num_gaussians, output_size=rows * num_gaussians)
-        gaussian = torch.arange(num_gaussians, device=means.device).repeat(rows)
-        if gaussian_scene is not None:
-            camera = gaussian_scene[gaussian] * cameras_per_scene + camera
-
+    camera, gaussian, candidate = _camera_gaussian_pairs(means, opacities, cam_rot, cam_t,
+                                                         near, gaussian_scene,
+                                                         cameras_per_scene)
     r = cam_rot[camera]                                                # [S0, 3, 3]
     p = torch.einsum("sij,sj->si", r, means[gaussian]) + cam_t[camera]
     factor_cam = torch.einsum("sij,sjk->sik", r, factor[gaussian])     # W M, [S0, 3, 3]

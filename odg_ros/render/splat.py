@@ -343,7 +343,8 @@ def _composite(splats: Splats, pixel_uv: torch.Tensor, pixel_camera: torch.Tenso
     pixels stopping within the rest and pairs not kept are masked (weight 0, log T
     unchanged). Unless ``wait_free`` (None: off the CPU), each chunk's kept pairs are
     compacted instead, with a read of their count. T is then computed again, differentiably,
-    from the kept pairs alone.
+    from the kept pairs alone. Long because the first batch and the chunks share the running
+    log T and the pair lists (one closure), and the order of their waits is the point.
     """
     device = pixel_uv.device
     num_pixels = pixel_uv.shape[0]
