@@ -51,7 +51,7 @@ def keyframe_inputs(infos: Path, cfg) -> list:
     """(images, ego2img, pose, stamp, bounds) of the world's keyframes, in order (the node
     decodes the same images from the bag)."""
     from odg_ros.data.dataset import OccDataset
-    from odg_ros.online.visibility import image_bounds
+    from odg_ros.preprocess import image_bounds
 
     dataset = OccDataset(str(infos), cfg)
     names = dataset.camera_names

@@ -1,7 +1,11 @@
 """Every maintainer script answers ``--help`` (run as ``python -m tools.NAME --help`` would,
-in this process: cheap), and the shell scripts parse. A script that does work at import or
-ignores ``--help`` fails here instead of in a maintainer's hands."""
+in this process: cheap), every name it imports from the package exists (also the imports
+inside functions, which --help never runs), and the shell scripts parse. A script that does
+work at import, ignores ``--help`` or imports a module that moved fails here instead of in a
+maintainer's hands."""
+import ast
 import contextlib
+import importlib
 import io
 import runpy
 import subprocess
@@ -29,6 +33,30 @@ def test_every_script_answers_help(name, monkeypatch):
     with pytest.raises(SystemExit) as exit_, contextlib.redirect_stdout(out):
         runpy.run_module(f"tools.{name}", run_name="__main__", alter_sys=False)
     assert exit_.value.code in (0, None) and "usage" in out.getvalue()
+
+
+def package_imports(path: Path) -> list[tuple[str, str]]:
+    """(module, name) of every ``from odg_ros... import name`` in a file, at any depth."""
+    return [(node.module, alias.name) for node in ast.walk(ast.parse(path.read_text()))
+            if isinstance(node, ast.ImportFrom) and node.level == 0 and node.module
+            and node.module.split(".")[0] == "odg_ros" for alias in node.names]
+
+
+@pytest.mark.parametrize("name", SCRIPTS + HELPERS)
+def test_every_name_a_tool_imports_from_the_package_exists(name):
+    missing = []
+    for module, attribute in package_imports(TOOLS / f"{name}.py"):
+        try:
+            found = importlib.import_module(module)
+        except ModuleNotFoundError:
+            missing.append(f"{module} (no such module)")
+            continue
+        if not hasattr(found, attribute):
+            try:
+                importlib.import_module(f"{module}.{attribute}")
+            except ModuleNotFoundError:
+                missing.append(f"{module}.{attribute}")
+    assert not missing, missing
 
 
 @pytest.mark.parametrize("name", HELPERS)
