@@ -58,6 +58,7 @@ def summarize(record: dict, warmup_s: float = 300.0) -> dict:
     latency = output_latencies(record)
     wall_latency = wall_latencies(record)
     last = record["diagnostics"][-1][3] if record["diagnostics"] else {}
+    stalls = machine_stalls(record["rss"])
     summary = {
         "rate": record["rate"], "effective_rate": achieved, "wall_s": wall,
         "node_startup_s": record.get("node_startup_s"),
@@ -77,8 +78,8 @@ def summarize(record: dict, warmup_s: float = 300.0) -> dict:
         "processing_ms": percentiles(ms for _, ms in record["processing_ms"]),
         "resets": _resets(record, scenes),
         "longest_output_gap": _longest_gap(record, scenes),
-        "machine_stalls": machine_stalls(record["rss"]),
-        "statuses": _statuses(record),
+        "machine_stalls": stalls,
+        "statuses": _statuses(record, stalls),
         "rss": _rss(record["rss"], wall, warmup_s),
     }
     summary["latency_drift"] = _latency_drift([(t, ms) for t, ms in wall_latency
@@ -227,10 +228,9 @@ def machine_stalls(samples) -> list[dict]:
     return [{"at_s": a, "seconds": b - a} for a, b in zip(times, times[1:]) if b - a > STALL_S]
 
 
-def _statuses(record: dict) -> dict:
+def _statuses(record: dict, stalls: list[dict]) -> dict:
     levels = Counter(level for _, level, _, _ in record["diagnostics"])
     errors = [(t, message) for t, level, message, _ in record["diagnostics"] if level >= ERROR]
-    stalls = machine_stalls(record["rss"])
     in_stall = [any(st["at_s"] <= t <= st["at_s"] + st["seconds"] + STALL_RECOVERY_S
                     for st in stalls) for t, _ in errors]
     warnings = Counter(message.split(":")[0][:60]
@@ -244,15 +244,15 @@ def _statuses(record: dict) -> dict:
 
 
 def _errors_outside_stalls(summary: dict) -> int:
-    return summary["statuses"]["error"] - summary["statuses"].get("error_in_machine_stalls", 0)
+    return summary["statuses"]["error"] - summary["statuses"]["error_in_machine_stalls"]
 
 
 def _stall_note(summary: dict) -> str:
-    stalls = summary.get("machine_stalls") or []
+    stalls = summary["machine_stalls"]
     if not stalls:
         return ""
     longest = max(st["seconds"] for st in stalls)
-    return (f" ({summary['statuses'].get('error_in_machine_stalls', 0)} more during "
+    return (f" ({summary['statuses']['error_in_machine_stalls']} more during "
             f"{len(stalls)} machine stall{'s' * (len(stalls) > 1)}, the longest {longest:.0f} s, "
             "when the soak's own sampling stopped too)")
 

@@ -228,7 +228,7 @@ def _ms(p: dict) -> str:
 
 
 def _in_stalls(summary: dict) -> str:
-    n = summary["statuses"].get("error_in_machine_stalls", 0)
+    n = summary["statuses"]["error_in_machine_stalls"]
     return f" ({n} during machine stalls)" if n else ""
 
 
@@ -285,7 +285,7 @@ def markdown(summaries: list[dict], checks: list[dict], context: dict, picture: 
         f"{s['statuses']['warn']} / {s['statuses']['error']}{_in_stalls(s)}")
     row("machine stalls (the soak's own sampling stopped)", lambda s: ", ".join(
         f"{st['seconds']:.0f} s at {st['at_s'] / 60:.1f} min"
-        for st in s.get("machine_stalls") or []) or "none")
+        for st in s["machine_stalls"]) or "none")
     row("RSS first / peak / last, MB", lambda s: f"{s['rss'].get('first_mb', 0):.0f} / "
         f"{s['rss'].get('peak_mb', 0):.0f} / {s['rss'].get('last_mb', 0):.0f}")
     row("RSS growth after warm-up", lambda s: "-" if "growth_after_warmup_mb" not in s["rss"]
