@@ -91,6 +91,13 @@ def test_memory_growth_after_the_warm_up_and_the_rate_achieved():
     rss = summarize(growing, warmup_s=20.0)["rss"]
     assert rss["warmup_s"] == 20.0 and rss["growth_after_warmup_mb"] == pytest.approx(30.0)
     assert rss["peak_mb"] == 530.0 and rss["slope_mb_per_hour"] > 0
+    # two levels 26 MB apart, the low one for most of the first half, the high one for
+    # most of the second (the allocator handing buffers back and taking them again): no
+    # growth (a median of either half would say 26 MB)
+    levels = [509 + 26 * (t % 7 == 0 if t < 45 else t % 7 != 0) for t in range(60)]
+    swinging = record(OUTPUTS, rss=[(float(t), mb * 2 ** 20) for t, mb in enumerate(levels)])
+    assert summarize(swinging, warmup_s=30.0)["rss"]["growth_after_warmup_mb"] == \
+        pytest.approx(0.0)
     flat = summarize(record(OUTPUTS), warmup_s=300.0)["rss"]
     assert flat["warmup_s"] == 30.0 and flat["growth_after_warmup_mb"] == 0.0
     # bags of 10 s announced 5 s apart: 2x
