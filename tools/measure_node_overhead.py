@@ -202,7 +202,7 @@ def measure(preset: str, jpegs: list, sets: int, checkpoint: str | None, publish
     model, cfg = load_model(checkpoint, preset=preset)
     predictor = OnlinePredictor(model, cfg, "cpu", max_gap=1.0, compile="eager")
     height, width = Image.open(io.BytesIO(jpegs[0])).size[::-1]
-    settings = PipelineSettings(CAMS)
+    settings = PipelineSettings.from_parameters(CAMS)
     pipeline = OnlinePipeline(predictor, settings,
                               lambda camera, frame_id, stamp: RIG.cameras[camera].sensor2ego)
     scale = np.diag([width / 1600, height / 900, 1.0])

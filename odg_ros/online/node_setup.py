@@ -17,7 +17,7 @@ from .errors import BadInput
 from .extrinsics import CameraExtrinsics
 from .pipeline import OnlinePipeline, PipelineSettings
 from .predictor import OnlinePredictor
-from .camera_calibration import CameraCalibration, IntrinsicsRange, load_rig
+from .camera_calibration import CameraCalibration, load_rig
 from .transforms import TransformBuffer
 
 SHIPPED_RIG = "config/rig_nuscenes.yaml"
@@ -76,29 +76,14 @@ def _rig_name(p: dict) -> str:
     return p["rig_file"] or SHIPPED_RIG
 
 
-def pipeline_settings(p: dict, cameras: list[str]) -> PipelineSettings:
-    """The pipeline's settings from the validated parameters."""
-    return PipelineSettings(cameras, slop=float(p["slop"]),
-                            max_future=float(p["max_future_stamp"]),
-                            pose_max_extrapolation=float(p["max_pose_extrapolation"]),
-                            max_pose_gap=float(p["max_pose_gap"]),
-                            pose_wait=float(p["pose_wait"]),
-                            intrinsics=IntrinsicsRange(float(p["min_focal_length"]),
-                                                       float(p["max_focal_length"]),
-                                                       float(p["max_principal_point_offset"])),
-                            max_speed=float(p["max_speed"]),
-                            max_acceleration=float(p["max_acceleration"]),
-                            max_image_pixels=int(p["max_image_pixels"]))
-
-
 def build_pipeline(predictor: OnlinePredictor, p: dict, cameras: list[str], found: Sources,
                    stats: PipelineStats | None = None,
                    clock: Callable[[], float] | None = None) -> OnlinePipeline:
     """The pipeline of the validated parameters around ``predictor``, with the rig file's
     intrinsics already given where intrinsics_source is rig (then no CameraInfo is read).
     ``clock``: the node's clock, which measures the bounded wait (pose_wait)."""
-    pipeline = OnlinePipeline(predictor, pipeline_settings(p, cameras), found.extrinsics,
-                              found.pose_lookup, stats, clock=clock)
+    pipeline = OnlinePipeline(predictor, PipelineSettings.from_parameters(cameras, p),
+                              found.extrinsics, found.pose_lookup, stats, clock=clock)
     for camera, calibration in (found.intrinsics or {}).items():
         try:
             pipeline.on_camera_info(camera, calibration.intrinsics, *calibration.image_hw,

@@ -25,7 +25,7 @@ import os
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, Callable, Sequence
 
 import numpy as np
@@ -34,10 +34,11 @@ from ..geometry import rigid_mask
 from .diagnostics import PipelineStats
 from .errors import BAD_INPUT_KINDS, BadInput
 from ..preprocess import adjust_intrinsics
-from .images import (DEFAULT_MAX_PIXELS, DeviceJpegDecoder, EncodedImage, decode_for_input,
+from .images import (DeviceJpegDecoder, EncodedImage, decode_for_input,
                      select_jpeg_decoder, to_network_input)
 from .mailbox import LatestMailbox
 from .pacing import DecodePacing
+from .parameters import validate
 from .poses import PoseBuffer
 from .predictor import OnlinePredictor
 from .camera_calibration import CameraCalibration, IntrinsicsRange, check_intrinsics, set_ego2img
@@ -52,21 +53,37 @@ class PipelineSettings:
     ahead of the node clock (s); pose_max_extrapolation: beyond the pose buffer (s);
     max_pose_gap: the widest gap between two poses interpolated across (s); pose_wait: how
     long a set may wait for poses / transforms not received yet (s, node clock);
-    time_jump: a stamp this much older than the newest one means the source restarted (s);
     plausibility: intrinsics (CameraInfo), max_speed (m/s) / max_acceleration (m/s^2) of the
-    ego between poses, max_image_pixels of a decoded image."""
+    ego between poses, max_image_pixels of a decoded image; time_jump: a stamp this much
+    older than the newest one means the source restarted (s). All but time_jump are node
+    parameters, whose defaults are in config/odg_node.schema.yaml: from_parameters."""
 
     camera_names: Sequence[str]
-    slop: float = 0.05
-    max_future: float = 0.5
-    pose_max_extrapolation: float = 0.05
-    max_pose_gap: float = 1.0
-    pose_wait: float = 1.0
+    slop: float
+    max_future: float
+    pose_max_extrapolation: float
+    max_pose_gap: float
+    pose_wait: float
+    intrinsics: IntrinsicsRange
+    max_speed: float
+    max_acceleration: float
+    max_image_pixels: int
     time_jump: float = 1.0
-    intrinsics: IntrinsicsRange = IntrinsicsRange()
-    max_speed: float = 70.0
-    max_acceleration: float = 30.0
-    max_image_pixels: int = DEFAULT_MAX_PIXELS
+
+    @classmethod
+    def from_parameters(cls, camera_names: Sequence[str], parameters: dict | None = None,
+                        **fields) -> PipelineSettings:
+        """The settings of the node's validated ``parameters`` (None: their defaults), with
+        the given ``fields`` put in."""
+        p = validate({}) if parameters is None else parameters
+        settings = cls(camera_names, slop=p["slop"], max_future=p["max_future_stamp"],
+                       pose_max_extrapolation=p["max_pose_extrapolation"],
+                       max_pose_gap=p["max_pose_gap"], pose_wait=p["pose_wait"],
+                       intrinsics=IntrinsicsRange(p["min_focal_length"], p["max_focal_length"],
+                                                  p["max_principal_point_offset"]),
+                       max_speed=p["max_speed"], max_acceleration=p["max_acceleration"],
+                       max_image_pixels=p["max_image_pixels"])
+        return replace(settings, **fields)
 
 
 @dataclass

@@ -29,13 +29,17 @@ def files(tmp_path_factory):
     return {k: str(v) for k, v in paths.items()}
 
 
+# valid invocations, so that each case below adds only its mistake
+EVAL = "eval --checkpoint {truncated} --data {infos}"
+TRAIN = "train --data {infos} --out {root}/run"
+PREPARE = "prepare --dataroot {root}/world --out {root}/i.pkl"
+
 CASES = {   # name: (argv with {placeholders} from `files`, what the line must say)
     "eval: missing checkpoint": ("eval --checkpoint {missing} --data {infos}",
                                  "argument --checkpoint: file not found"),
     "eval: missing infos": ("eval --checkpoint {truncated} --data {root}/nope.pkl",
                             "argument --data: file not found"),
-    "eval: truncated checkpoint": ("eval --checkpoint {truncated} --data {infos}",
-                                   "not a readable checkpoint file"),
+    "eval: truncated checkpoint": (EVAL, "not a readable checkpoint file"),
     "eval: not a checkpoint": ("eval --checkpoint {foreign} --data {infos}",
                                "not an odg_ros checkpoint"),
     "eval: empty infos file": ("eval --checkpoint {truncated} --data {empty}", "file is empty"),
@@ -43,29 +47,14 @@ CASES = {   # name: (argv with {placeholders} from `files`, what the line must s
                                       "holds no keyframes"),
     "eval: not an infos file": ("eval --checkpoint {truncated} --data {foreign}",
                                 "is not an infos file"),
-    "eval --limit -1": ("eval --checkpoint {truncated} --data {infos} --limit -1",
-                        "argument --limit: must be > 0, got -1"),
-    "eval --limit 0": ("eval --checkpoint {truncated} --data {infos} --limit 0", "must be > 0"),
-    "eval --device bogus": ("eval --checkpoint {truncated} --data {infos} --device gpu",
-                            "expected auto, cpu, cuda or cuda:N"),
-    "train: unknown preset": ("train --preset odg_x --data {infos} --out {root}/run",
-                              "unknown preset 'odg_x': one of odg_cpu, odg_l, odg_t, odg_waymo_cpu, odg_waymo_t"),
-    "train --set nonsense=1": ("train --data {infos} --out {root}/run --set nonsense=1",
-                               "--set nonsense: not a model setting"),
-    "train --set typo": ("train --data {infos} --out {root}/run --set num_frame=2",
-                         "did you mean num_frames"),
-    "train --set without =": ("train --data {infos} --out {root}/run --set nonsense",
-                              "--set expects KEY=VALUE"),
-    "train --steps 0": ("train --data {infos} --out {root}/run --steps 0", "must be > 0"),
-    "train --steps -1": ("train --data {infos} --out {root}/run --steps -1", "must be > 0"),
-    "train --batch-size 0": ("train --data {infos} --out {root}/run --batch-size 0",
-                             "argument --batch-size: must be > 0"),
-    "train --epochs x": ("train --data {infos} --out {root}/run --epochs x",
-                         "expected an integer, got 'x'"),
-    "train --lr nan": ("train --data {infos} --out {root}/run --lr nan", "must be > 0"),
-    "bench --iters 0": ("bench --iters 0", "argument --iters: must be > 0"),
-    "bench --iters -3": ("bench --iters -3", "argument --iters: must be > 0"),
-    "bench --frames 0": ("bench --frames 0", "argument --frames: must be > 0"),
+    "eval --limit -1": (f"{EVAL} --limit -1", "argument --limit: must be > 0, got -1"),
+    "eval --device bogus": (f"{EVAL} --device gpu", "expected auto, cpu, cuda or cuda:N"),
+    "train: unknown preset": (f"{TRAIN} --preset odg_x", "unknown preset 'odg_x': one of "
+                              "odg_cpu, odg_l, odg_t, odg_waymo_cpu, odg_waymo_t"),
+    "train --set nonsense=1": (f"{TRAIN} --set nonsense=1", "--set nonsense: not a model setting"),
+    "train --set typo": (f"{TRAIN} --set num_frame=2", "did you mean num_frames"),
+    "train --set without =": (f"{TRAIN} --set nonsense", "--set expects KEY=VALUE"),
+    "train --epochs x": (f"{TRAIN} --epochs x", "expected an integer, got 'x'"),
     "bench: unknown preset": ("bench --preset odg_xl", "unknown preset"),
     "bench --sweep without --data": ("bench --sweep --preset odg_t",
                                      "--sweep needs --data INFOS"),
@@ -77,29 +66,29 @@ CASES = {   # name: (argv with {placeholders} from `files`, what the line must s
     "bench: a checkpoint and a preset": ("bench --checkpoint {foreign} --preset odg_t",
                                          "--checkpoint and --preset: give one"),
     "info: unknown preset": ("info --preset big", "unknown preset 'big'"),
-    "synth --scenes 0": ("synth --out {root}/w --scenes 0", "argument --scenes: must be > 0"),
-    "synth --seconds 0": ("synth --out {root}/w --seconds 0", "argument --seconds: must be > 0"),
     "synth into an existing world": ("synth --out {root}/world --scenes 1", "already exists"),
     "prepare: missing dataroot": ("prepare --dataroot {root}/nope --out {root}/i.pkl",
                                   "directory not found"),
-    "prepare: wrong version": ("prepare --dataroot {root}/world --out {root}/i.pkl "
-                               "--version v1.0-mini", "has no v1.0-mini/ table folder"),
-    "prepare waymo: no pose file": ("prepare --layout waymo --dataroot {root}/world --out "
-                                    "{root}/i.pkl", "cam_infos.pkl not found"),
-    "prepare waymo: split": ("prepare --layout waymo --dataroot {root}/world --out {root}/i.pkl "
-                             "--split all", "Occ3D-Waymo has train and val"),
+    "prepare: wrong version": (f"{PREPARE} --version v1.0-mini",
+                               "has no v1.0-mini/ table folder"),
+    "prepare waymo: no pose file": (f"{PREPARE} --layout waymo", "cam_infos.pkl not found"),
+    "prepare waymo: split": (f"{PREPARE} --layout waymo --split all",
+                             "Occ3D-Waymo has train and val"),
     "score: missing infos": ("score --pred {root} --data {root}/nope.pkl",
                              "infos file not found"),
     "export: missing checkpoint": ("export --checkpoint {missing} --out {root}/o.pt",
                                    "file not found"),
-    "demo --seconds 0": ("demo --seconds 0", "argument --seconds: must be > 0"),
-    "demo --rate -1": ("demo --rate -1", "argument --rate: must be > 0"),
     "unknown command": ("nonsense", "unknown command 'nonsense'"),
 }
+NOT_POSITIVE = (f"{EVAL} --limit 0", f"{TRAIN} --steps 0", f"{TRAIN} --steps -1",
+                f"{TRAIN} --batch-size 0", f"{TRAIN} --lr nan", "bench --iters 0",
+                "bench --iters -3", "bench --frames 0", "synth --out {root}/w --scenes 0",
+                "synth --out {root}/w --seconds 0", "demo --seconds 0", "demo --rate -1")
+for argv in NOT_POSITIVE:      # a count, a size or a rate: 0, negatives and NaN refused
+    *_, option, value = argv.split()
+    CASES[f"{argv.split()[0]} {option} {value}"] = (argv, f"argument {option}: must be > 0")
 if not torch.cuda.is_available():
-    CASES["--device cuda without CUDA"] = (
-        "eval --checkpoint {truncated} --data {infos} --device cuda",
-        "CUDA is not available here")
+    CASES["--device cuda without CUDA"] = (f"{EVAL} --device cuda", "CUDA is not available here")
     CASES["bench --device cuda without CUDA"] = ("bench --device cuda", "CUDA is not available")
 
 

@@ -286,7 +286,7 @@ def tf_pipeline(model_and_cfg):
                          wanted={"base_link", *CAMS})
     predictor = OnlinePredictor(model, cfg, "cpu", max_gap=1.0, min_interval=0.0)
     pipeline = OnlinePipeline(
-        predictor, PipelineSettings(CAMS),
+        predictor, PipelineSettings.from_parameters(CAMS),
         lambda camera, frame, t: tf.lookup("base_link", frame, t, "missing_extrinsics"),
         lambda t: tf.lookup("map", "base_link", t, "pose_miss"))
     for name in CAMS:

@@ -3,12 +3,16 @@ every geometry parameter reaches the TF buffer and the pipeline, and intrinsics_
 gives the pipeline each camera's calibration from the rig file at start (no CameraInfo)."""
 from __future__ import annotations
 
+from dataclasses import fields
+
 import numpy as np
 import pytest
 import yaml
 
 from odg_ros.online import node_setup
+from odg_ros.online.camera_calibration import IntrinsicsRange
 from odg_ros.online.parameters import validate
+from odg_ros.online.pipeline import PipelineSettings
 from odg_ros.online.predictor import OnlinePredictor
 from odg_ros.resources import resource_path
 from testing.online import CAMS, RIG, make_model
@@ -36,6 +40,22 @@ def test_the_settings_reach_the_tf_buffer_and_the_pipeline(predictor):
         assert not pipeline._camera_info
     finally:
         pipeline.close()
+
+
+def test_every_pipeline_setting_is_its_node_parameter():
+    """Each setting but time_jump is its own parameter (by default the schema's default)."""
+    given = PipelineSettings.from_parameters(CAMS, validate({
+        "slop": 0.07, "max_future_stamp": 0.9, "max_pose_extrapolation": 0.02,
+        "max_pose_gap": 0.8, "pose_wait": 0.3, "min_focal_length": 0.2, "max_focal_length": 10.0,
+        "max_principal_point_offset": 0.3, "max_speed": 50.0, "max_acceleration": 20.0,
+        "max_image_pixels": 1000000}))
+    assert {f.name: getattr(given, f.name) for f in fields(PipelineSettings)} == {
+        "camera_names": CAMS, "slop": 0.07, "max_future": 0.9, "pose_max_extrapolation": 0.02,
+        "max_pose_gap": 0.8, "pose_wait": 0.3, "intrinsics": IntrinsicsRange(0.2, 10.0, 0.3),
+        "max_speed": 50.0, "max_acceleration": 20.0, "max_image_pixels": 1000000,
+        "time_jump": 1.0}
+    default = PipelineSettings.from_parameters(CAMS, pose_wait=5.0)
+    assert (default.slop, default.max_speed, default.pose_wait) == (0.05, 70.0, 5.0)
 
 
 def test_intrinsics_from_the_rig_file(predictor):

@@ -312,7 +312,8 @@ def test_pipeline_feeds_device_decoded_images_to_the_model():
     model = ODG(cfg).eval()
     rig = load_rig(resource_path("config/rig_nuscenes.yaml"))
     cams, hw = tuple(rig.cameras), (180, 320)
-    pipeline = OnlinePipeline(OnlinePredictor(model, cfg, "cpu"), PipelineSettings(cams),
+    pipeline = OnlinePipeline(OnlinePredictor(model, cfg, "cpu"),
+                              PipelineSettings.from_parameters(cams),
                               lambda c, f, t: rig.cameras[c].sensor2ego)
     pipeline.jpeg_decoder = device_decoder()[0]
     for c in cams:

@@ -44,8 +44,8 @@ def make_pipeline(model_and_cfg, **settings):
             raise BadInput("missing_extrinsics", camera)
         return RIG.cameras[camera].sensor2ego
 
-    pipeline = OnlinePipeline(predictor, PipelineSettings(CAMS, **settings), extrinsics)
-    return pipeline
+    return OnlinePipeline(predictor, PipelineSettings.from_parameters(CAMS, **settings),
+                          extrinsics)
 
 
 def feed_calibration_and_poses(pipeline, t0=10.0, t1=12.0):

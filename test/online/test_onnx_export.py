@@ -40,7 +40,7 @@ def node_pipeline(model, cfg):
     """The node's pipeline (CameraInfo checks, poses at every camera stamp, decoding,
     resizing) around its predictor, at the node's history settings."""
     predictor = OnlinePredictor(model, cfg, "cpu", max_gap=1.0, min_interval=0.45)
-    pipeline = OnlinePipeline(predictor, PipelineSettings(CAMS),
+    pipeline = OnlinePipeline(predictor, PipelineSettings.from_parameters(CAMS),
                               lambda camera, frame_id, t: RIG.cameras[camera].sensor2ego,
                               pose_lookup=pose_at)
     for name in CAMS:

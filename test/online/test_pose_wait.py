@@ -264,16 +264,17 @@ class Replay:
                  **settings):
         model, cfg = model_and_cfg
         self.clock = [0.0]
-        self.tf = TransformBuffer(max_interpolation_gap=settings.get("max_pose_gap", 1.0),
-                                  max_speed=70.0, max_acceleration=30.0)
+        settings = PipelineSettings.from_parameters(CAMS, **settings)
+        self.tf = TransformBuffer(max_interpolation_gap=settings.max_pose_gap,
+                                  max_speed=settings.max_speed,
+                                  max_acceleration=settings.max_acceleration)
         self.notes = []
         self.extrinsics = CameraExtrinsics(extrinsics, "base_link", self.tf, RIG,
                                            lambda level, m: self.notes.append((level, m)))
         pose_lookup = (lambda t: self.tf.lookup("map", "base_link", t, "pose_miss")) \
             if pose_source == "tf" else None
         predictor = OnlinePredictor(model, cfg, "cpu", max_gap=2.0)
-        self.pipeline = OnlinePipeline(predictor, PipelineSettings(CAMS, **settings),
-                                       self.extrinsics, pose_lookup,
+        self.pipeline = OnlinePipeline(predictor, settings, self.extrinsics, pose_lookup,
                                        clock=lambda: self.clock[0])
         if camera_info:
             for name in CAMS:
@@ -472,7 +473,7 @@ def test_the_decoding_thread_waits_for_a_late_pose(model_and_cfg):
     """The node's path: sets prepared in their own thread, on the steady clock."""
     model, cfg = model_and_cfg
     pipeline = OnlinePipeline(OnlinePredictor(model, cfg, "cpu", max_gap=2.0),
-                              PipelineSettings(CAMS, pose_wait=5.0),
+                              PipelineSettings.from_parameters(CAMS, pose_wait=5.0),
                               lambda camera, frame, t: RIG.cameras[camera].sensor2ego)
     for name in CAMS:
         pipeline.on_camera_info(name, scaled_K(name), *HW, frame_id=name)
@@ -495,7 +496,8 @@ def test_a_first_camera_info_wakes_the_waiting_room(model_and_cfg):
     """The decoding thread sleeps until news (or its poll): a camera's first CameraInfo is
     news; a repeated one (with every image) is not."""
     model, cfg = model_and_cfg
-    pipeline = OnlinePipeline(OnlinePredictor(model, cfg, "cpu"), PipelineSettings(CAMS),
+    pipeline = OnlinePipeline(OnlinePredictor(model, cfg, "cpu"),
+                              PipelineSettings.from_parameters(CAMS),
                               lambda camera, frame, t: RIG.cameras[camera].sensor2ego)
     woken = []
     pipeline.waiting.notify = lambda: woken.append(True)
