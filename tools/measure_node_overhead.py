@@ -219,12 +219,15 @@ def measure(preset: str, jpegs: list, sets: int, checkpoint: str | None, publish
                               header=None)
 
     # one real model step, then its outputs replayed
+    real_run, stepped = predictor._run, []
+    predictor._run = lambda images, budget: stepped.append(real_run(images, budget)) or \
+        stepped[-1]
     feed(10.0)
     t0 = time.perf_counter()
     pipeline.process(pipeline.next_set(timeout=1.0))
     step_ms = (time.perf_counter() - t0) * 1e3
-    recorded = replayed_outputs(predictor._run(predictor._images), cfg, occupied, boxes)
-    predictor._run = lambda images: recorded
+    recorded = replayed_outputs(stepped[0], cfg, occupied, boxes)
+    predictor._run = lambda images, budget: recorded
 
     from odg_ros.online.diagnostics import PipelineStats
     publish = publish_with(cfg, PipelineStats()) if publish_with else packing_only(cfg)

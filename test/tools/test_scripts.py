@@ -67,3 +67,13 @@ def test_every_helper_module_imports(name):
 @pytest.mark.parametrize("script", sorted(path.name for path in TOOLS.glob("*.sh")))
 def test_every_shell_script_parses(script):
     assert subprocess.run(["bash", "-n", str(TOOLS / script)]).returncode == 0
+
+
+def test_the_node_overhead_tool_runs_without_ros():
+    """It swaps the predictor's device step for a recording of one real step: that reaches
+    into the predictor, so a change of its step's signature must show here."""
+    result = subprocess.run([sys.executable, "-m", "tools.measure_node_overhead", "--preset",
+                             "odg_cpu", "--sets", "2", "--no-ros"],
+                            capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert "total, all outputs" in result.stdout, result.stdout[-2000:]
