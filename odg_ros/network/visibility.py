@@ -17,7 +17,7 @@ Computed on the device with static shapes and no host read, as part of the onlin
 
 1. occluders: the occupied voxels and the stray ones, free in the grid but holding a point
    the grid drops for lying far from its query's centroid (the model put something there:
-   on the dense training worlds 42 % of them are truly occupied, against 1.5 % of the free
+   on the dense training worlds 42 % of them are truly occupied, against 1.4 % of the free
    voxels seen); a voxel on a flat surface (its two neighbours along exactly one axis are
    not occupied: the road, a wall) occludes at its mid-plane across that axis, one on a
    thin line (a pole) as a thin cylinder along it, any other (edges, lone voxels) as a
