@@ -40,7 +40,7 @@ from odg_ros.metrics.rayiou import LidarOrigins
 from odg_ros.metrics.score import OccScore
 from odg_ros.network.calibration import Calibration
 from odg_ros.network.checkpoint import load_model
-from odg_ros.network.postprocess import box_list
+from odg_ros.network.postprocess import box_list, stray_voxels
 from odg_ros.network.visibility import DEFAULT_MIN_CLEAR, Visibility
 from odg_ros.train.evaluate import BEV_BAND, PublishedGrid, padded_grid, predict_split
 
@@ -145,13 +145,14 @@ def study(args) -> dict:
                 "cpu")
             labels, raw = (t.reshape(-1) for t in padded_grid(output, cfg))
             confidence, hazard = calibration(labels, raw)
+            stray = stray_voxels(output.last.means[:1], output.last.logits[:1], cfg)[0]
             grid = labels.view(cfg.grid_shape).numpy()
             truth = batch["occ_semantics"][0].numpy()
             mask = batch["occ_mask_camera"][0].numpy().astype(bool)
             truth_bev = bev_cells(truth, mask, *band)
             with torch.inference_mode():
                 for t, v in visibility.items():
-                    observed = v(labels, *geometry, hazard=hazard).view(cfg.grid_shape) \
+                    observed = v(labels, *geometry, hazard=hazard, stray=stray).view(cfg.grid_shape) \
                         .numpy().astype(bool)
                     scores.curve[t].add(grid, observed, truth, mask, cfg.num_classes,
                                         bev_cells(grid, observed, *band), truth_bev)

@@ -53,6 +53,32 @@ def point_voxels(means: torch.Tensor, scores: torch.Tensor, cfg: ModelConfig):
     return keep, flat
 
 
+def stray_voxels(means: torch.Tensor, logits: torch.Tensor, cfg: ModelConfig) -> torch.Tensor:
+    """means [B, Q, K, 3], logits [B, Q, K, C] -> bool [B, X*Y*Z]: the voxels holding a point
+    whose score passes the threshold but that the grid drops for lying farther than
+    max_distance_to_centroid from its query's centroid. The model put something there: in
+    dense traffic such a voxel the grid calls free is truly occupied about half the time, so
+    the visibility lets it hide what lies behind it (network/visibility.py)."""
+    means = means.float()
+    X, Y, Z = cfg.grid_shape
+    B = means.shape[0]
+    centroid = means.mean(dim=-2, keepdim=True)
+    # the sigmoid of the top logit: the top score exactly (sigmoid is monotone)
+    stray = (logits.float().amax(dim=-1).sigmoid() > cfg.score_threshold) & (
+        (means - centroid).norm(dim=-1) > cfg.max_distance_to_centroid)
+    index = []
+    for axis, size in enumerate((X, Y, Z)):
+        i = torch.floor((means[..., axis] - cfg.pc_range[axis]) / cfg.voxel_size)
+        stray &= (i >= 0) & (i < size)                       # NaN compares False: dropped
+        index.append(torch.where(stray, i, torch.zeros_like(i)).long())
+    cells = X * Y * Z
+    flat = torch.where(stray, (index[0] * Y + index[1]) * Z + index[2],
+                       torch.full_like(index[0], cells)).view(B, -1)
+    out = torch.zeros((B, cells + 1), dtype=torch.uint8, device=means.device)
+    out.scatter_(1, flat, 1)
+    return out[:, :cells].bool()
+
+
 def voxelise(means: torch.Tensor, logits: torch.Tensor, cfg: ModelConfig, free_label: int):
     """means [B, Q, K, 3], logits [B, Q, K, C] -> labels, confidence uint8 [B, X*Y*Z]."""
     means, scores = means.float(), logits.float().sigmoid()

@@ -31,7 +31,7 @@ from ..network.budget import QueryBudget, needed_queries
 from ..network.calibration import Calibration
 from ..network.feature_ring import FeatureRing
 from ..network.padding import OccupancyPadding
-from ..network.postprocess import ranked_boxes, voxelise
+from ..network.postprocess import ranked_boxes, stray_voxels, voxelise
 from ..network.precision import (decoder_half_dtype, half_dtype, precision_context,
                                  with_half_matrix_weights)
 from ..preprocess import IMAGENET_MEAN, IMAGENET_STD
@@ -189,8 +189,9 @@ class OnlineStep(nn.Module):
             observed = labels.new_zeros(0)
         else:
             with mark("visibility"):
+                stray = stray_voxels(layer.means, layer.logits, self.cfg)[0]
                 observed = self.visibility(labels, *self.layout.current_view(packed),
-                                           hazard=hazard)
+                                           hazard=hazard, stray=stray)
         return labels, confidence, boxes[0], score[0], label[0], valid[0], observed
 
 

@@ -19,7 +19,7 @@ from ..metrics.score import OccScore
 from ..network.budget import QueryBudget, output_needs
 from ..network.calibration import Calibration
 from ..network.padding import pad_occupancy
-from ..network.postprocess import box_list, occupancy_grid
+from ..network.postprocess import box_list, occupancy_grid, stray_voxels
 from ..network.visibility import DEFAULT_MIN_CLEAR, Visibility, image_bounds
 
 
@@ -92,7 +92,8 @@ class PublishedGrid:
         """-> {"grid", "raw", "confidence", "observed"} numpy [X, Y, Z] (uint8, bool)."""
         labels, raw = (t.reshape(-1) for t in padded_grid(output, self.cfg))
         confidence, hazard = self.calibration(labels, raw)
-        observed = self.visibility(labels, *geometry, hazard=hazard)
+        stray = stray_voxels(output.last.means[:1], output.last.logits[:1], self.cfg)[0]
+        observed = self.visibility(labels, *geometry, hazard=hazard, stray=stray)
         shape = self.cfg.grid_shape
         return {"grid": labels.view(shape).cpu().numpy(), "raw": raw.view(shape).cpu().numpy(),
                 "confidence": confidence.view(shape).cpu().numpy(),

@@ -14,7 +14,8 @@ from hypothesis import strategies as st
 from odg_ros.classes import FREE_LABEL
 from odg_ros.model_config import load_preset
 from odg_ros.network.outputs import LayerOutput, ODGOutput
-from odg_ros.network.postprocess import box_list, decode_box_code, occupancy_grid
+from odg_ros.network.postprocess import (box_list, decode_box_code, occupancy_grid,
+                                       stray_voxels)
 
 from testing.hard_cases import HARD
 
@@ -87,3 +88,24 @@ def test_box_codes_that_overflow_exp_decode_to_finite_boxes_or_are_dropped():
     assert all(all(math.isfinite(v) for v in b["center"] + b["size"] + b["velocity"] + [b["yaw"]])
                for b in boxes)
     assert len(boxes) == 2                               # the NaN yaw and inf size are dropped
+
+
+def test_stray_voxels_are_the_passing_points_the_grid_drops_for_their_distance():
+    """Of one query's points: a stray one (far from the centroid, score passing) marks its
+    voxel; the kept ones, a far one whose score fails and one outside the grid do not; the
+    grid stays free there. A query with a NaN point has no centroid: nothing strays."""
+    far = [30.0, 0.0, 1.0]
+    means = torch.tensor([[[[0.0, 0.0, 1.0]] * 36 + [far, [-30.0, 0.0, 1.0], [0.0, -60.0, 1.0],
+                                                      [0.0, 0.2, 1.0]]]])
+    logits = torch.full((1, 1, 40, 17), 5.0)
+    logits[0, 0, 37] = -5.0                                      # the far one that fails
+    labels, _ = occupancy_grid(output(means, logits), CFG)
+    stray = stray_voxels(means, logits, CFG)
+    assert stray.dtype == torch.bool and stray.shape == (1, 200 * 200 * 16)
+    index = ((torch.tensor(far) - torch.tensor(CFG.pc_range[:3])) / CFG.voxel_size).floor()
+    flat = int((index[0] * 200 + index[1]) * 16 + index[2])
+    assert stray[0].nonzero().view(-1).tolist() == [flat]
+    assert labels.view(-1)[flat] == FREE_LABEL
+    assert (labels != FREE_LABEL).sum() == 1                     # the kept points: one voxel
+    means[0, 0, 0, 0] = math.nan
+    assert not stray_voxels(means, logits, CFG).any()

@@ -53,13 +53,15 @@ def geometry(ego2img, bounds=None):
             torch.tensor(np.asarray(bounds), dtype=torch.float32))
 
 
-def observe(labels, ego2img, bounds=None, hazard=None, min_clear=0.0):
+def observe(labels, ego2img, bounds=None, hazard=None, min_clear=0.0, stray=None):
     visibility = Visibility(SHAPE, PC_RANGE, 0.4, FREE, min_clear)
     if hazard is not None:
         hazard = torch.as_tensor(np.asarray(hazard, np.float32).reshape(-1))
+    if stray is not None:
+        stray = torch.as_tensor(np.asarray(stray, bool).reshape(-1))
     with torch.inference_mode():
         observed = visibility(torch.from_numpy(np.ascontiguousarray(labels).reshape(-1)),
-                              *geometry(ego2img, bounds), hazard=hazard)
+                              *geometry(ego2img, bounds), hazard=hazard, stray=stray)
     return observed.numpy().reshape(SHAPE).astype(bool)
 
 
@@ -118,6 +120,23 @@ def test_a_wall_hides_what_lies_behind_it():
     aside = np.zeros(SHAPE, bool)       # beside the wall's shadow (its edge: y = 0.3 x)
     aside[index_of(12.0, 0):index_of(15.0, 0), index_of(5.0, 1):index_of(7.0, 1), 4:8] = True
     assert observed[aside & view].mean() > 0.95
+
+
+def test_stray_voxels_hide_what_lies_behind_them_as_a_wall_of_the_grid_would():
+    """A wall the grid calls free but whose voxels hold stray points occludes exactly as
+    the same wall labelled occupied; without the stray mask its shadow is seen."""
+    labels, walled = ground(), ground()
+    wall = np.zeros(SHAPE, bool)
+    wall[index_of(10.0, 0), index_of(-3.0, 1):index_of(3.0, 1), index_of(0.0, 2) + 1:] = True
+    walled[wall] = 15
+    ego2img = forward_camera()
+    stray = observe(labels, ego2img, stray=wall)
+    np.testing.assert_array_equal(stray, observe(walled, ego2img))
+    shadow = np.zeros(SHAPE, bool)
+    shadow[index_of(10.0, 0) + 2:index_of(30.0, 0), index_of(-1.0, 1):index_of(1.0, 1), 4:10] = True
+    assert not stray[shadow].any() and observe(labels, ego2img)[shadow].all()
+    np.testing.assert_array_equal(observe(labels, ego2img, stray=np.zeros(SHAPE, bool)),
+                                  observe(labels, ego2img))
 
 
 def test_a_pole_hides_a_thin_wedge_only():
