@@ -8,10 +8,12 @@
 Every variant steps over the same camera sets in one run, taking turns set by set (the order
 rotated each set, so none always follows the same one), at ``threads`` torch threads (one
 by default: what other processes on the machine inflate least). A share is the median of
-the per-set ratios. CPU time is the process's (``time.process_time``, torch's threads
-included); its kernel part (page faults of the step's fresh buffers) is reported apart,
-as the process's system time per step: on a machine short of free memory it grows and
-inflates the differences, never the marks of a stage that does not run.
+the per-set ratios. CPU time is the calling thread's on one thread (``time.thread_time``:
+the whole step runs there, and a thread left over from earlier work, such as an OpenMP
+worker still spinning after a parallel region, is not counted), else the process's
+(``time.process_time``, torch's threads included). Its kernel part (page faults of the
+step's fresh buffers, a worker's ``sched_yield``) is reported apart, per step: where it
+grows it inflates the differences more than the marks.
 
 ``tools/node_rate.py``, ``tools/visibility_agreement.py --step-share`` and ``odg bench
 --shares`` all report these numbers.
@@ -44,8 +46,13 @@ def without(stage: str, model, cfg: ModelConfig, settings: dict):
     raise ValueError(f"stage {stage!r}: expected one of {SHARED_STAGES}")
 
 
-def _system_seconds() -> float:
-    return resource.getrusage(resource.RUSAGE_SELF).ru_stime
+def _clocks(threads: int):
+    """(CPU clock, kernel-time clock) in seconds: the calling thread's on one thread (where
+    the platform has per-thread usage), else the process's."""
+    who = getattr(resource, "RUSAGE_THREAD", None) if threads == 1 else None
+    if who is None:
+        return time.process_time, lambda: resource.getrusage(resource.RUSAGE_SELF).ru_stime
+    return time.thread_time, lambda: resource.getrusage(who).ru_stime
 
 
 @torch.inference_mode()
@@ -71,22 +78,23 @@ def stage_shares(model, cfg: ModelConfig, sets, settings: dict | None = None,
             raise ValueError(f"compile {settings['compile']} runs a {predictors['marked'].mode}"
                              " step on this CPU: it has no marks (the shares need an eager step)")
         predictors.update({f"without {s}": without(s, model, cfg, settings) for s in stages})
-        recorder = MarkRecorder("cpu", clock=time.process_time)
+        clock, system_clock = _clocks(threads)
+        recorder = MarkRecorder("cpu", clock=clock)
         cpu = {name: [] for name in predictors}
         system = {name: [] for name in predictors}
         names = list(predictors)
         for i in tqdm(range(len(sets)), desc="step shares", disable=not progress):
             turn = i % len(names)
             for name in names[turn:] + names[:turn]:
-                start, start_system = time.process_time(), _system_seconds()
+                start, start_system = clock(), system_clock()
                 if name == "marked":
                     with recorder:
                         predictors[name].step(*sets[i])
                 else:
                     predictors[name].step(*sets[i])
                 if i >= warmup:
-                    cpu[name].append(1e3 * (time.process_time() - start))
-                    system[name].append(1e3 * (_system_seconds() - start_system))
+                    cpu[name].append(1e3 * (clock() - start))
+                    system[name].append(1e3 * (system_clock() - start_system))
             if i < warmup:
                 recorder.times.clear()
     finally:

@@ -13,10 +13,10 @@ BURN_MS = 100.0
 
 
 def burning(forward):
-    """``forward`` after BURN_MS of the process's CPU time: a visibility of known cost."""
+    """``forward`` after BURN_MS of this thread's CPU time: a visibility of known cost."""
     def burn_then_forward(self, *args, **kwargs):
-        end = time.process_time() + BURN_MS / 1e3
-        while time.process_time() < end:
+        end = time.thread_time() + BURN_MS / 1e3
+        while time.thread_time() < end:
             pass
         return forward(self, *args, **kwargs)
     return burn_then_forward
