@@ -16,7 +16,7 @@
    a planner receives them, and its own ``/diagnostics`` stage times.
 
     python -m tools.node_rate [--out out/demo] [--rate 0.5] [--precision auto] [--step-only]
-        [--json]
+        [--threads N] [--no-shares] [--json]
 
 Prints both with their ratios (node ``stage_model_ms`` / step wall time; node grids per
 second / step rate), the load average before and after (the machine may be shared) and
@@ -73,7 +73,8 @@ def step_inputs(inputs: list, i: int):
     return images, ego2img, pose, stamp + (i // len(inputs)) * (len(inputs) + 1) * 0.5, bounds
 
 
-def time_step(checkpoint: Path, infos: Path, precision: str, steps: int, log) -> dict:
+def time_step(checkpoint: Path, infos: Path, precision: str, steps: int, log,
+              shares: bool = True) -> dict:
     """The node's step alone: wall and CPU time per step at the node's settings; then the
     padding's and the visibility's shares of its CPU time (bench/stage_shares.py: by the
     step's marks and by the step without each, set by set interleaved), on one thread and
@@ -90,8 +91,16 @@ def time_step(checkpoint: Path, infos: Path, precision: str, steps: int, log) ->
     inputs = keyframe_inputs(infos, cfg)
 
     settings = node_settings(precision=precision)
-    node = node_predictor(model, cfg, "cpu", settings)
     threads = torch.get_num_threads()
+    sets = [step_inputs(inputs, i) for i in range(steps + 2)]
+
+    def stage_shares_at(n):
+        return stage_shares(model, cfg, sets, settings, threads=n, progress=False)
+    # one thread first: once torch has run on more, an OpenMP worker left spinning after
+    # a parallel region can add its kernel time to a one-thread step (and it did, to the
+    # step with the visibility more than to the one without)
+    one_thread = [stage_shares_at(1)] if shares and threads > 1 else []
+    node = node_predictor(model, cfg, "cpu", settings)
     wall, cpu = [], []
     for i in range(steps + 2):
         images, ego2img, pose, stamp, bounds = step_inputs(inputs, i)
@@ -101,10 +110,7 @@ def time_step(checkpoint: Path, infos: Path, precision: str, steps: int, log) ->
             wall.append(time.perf_counter() - start)
             cpu.append(time.process_time() - start_cpu)
         log(f"step {i + 1}/{steps + 2}: {1e3 * (time.perf_counter() - start):.0f} ms")
-    # the padding's and the visibility's shares: one thread, then the step's own threads
-    sets = [step_inputs(inputs, i) for i in range(steps + 2)]
-    shares = [stage_shares(model, cfg, sets, settings, threads=n, progress=False)
-              for n in dict.fromkeys((1, threads))]
+    shares = one_thread + [stage_shares_at(threads)] if shares else []
     step_ms = 1e3 * statistics.median(wall)
     return {"precision": node.precision, "mode": node.mode,
             "threads": threads, "steps": len(wall),
@@ -147,6 +153,8 @@ def main(argv=None) -> int:
                              "default: torch's, one per core)")
     parser.add_argument("--step-only", action="store_true",
                         help="time the step alone, no node (no ROS 2 needed)")
+    parser.add_argument("--no-shares", action="store_true",
+                        help="leave out the padding's and the visibility's shares")
     parser.add_argument("--json", action="store_true", help="print JSON only")
     args = parser.parse_args(argv)
 
@@ -163,7 +171,8 @@ def main(argv=None) -> int:
     checkpoint = resolve_checkpoint(args.checkpoint)
     world = build_demo_world(args.out, WorldSpec(image_hw=tuple(DEFAULT_IMAGE_HW)), log=log)
     load_before = os.getloadavg()
-    step = time_step(checkpoint, world.infos, args.precision, args.steps, log)
+    step = time_step(checkpoint, world.infos, args.precision, args.steps, log,
+                     not args.no_shares)
     node = {"grids_per_s": None, "stage_ms": {}} if args.step_only else \
         run_node(world, checkpoint, args.out, args.rate, args.precision, log)
     model_ms = node["stage_ms"].get("model")
