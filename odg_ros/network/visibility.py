@@ -33,7 +33,7 @@ Computed on the device with static shapes and no host read, as part of the onlin
    grazing the road would hide the road behind the first metre of it), else it must not
    lie beyond the cell's depth; and never beyond the cell's second depth.
 
-Its share of the node's CPU step: ``python -m tools.visibility_agreement --step-share``.
+Its share of the node's CPU step: ``odg bench --shares`` (odg_ros/bench/stage_shares.py).
 """
 from __future__ import annotations
 
