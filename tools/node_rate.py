@@ -5,16 +5,18 @@
    --precision, padding and visibility on, full query budget, torch's default threads),
    over the scene's keyframes in order (history as in the node), --steps of them after two
    warm-up steps: wall and CPU time per step (medians). Then the padding's and the
-   visibility's shares of the step: the step without each, set by set interleaved with the
-   full one, on one thread (its CPU time: what other processes on the machine inflate
-   least); a share is the median of the per-set savings over the full step's median.
+   visibility's shares of the step's CPU time, on one thread (what other processes on the
+   machine inflate least) and on the step's own threads, two ways side by side
+   (``odg_ros/bench/stage_shares.py``, as ``odg bench --shares``): from the step's own
+   marks, and from the step without each, set by set interleaved with the full one;
+   medians of the per-set ratios.
 3. The node: ``odg_node`` in its own process, the bag replayed into it by ``odg replay
    --clock --rate R`` over loopback DDS (what ``odg demo`` runs); R high enough that sets
    come faster than the node takes them, so it runs back to back. Its grids per second as
    a planner receives them, and its own ``/diagnostics`` stage times.
 
     python -m tools.node_rate [--out out/demo] [--rate 0.5] [--precision auto] [--step-only]
-        [--json]
+        [--threads N] [--no-shares] [--json]
 
 Prints both with their ratios (node ``stage_model_ms`` / step wall time; node grids per
 second / step rate), the load average before and after (the machine may be shared) and
@@ -71,24 +73,34 @@ def step_inputs(inputs: list, i: int):
     return images, ego2img, pose, stamp + (i // len(inputs)) * (len(inputs) + 1) * 0.5, bounds
 
 
-def time_step(checkpoint: Path, infos: Path, precision: str, steps: int, log) -> dict:
+def time_step(checkpoint: Path, infos: Path, precision: str, steps: int, log,
+              shares: bool = True) -> dict:
     """The node's step alone: wall and CPU time per step at the node's settings; then the
-    CPU time of the same step without the padding and without the visibility, set by set
-    interleaved with the full one (their shares of the step)."""
+    padding's and the visibility's shares of its CPU time (bench/stage_shares.py: by the
+    step's marks and by the step without each, set by set interleaved), on one thread and
+    on the step's own threads."""
     import torch
 
+    from odg_ros.bench.stage_shares import stage_shares
+    from odg_ros.bench.step_timing import node_predictor, node_settings
     from odg_ros.network.checkpoint import load_model
-    from odg_ros.online.predictor import OnlinePredictor
 
     if os.environ.get("OMP_NUM_THREADS"):
         torch.set_num_threads(int(os.environ["OMP_NUM_THREADS"]))
     model, cfg = load_model(checkpoint, device="cpu")
     inputs = keyframe_inputs(infos, cfg)
 
-    def predictor(cfg=cfg, visibility=True):
-        return OnlinePredictor(model, cfg, "cpu", precision=precision, compile="auto",
-                               visibility=visibility)
-    node = predictor()
+    settings = node_settings(precision=precision)
+    threads = torch.get_num_threads()
+    sets = [step_inputs(inputs, i) for i in range(steps + 2)]
+
+    def stage_shares_at(n):
+        return stage_shares(model, cfg, sets, settings, threads=n, progress=False)
+    # one thread first: once torch has run on more, an OpenMP worker left spinning after
+    # a parallel region can add its kernel time to a one-thread step (and it did, to the
+    # step with the visibility more than to the one without)
+    one_thread = [stage_shares_at(1)] if shares and threads > 1 else []
+    node = node_predictor(model, cfg, "cpu", settings)
     wall, cpu = [], []
     for i in range(steps + 2):
         images, ego2img, pose, stamp, bounds = step_inputs(inputs, i)
@@ -98,34 +110,13 @@ def time_step(checkpoint: Path, infos: Path, precision: str, steps: int, log) ->
             wall.append(time.perf_counter() - start)
             cpu.append(time.process_time() - start_cpu)
         log(f"step {i + 1}/{steps + 2}: {1e3 * (time.perf_counter() - start):.0f} ms")
-    variants = {"full": node, "without padding":
-                predictor(cfg.replace(occupancy_padding=False)),
-                "without visibility": predictor(visibility=False)}
-    variant_cpu = {name: [] for name in variants}
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)        # one thread's CPU time: no parallel regions' waits in it
-    for i in range(steps + 2):
-        images, ego2img, pose, stamp, bounds = step_inputs(inputs, i)
-        for name, variant in variants.items():
-            start = time.process_time()
-            variant.step(images, ego2img, pose, stamp, bounds=bounds)
-            if i >= 2:
-                variant_cpu[name].append(time.process_time() - start)
-    torch.set_num_threads(threads)
-    cpu_ms = {name: 1e3 * statistics.median(v) for name, v in variant_cpu.items()}
-
-    def share(name):           # set by set: the other processes' noise mostly cancels
-        saved = [a - b for a, b in zip(variant_cpu["full"], variant_cpu[name])]
-        return round(statistics.median(saved) / statistics.median(variant_cpu["full"]), 3)
+    shares = one_thread + [stage_shares_at(threads)] if shares else []
     step_ms = 1e3 * statistics.median(wall)
     return {"precision": node.precision, "mode": node.mode,
             "threads": threads, "steps": len(wall),
             "step_ms_median": round(step_ms, 1),
             "cpu_ms_median": round(1e3 * statistics.median(cpu), 1),
-            "steps_per_s": round(1e3 / step_ms, 2),
-            "one_thread_cpu_ms_median": {k: round(v, 1) for k, v in cpu_ms.items()},
-            "padding_share": share("without padding"),
-            "visibility_share": share("without visibility")}
+            "steps_per_s": round(1e3 / step_ms, 2), "shares": shares}
 
 
 def run_node(world, checkpoint: Path, out: Path, rate: float, precision: str, log) -> dict:
@@ -162,6 +153,8 @@ def main(argv=None) -> int:
                              "default: torch's, one per core)")
     parser.add_argument("--step-only", action="store_true",
                         help="time the step alone, no node (no ROS 2 needed)")
+    parser.add_argument("--no-shares", action="store_true",
+                        help="leave out the padding's and the visibility's shares")
     parser.add_argument("--json", action="store_true", help="print JSON only")
     args = parser.parse_args(argv)
 
@@ -171,13 +164,15 @@ def main(argv=None) -> int:
     if args.threads:      # before torch loads, here and in the node's process
         os.environ["OMP_NUM_THREADS"] = str(args.threads)
 
+    from odg_ros.bench.stage_shares import format_shares
     from odg_ros.data.synth.generate import DEFAULT_IMAGE_HW
     from odg_ros.demo.demo_world import WorldSpec, build_demo_world, resolve_checkpoint
 
     checkpoint = resolve_checkpoint(args.checkpoint)
     world = build_demo_world(args.out, WorldSpec(image_hw=tuple(DEFAULT_IMAGE_HW)), log=log)
     load_before = os.getloadavg()
-    step = time_step(checkpoint, world.infos, args.precision, args.steps, log)
+    step = time_step(checkpoint, world.infos, args.precision, args.steps, log,
+                     not args.no_shares)
     node = {"grids_per_s": None, "stage_ms": {}} if args.step_only else \
         run_node(world, checkpoint, args.out, args.rate, args.precision, log)
     model_ms = node["stage_ms"].get("model")
@@ -200,10 +195,9 @@ def main(argv=None) -> int:
           f"{load_before[0]:.1f} before, {result['load_average_after'][0]:.1f} after")
     print(f"step alone ({step['precision']}, {step['mode']}, {step['threads']} threads): "
           f"{step['step_ms_median']:.0f} ms wall ({step['steps_per_s']:.2f} steps/s), "
-          f"{step['cpu_ms_median']:.0f} ms CPU, median of {step['steps']}; on one thread "
-          f"{step['one_thread_cpu_ms_median']['full']:.0f} ms CPU, padding "
-          f"{100 * step['padding_share']:.1f} % and visibility "
-          f"{100 * step['visibility_share']:.1f} % of it")
+          f"{step['cpu_ms_median']:.0f} ms CPU, median of {step['steps']}")
+    for shares in step["shares"]:
+        print(format_shares(shares))
     if args.step_only:
         return 0
     stages = ", ".join(f"{k} {v:.0f}" for k, v in node["stage_ms"].items() if v is not None)

@@ -17,10 +17,11 @@ order, history as in the node; the checkpoint's hazard and --min-clear as the no
 visibility_min_clear). Prints one line per scene and a JSON summary (over all voxels of all
 keyframes: IoU, precision and recall of "observed"; the mean IoU per keyframe).
 
---step-share N times the node's online step on the first N keyframes (one thread, set by set
-interleaved, medians): with and without the visibility, and without the calibration too
-(the confidence as raw scores, no hazard): the visibility's share of the step and the
-calibration's.
+--step-share N times the node's online step (its settings: precision, padding, visibility) on
+the first N keyframes, one thread: the padding's and the visibility's shares of its CPU time
+by the step's marks and by the step without each, set by set interleaved (medians;
+odg_ros/bench/stage_shares.py, the numbers tools/node_rate.py and odg bench --shares
+report), and the calibration's share by its marks.
 """
 from __future__ import annotations
 
@@ -87,37 +88,27 @@ def predicted_observed(checkpoint: str, dataset: OccDataset, progress: bool, min
         yield prediction.observed
 
 
-def step_share(checkpoint: str, dataset: OccDataset, sets: int, min_clear: float) -> dict:
-    """The CPU time of the online step with and without the visibility, and without the
-    calibration too, interleaved set by set on the same keyframes (one thread) -> medians
-    and the shares of the step with both."""
+def step_share(checkpoint: str, dataset: OccDataset, sets: int) -> dict:
+    """The padding's and the visibility's shares of the node's CPU step (its settings, one
+    thread) over the first ``sets`` keyframes: by the step's marks and by the step without
+    each (odg_ros/bench/stage_shares.py, what tools/node_rate.py and odg bench --shares
+    report), and the calibration's by its marks."""
+    from odg_ros.bench.stage_shares import stage_shares
+    from odg_ros.bench.step_timing import node_settings
     from odg_ros.network.checkpoint import load_model
-    from odg_ros.online.predictor import OnlinePredictor
     model, cfg = load_model(checkpoint, device="cpu")
-    variants = {"with": (cfg, True), "without visibility": (cfg, False),
-                "without visibility and calibration": (cfg.replace(calibration=None), False)}
-    predictors = {name: OnlinePredictor(model, c, "cpu", visibility=on, min_clear=min_clear)
-                  for name, (c, on) in variants.items()}
-    times = {name: [] for name in variants}
-    for index in tqdm(range(min(sets, len(dataset))), desc="step variants"):
+    camera_sets = []
+    for index in range(min(sets, len(dataset))):
         info = dataset.infos[index]
         ego2img, bounds, _, _ = keyframe_inputs(dataset, index)
         images = np.stack([dataset.load_image(info["cams"][c]) for c in dataset.camera_names])
-        for name, predictor in predictors.items():
-            start = time.process_time()
-            predictor.step(images, ego2img, np.asarray(info["ego_pose"]),
-                           info["timestamp"] * 1e-6, bounds=bounds)
-            times[name].append(time.process_time() - start)
-    ms = {name: 1e3 * float(np.median(t[1:])) for name, t in times.items()}
-    full = ms["with"]
-    return {"calibrated": cfg.calibration is not None, "min_clear": min_clear,
-            "step_ms_median_with_visibility": round(full, 1),
-            "step_ms_median_without": round(ms["without visibility"], 1),
-            "step_ms_median_without_calibration_either": round(
-                ms["without visibility and calibration"], 1),
-            "visibility_share_of_the_step": round((full - ms["without visibility"]) / full, 3),
-            "calibration_share_of_the_step": round(
-                (ms["without visibility"] - ms["without visibility and calibration"]) / full, 3)}
+        camera_sets.append((images, ego2img, np.asarray(info["ego_pose"]),
+                            info["timestamp"] * 1e-6, bounds))
+    result = stage_shares(model, cfg, camera_sets, node_settings(), threads=1)
+    calibration = result["stage_cpu_ms"].get("calibration")
+    return {**result, "calibrated": cfg.calibration is not None,
+            "calibration_share_by_marks": None if calibration is None else
+            round(calibration / result["marked_step_cpu_ms"], 4)}
 
 
 def main(argv=None) -> int:
@@ -138,6 +129,9 @@ def main(argv=None) -> int:
                         help="with --checkpoint: the node's visibility_min_clear (default "
                              f"{DEFAULT_MIN_CLEAR})")
     args = parser.parse_args(argv)
+    if args.step_share and (not args.checkpoint or args.min_clear != DEFAULT_MIN_CLEAR):
+        parser.error("--step-share times the node's step: it needs --checkpoint, at the "
+                     "node's default --min-clear")
     torch.set_num_threads(1)
     cfg = load_preset(args.preset)
     if args.checkpoint:
@@ -147,8 +141,7 @@ def main(argv=None) -> int:
     if args.limit:
         dataset.infos = dataset.infos[:args.limit]
     if args.step_share:
-        print(json.dumps(step_share(args.checkpoint, dataset, args.step_share, args.min_clear),
-                         indent=2))
+        print(json.dumps(step_share(args.checkpoint, dataset, args.step_share), indent=2))
         return 0
     device = torch.device(args.device)
     visibility = Visibility(cfg.grid_shape, cfg.pc_range, cfg.voxel_size, cfg.num_classes,

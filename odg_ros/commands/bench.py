@@ -3,6 +3,7 @@
     odg bench [--checkpoint CKPT | --preset NAME] [--device cpu|cuda] [--frames K]
               [--iters N] [--compile MODES] [--precision P[,P]] [--query-budget B]
               [--no-visibility] [--data INFOS] [--compiled-step FILE.pt2] [--json]
+    odg bench --shares [--checkpoint CKPT] [--data INFOS] [--threads N] [--iters N]
     odg bench --sweep --data INFOS [--checkpoint CKPT] [--out DIR] [--limit N] [--configs ...]
 
 Both time ``OnlinePredictor.step``, what the node runs per camera set (odg_ros/bench/step_timing.py,
@@ -71,6 +72,11 @@ def add_arguments(parser):
     parser.add_argument("--data", default=None, type=infos_file,
                         help="feed the first scene's keyframes (default: random images); "
                              "--sweep: the split to score (required there)")
+    parser.add_argument("--shares", action="store_true",
+                        help="instead: the padding's and the visibility's shares of the "
+                             "step's CPU time, by the step's marks and by the step without "
+                             "each, side by side (odg_ros/bench/stage_shares.py; one thread "
+                             "unless --threads; --iters sets, default 8)")
     parser.add_argument("--sweep", action="store_true",
                         help="speed against error over configurations of the step on a "
                              "split (odg_ros/bench/sweep.py)")
@@ -139,9 +145,11 @@ def run(args) -> int:
     if args.threads:
         torch.set_num_threads(args.threads)
     if args.iters is None:
-        args.iters = 3 if args.sweep else 5
+        args.iters = 3 if args.sweep else 8 if args.shares else 5
     if args.sweep:
         return run_sweep_command(args)
+    if args.shares:
+        return run_shares_command(args)
     return run_step_command(args)
 
 
@@ -175,6 +183,35 @@ def run_step_command(args) -> int:
         print(json.dumps(result, indent=2))
     else:
         print(format_step_result(result))
+    return 0
+
+
+def run_shares_command(args) -> int:
+    from ..bench.stage_shares import SHARED_STAGES, format_shares, stage_shares
+    from ..bench.step_timing import data_camera_sets, node_inputs, node_settings
+    if torch.device(args.device).type != "cpu":
+        raise UserError("--shares: CPU time shares, --device cpu only")
+    if args.no_visibility or args.compile or args.precision and "," in args.precision:
+        raise UserError("--shares times the node's step with and without each stage: no "
+                        "--no-visibility, --compile or several precisions")
+    settings = node_settings(query_budget=args.query_budget, precision=args.precision)
+    model, cfg, weights = _load(args)
+    count = args.warmup + args.iters
+    try:
+        sets = data_camera_sets(args.data, cfg, count) if args.data else \
+            node_inputs(cfg, count)
+    except (ValueError, OSError) as error:
+        raise UserError(f"--data {args.data}: {error}") from error
+    sets = [sets[i % len(sets)] for i in range(count)]
+    stages = SHARED_STAGES if cfg.occupancy_padding else ("visibility",)
+    try:
+        result = stage_shares(model, cfg, sets, settings, stages, threads=args.threads or 1,
+                              warmup=args.warmup, progress=not args.json)
+    except ValueError as error:
+        raise UserError(f"--shares: {error}") from error
+    result.update(weights=weights, inputs=str(args.data) if args.data else "random")
+    print(json.dumps(result, indent=2) if args.json else
+          f"{cfg.name} ({weights}), images {result['inputs']}\n" + format_shares(result))
     return 0
 
 

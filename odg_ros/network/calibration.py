@@ -109,10 +109,10 @@ class Calibration(nn.Module):
         return torch.stack(by_code + [zero] * 8, -1).view(X, Y, 16)
 
     # ---------------------------------------------------------------------- outputs
-    def forward(self, labels: torch.Tensor, confidence: torch.Tensor):
+    def forward(self, labels: torch.Tensor, confidence: torch.Tensor, hazard: bool = True):
         """labels, confidence uint8 [X*Y*Z] (the raw score x 255) -> (the calibrated
-        confidence uint8 [X*Y*Z], the hazard float [X*Y*Z] or None without a
-        calibration)."""
+        confidence uint8 [X*Y*Z], the hazard float [X*Y*Z] or None without a calibration or
+        ``hazard`` False: a step without the visibility reads none)."""
         if not self.calibrated:
             return confidence, None
         X, Y, Z = self.grid_shape
@@ -121,14 +121,14 @@ class Calibration(nn.Module):
         # one look-up per voxel from its column's table of codes
         # (int32 throughout: a uint8 + int64 sum converts every voxel on the way)
         index = (voxel_codes(features[3], self.body).int() + self.column_starts).view(-1)
-        hazard = hazards.view(-1).index_select(0, index)
+        per_voxel = hazards.view(-1).index_select(0, index) if hazard else None
         free = 1.0 - torch.sigmoid(self.free_scale * torch.log(hazards[..., :OCCUPIED]
                                                                + HAZARD_FLOOR) + self.free_bias)
         free_bytes = torch.cat([(free * 255).round().to(torch.uint8), torch.zeros_like(
             hazards[..., OCCUPIED:], dtype=torch.uint8)], -1)
         occupied = self.label_table.index_select(
             0, (labels.int() * 256 + confidence.int()).view(-1))
-        return free_bytes.view(-1).index_select(0, index) + occupied, hazard
+        return free_bytes.view(-1).index_select(0, index) + occupied, per_voxel
 
     def box_score(self, score: torch.Tensor) -> torch.Tensor:
         """Box scores [..] -> the probability that each box is right (as is without a box

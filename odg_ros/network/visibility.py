@@ -36,7 +36,7 @@ Computed on the device with static shapes and no host read, as part of the onlin
    grazing the road would hide the road behind the first metre of it), else it must not
    lie beyond the cell's depth; and never beyond the cell's second depth.
 
-Its share of the node's CPU step: ``python -m tools.visibility_agreement --step-share``.
+Its share of the node's CPU step: ``odg bench --shares`` (odg_ros/bench/stage_shares.py).
 """
 from __future__ import annotations
 
@@ -255,11 +255,12 @@ class Visibility(nn.Module):
         # whether each sample is in an occupied voxel: a bit (its layer) of its column's mask,
         # read once per azimuth; then the occupied samples up to each
         # (multiplications and a bitwise and: ONNX has no shift of int32)
-        masks = ((stacks != FREE).int() * self.layer_bits).sum(-1, dtype=torch.int32)
+        masks = (stacks != FREE).int().mul_(self.layer_bits).sum(-1, dtype=torch.int32)
         under = masks.index_select(0, column.view(-1)).view(N, A, 1, S)
         bit = self.layer_bits.index_select(0, layer.view(-1)).view(N, 1, E, S)
-        occupied = ((under & bit) != 0).to(torch.uint8)                         # [N, A, E, S]
-        count = occupied.cumsum(-1, dtype=torch.int32)           # (ONNX sums no uint8)
+        # 0 or the layer's bit -> 0 or 1 (int32: ONNX sums no uint8)
+        occupied = (under & bit).clamp_(max=1)                                  # [N, A, E, S]
+        count = occupied.cumsum(-1, dtype=torch.int32)
         window = torch.arange(WINDOW, device=kind.device)
         norm = torch.sqrt(1 + tan * tan)                     # ray length per horizontal unit
         geometry = (stacks, column, layer, place, hx, hy, tan, norm)
@@ -342,10 +343,11 @@ class Visibility(nn.Module):
         d = (h_x / n, h_y / n, tn / n)
         cross = (y * d[2] - z * d[1], z * d[0] - x * d[2], x * d[1] - y * d[0])
         is_ball = (k == BALL)
+        ball = is_ball.float()
         miss = 0.0
         for a in range(3):
             weight = torch.where(k == LINE + a, 1.0 / (1.0 - d[a] * d[a]).clamp(min=1e-12),
-                                 is_ball.float())
+                                 ball)
             miss = miss + weight * cross[a] * cross[a]
         on_ball = (k >= LINE) & (k < FREE) & (miss <= BALL_RADIUS ** 2)
         hit = on_plane | on_ball
@@ -392,8 +394,10 @@ class Visibility(nn.Module):
         # scaled by 1 / (its offset from the camera), normal . ray = 1 / fraction, and a
         # ray running away from the plane or along it does not cross it (<= 0). Behind
         # its ball or line, or where the ray is not clear enough: beyond the cell's depth.
-        n = normal.index_select(1, cell).view(3, X, Y, Z)
-        # (in place where a result is fresh: every [X, Y, Z] tensor allocated costs)
+        # (one axis at a time: a gather along the second dimension of [3, M] runs
+        # element by element; in place where a result is fresh: every [X, Y, Z] tensor
+        # allocated costs)
+        n = [normal[a].index_select(0, cell).view(X, Y, Z) for a in range(3)]
         inverse = (n[0] * dx).addcmul_(n[1], dy).addcmul_(n[2], dz).view(-1)
         behind = (distance - self.tolerance).mul_(inverse) > distance
         behind &= inverse > 0

@@ -50,10 +50,13 @@ def mark(name: str):
 
 class MarkRecorder:
     """Milliseconds per mark over the steps run inside ``with recorder:`` (one recorder at a
-    time); on CUDA from events, resolved by ``flush`` (called by ``times``)."""
+    time); on CUDA from events, resolved by ``flush`` (called by ``times``). On the CPU by
+    ``clock``: wall time (``time.perf_counter``), or the process's CPU time
+    (``time.process_time``: what a stage costs the cores, torch's threads included)."""
 
-    def __init__(self, device):
+    def __init__(self, device, clock=time.perf_counter):
         self.cuda = torch.device(device).type == "cuda"
+        self.clock = clock
         self.times: dict[str, list[float]] = {}
         self._open, self._pending = {}, []
 
@@ -74,7 +77,7 @@ class MarkRecorder:
             event.record()
             self._open[name] = event
         else:
-            self._open[name] = time.perf_counter()
+            self._open[name] = self.clock()
 
     def stop(self, name: str) -> None:
         begin = self._open.pop(name)
@@ -83,7 +86,7 @@ class MarkRecorder:
             end.record()
             self._pending.append((name, begin, end))
         else:
-            self.times.setdefault(name, []).append((time.perf_counter() - begin) * 1e3)
+            self.times.setdefault(name, []).append((self.clock() - begin) * 1e3)
 
     @contextmanager
     def range(self, name: str):

@@ -175,7 +175,8 @@ class OnlineStep(nn.Module):
         hazard = None
         if self.calibration.calibrated:
             with mark("calibration"):
-                confidence, hazard = self.calibration(labels, confidence)
+                confidence, hazard = self.calibration(labels, confidence,
+                                                      hazard=self.visibility is not None)
         if layer.boxes is None:                        # a model without dynamic queries
             empty = layer.means.new_zeros(1, 0)
             boxes, score = layer.means.new_zeros(1, 0, 9), empty
