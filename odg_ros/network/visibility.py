@@ -277,7 +277,9 @@ class Visibility(nn.Module):
         at = torch.cat(windows, -1)
         hit = self._occluder_tests(at, *geometry)[0] & torch.cat(exists, -1)
         pending = ~hit.any(-1)
-        at_hit = at.gather(-1, hit.to(torch.uint8).argmax(-1, keepdim=True))
+        # argmax of int32, not uint8: Inductor's CPU kernels (torch 2.13) reduce a uint8
+        # argmax over more lanes than they hold indices for, and read garbage indices
+        at_hit = at.gather(-1, hit.to(torch.int32).argmax(-1, keepdim=True))
         # the first hit of every ray again, with its distance, kind and plane
         _, along, k, plane = self._occluder_tests(at_hit, *geometry, full=True)
         hit = ~pending
