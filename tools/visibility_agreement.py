@@ -18,8 +18,9 @@ visibility_min_clear). Prints one line per scene and a JSON summary (over all vo
 keyframes: IoU, precision and recall of "observed"; the mean IoU per keyframe).
 
 --step-share N times the node's online step (its settings: precision, padding, visibility) on
-the first N keyframes, one thread: the padding's and the visibility's shares of its CPU time
-by the step's marks and by the step without each, set by set interleaved (medians;
+the first N keyframes of the first scene, one thread: the padding's and the visibility's
+shares of its CPU time by the step's marks and by the step without each, set by set
+interleaved (medians;
 odg_ros/bench/stage_shares.py, the numbers tools/node_rate.py and odg bench --shares
 report), and the calibration's share by its marks.
 """
@@ -88,23 +89,17 @@ def predicted_observed(checkpoint: str, dataset: OccDataset, progress: bool, min
         yield prediction.observed
 
 
-def step_share(checkpoint: str, dataset: OccDataset, sets: int) -> dict:
+def step_share(checkpoint: str, infos: str, sets: int) -> dict:
     """The padding's and the visibility's shares of the node's CPU step (its settings, one
-    thread) over the first ``sets`` keyframes: by the step's marks and by the step without
-    each (odg_ros/bench/stage_shares.py, what tools/node_rate.py and odg bench --shares
-    report), and the calibration's by its marks."""
+    thread) over the first ``sets`` keyframes of the first scene: by the step's marks and by
+    the step without each (odg_ros/bench/stage_shares.py, what tools/node_rate.py and odg
+    bench --shares report), and the calibration's by its marks."""
     from odg_ros.bench.stage_shares import stage_shares
-    from odg_ros.bench.step_timing import node_settings
+    from odg_ros.bench.step_timing import data_camera_sets, node_settings
     from odg_ros.network.checkpoint import load_model
     model, cfg = load_model(checkpoint, device="cpu")
-    camera_sets = []
-    for index in range(min(sets, len(dataset))):
-        info = dataset.infos[index]
-        ego2img, bounds, _, _ = keyframe_inputs(dataset, index)
-        images = np.stack([dataset.load_image(info["cams"][c]) for c in dataset.camera_names])
-        camera_sets.append((images, ego2img, np.asarray(info["ego_pose"]),
-                            info["timestamp"] * 1e-6, bounds))
-    result = stage_shares(model, cfg, camera_sets, node_settings(), threads=1)
+    result = stage_shares(model, cfg, data_camera_sets(infos, cfg, sets), node_settings(),
+                          threads=1)
     calibration = result["stage_cpu_ms"].get("calibration")
     return {**result, "calibrated": cfg.calibration is not None,
             "calibration_share_by_marks": None if calibration is None else
@@ -122,9 +117,9 @@ def main(argv=None) -> int:
     parser.add_argument("--device", default="cpu",
                         help="where the visibility of the ground truth runs and is timed")
     parser.add_argument("--step-share", type=int, default=0, metavar="N",
-                        help="with --checkpoint: instead, time the online step with and "
-                             "without the visibility (and the calibration) on the first N "
-                             "keyframes (CPU)")
+                        help="with --checkpoint: instead, the padding's, the visibility's "
+                             "and the calibration's shares of the node's CPU step on the "
+                             "first N keyframes of the first scene")
     parser.add_argument("--min-clear", type=float, default=DEFAULT_MIN_CLEAR,
                         help="with --checkpoint: the node's visibility_min_clear (default "
                              f"{DEFAULT_MIN_CLEAR})")
@@ -141,7 +136,7 @@ def main(argv=None) -> int:
     if args.limit:
         dataset.infos = dataset.infos[:args.limit]
     if args.step_share:
-        print(json.dumps(step_share(args.checkpoint, dataset, args.step_share), indent=2))
+        print(json.dumps(step_share(args.checkpoint, args.data, args.step_share), indent=2))
         return 0
     device = torch.device(args.device)
     visibility = Visibility(cfg.grid_shape, cfg.pc_range, cfg.voxel_size, cfg.num_classes,

@@ -131,9 +131,10 @@ def node_inputs(cfg: ModelConfig, num_sets: int, seed: int = 0):
 
 def data_camera_sets(infos_path, cfg: ModelConfig, num_sets: int | None = None):
     """The keyframes of the first scene of an infos file (the first ``num_sets``) as the
-    node feeds its predictor (network-input uint8 images, ego2img, pose, stamp), 0.5 s
-    apart."""
+    node feeds its predictor (network-input uint8 images, ego2img, pose, stamp, each image's
+    bounds in network-input pixels), 0.5 s apart."""
     from ..data.dataset import OccDataset
+    from ..preprocess import image_bounds
     dataset = OccDataset(infos_path, cfg)
     if not dataset.infos:
         raise ValueError(f"{infos_path}: no keyframes")
@@ -145,7 +146,9 @@ def data_camera_sets(infos_path, cfg: ModelConfig, num_sets: int | None = None):
         images = np.stack([dataset.load_image(info["cams"][name])
                            for name in dataset.camera_names])
         ego2img = dataset.frame_geometry(info["cams"], pose)[0]
-        sets.append((images, ego2img, pose, info["timestamp"] / 1e6))
+        bounds = image_bounds([info["cams"][name]["image_hw"] for name in dataset.camera_names],
+                              dataset.image_size)
+        sets.append((images, ego2img, pose, info["timestamp"] / 1e6, bounds))
     return sets
 
 

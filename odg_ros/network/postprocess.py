@@ -37,20 +37,9 @@ def point_voxels(means: torch.Tensor, scores: torch.Tensor, cfg: ModelConfig):
     above the threshold, within max_distance_to_centroid of their query's centroid, finite,
     inside the grid) [..., K] and each point's flat voxel index [..., K] (X*Y*Z, the dummy
     voxel, where not kept)."""
-    X, Y, Z = cfg.grid_shape
-    centroid = means.mean(dim=-2, keepdim=True)
-    keep = (scores.max(dim=-1).values > cfg.score_threshold) & (
-        (means - centroid).norm(dim=-1) <= cfg.max_distance_to_centroid)
-    keep &= torch.isfinite(means).all(-1)
-    # per axis with Python scalars: a constant tensor would be a host-to-device copy
-    index = []
-    for axis, size in enumerate((X, Y, Z)):
-        i = torch.floor((means[..., axis] - cfg.pc_range[axis]) / cfg.voxel_size)
-        keep &= (i >= 0) & (i < size)
-        index.append(torch.where(keep, i, torch.zeros_like(i)).long())
-    flat = torch.where(keep, (index[0] * Y + index[1]) * Z + index[2],
-                       torch.full_like(index[0], X * Y * Z))
-    return keep, flat
+    passing, distance = _passing_and_distance(means, scores.max(dim=-1).values, cfg)
+    near = distance <= cfg.max_distance_to_centroid
+    return _grid_voxels(means, passing & near & torch.isfinite(means).all(-1), cfg)
 
 
 def stray_voxels(means: torch.Tensor, logits: torch.Tensor, cfg: ModelConfig) -> torch.Tensor:
@@ -60,23 +49,39 @@ def stray_voxels(means: torch.Tensor, logits: torch.Tensor, cfg: ModelConfig) ->
     dense traffic such a voxel the grid calls free is truly occupied about half the time, so
     the visibility lets it hide what lies behind it (network/visibility.py)."""
     means = means.float()
-    X, Y, Z = cfg.grid_shape
     B = means.shape[0]
-    centroid = means.mean(dim=-2, keepdim=True)
     # the sigmoid of the top logit: the top score exactly (sigmoid is monotone)
-    stray = (logits.float().amax(dim=-1).sigmoid() > cfg.score_threshold) & (
-        (means - centroid).norm(dim=-1) > cfg.max_distance_to_centroid)
+    passing, distance = _passing_and_distance(means, logits.float().amax(dim=-1).sigmoid(),
+                                              cfg)
+    # (a query with a NaN point has a NaN centroid: none of its points is far, nor near)
+    far = distance > cfg.max_distance_to_centroid
+    _, flat = _grid_voxels(means, passing & far & torch.isfinite(means).all(-1), cfg)
+    cells = math.prod(cfg.grid_shape)
+    out = torch.zeros((B, cells + 1), dtype=torch.uint8, device=means.device)
+    out.scatter_(1, flat.view(B, -1), 1)
+    return out[:, :cells].bool()
+
+
+def _passing_and_distance(means: torch.Tensor, top_score: torch.Tensor, cfg: ModelConfig):
+    """Per point: whether its top score passes the threshold, and its distance from its
+    query's centroid."""
+    centroid = means.mean(dim=-2, keepdim=True)
+    return top_score > cfg.score_threshold, (means - centroid).norm(dim=-1)
+
+
+def _grid_voxels(means: torch.Tensor, chosen: torch.Tensor, cfg: ModelConfig):
+    """The ``chosen`` points that lie inside the grid [..., K] and each point's flat voxel
+    index [..., K] (X*Y*Z, the dummy voxel, for the others)."""
+    X, Y, Z = cfg.grid_shape
+    # per axis with Python scalars: a constant tensor would be a host-to-device copy
     index = []
     for axis, size in enumerate((X, Y, Z)):
         i = torch.floor((means[..., axis] - cfg.pc_range[axis]) / cfg.voxel_size)
-        stray &= (i >= 0) & (i < size)                       # NaN compares False: dropped
-        index.append(torch.where(stray, i, torch.zeros_like(i)).long())
-    cells = X * Y * Z
-    flat = torch.where(stray, (index[0] * Y + index[1]) * Z + index[2],
-                       torch.full_like(index[0], cells)).view(B, -1)
-    out = torch.zeros((B, cells + 1), dtype=torch.uint8, device=means.device)
-    out.scatter_(1, flat, 1)
-    return out[:, :cells].bool()
+        chosen = chosen & (i >= 0) & (i < size)
+        index.append(torch.where(chosen, i, torch.zeros_like(i)).long())
+    flat = torch.where(chosen, (index[0] * Y + index[1]) * Z + index[2],
+                       torch.full_like(index[0], X * Y * Z))
+    return chosen, flat
 
 
 def voxelise(means: torch.Tensor, logits: torch.Tensor, cfg: ModelConfig, free_label: int):

@@ -51,8 +51,9 @@ def mark(name: str):
 class MarkRecorder:
     """Milliseconds per mark over the steps run inside ``with recorder:`` (one recorder at a
     time); on CUDA from events, resolved by ``flush`` (called by ``times``). On the CPU by
-    ``clock``: wall time (``time.perf_counter``), or the process's CPU time
-    (``time.process_time``: what a stage costs the cores, torch's threads included)."""
+    ``clock`` (seconds): wall time by default (``time.perf_counter``), or CPU time
+    (``time.process_time``: the process's, torch's threads included; ``time.thread_time``:
+    the calling thread's)."""
 
     def __init__(self, device, clock=time.perf_counter):
         self.cuda = torch.device(device).type == "cuda"
