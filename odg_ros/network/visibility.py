@@ -72,6 +72,13 @@ CLEAR_SUBSAMPLE = 2
 DEFAULT_MIN_CLEAR = 0.85
 
 
+def _is_not(values: torch.Tensor, number: int) -> torch.Tensor:
+    """uint8 ``values != number`` as 1 or 0 (values uint8). On the CPU (torch 2.13) a
+    comparison of uint8 with a number runs element by element, 15 to 20 times slower than
+    these two passes."""
+    return (values ^ number).clamp_(max=1)
+
+
 def _kind_table() -> list[int]:
     """Occluder kind by a 4-bit code: bit a (a = 0, 1, 2) set when both neighbours along
     axis a are not occupied, bit 3 set when the voxel itself is not occupied."""
@@ -127,11 +134,13 @@ class Visibility(nn.Module):
         self.register_buffer("layer_bits", 2 ** torch.arange(self.grid_shape[2] + 2,
                                                              dtype=torch.int32, device=device),
                              persistent=False)
-        self.register_buffer("layers", torch.arange(self.grid_shape[2], dtype=torch.float32,
-                                                     device=device), persistent=False)
-        # which image edges hold strictly (u < u1 w, v < v1 w)
-        self.register_buffer("strict_edges", torch.tensor([0.0, 1.0, 0.0, 1.0], device=device),
-                             persistent=False)
+        # row first * (Z + 1) + last + 1: the layers first..last (first in 0..Z, last in
+        # -1..Z - 1)
+        layer = torch.arange(self.grid_shape[2], device=device)
+        bounds = torch.arange(-1, self.grid_shape[2] + 1, device=device)
+        self.register_buffer("layer_ranges", ((layer >= bounds[1:, None, None])
+                                              & (layer <= bounds[None, :-1, None]))
+                             .view(-1, self.grid_shape[2]), persistent=False)
         self.register_buffer("kind_table", torch.tensor(_kind_table(), dtype=torch.uint8,
                                                         device=device), persistent=False)
         for axis, name in enumerate("xyz"):
@@ -146,10 +155,10 @@ class Visibility(nn.Module):
         not occupied along exactly one axis is a plane across it (the road, a wall), along
         exactly two a line along the third (a pole), else a ball. ``stray`` bool [X*Y*Z]:
         voxels that occlude as if occupied (the grid's stray points, postprocess.py)."""
-        free = labels == self.free_label
+        free = _is_not(labels, self.free_label) ^ 1
         if stray is not None:
-            free = free & ~stray
-        free = free.view(self.grid_shape).to(torch.uint8)
+            free &= (~stray).to(torch.uint8)
+        free = free.view(self.grid_shape)
         padded = nn.functional.pad(free, (1, 1, 1, 1, 1, 1), value=1)
         inner = (slice(1, -1),) * 3
         code = free * 8
@@ -254,7 +263,7 @@ class Visibility(nn.Module):
         # whether each sample is in an occupied voxel: a bit (its layer) of its column's mask,
         # read once per azimuth; then the occupied samples up to each
         # (multiplications and a bitwise and: ONNX has no shift of int32)
-        masks = (stacks != FREE).int().mul_(self.layer_bits).sum(-1, dtype=torch.int32)
+        masks = _is_not(stacks, FREE).int().mul_(self.layer_bits).sum(-1, dtype=torch.int32)
         under = masks.index_select(0, column.view(-1)).view(N, A, 1, S)
         bit = self.layer_bits.index_select(0, layer.view(-1)).view(N, 1, E, S)
         # 0 or the layer's bit -> 0 or 1 (int32: ONNX sums no uint8)
@@ -400,8 +409,9 @@ class Visibility(nn.Module):
         # allocated costs)
         n = [normal[a].index_select(0, cell).view(X, Y, Z) for a in range(3)]
         inverse = (n[0] * dx).addcmul_(n[1], dy).addcmul_(n[2], dz).view(-1)
-        behind = (distance - self.tolerance).mul_(inverse) > distance
-        behind &= inverse > 0
+        # (a voxel nearer than the tolerance is never behind a plane: clamped to 0, its
+        # product is not above its distance, as none is where the ray runs away)
+        behind = (distance - self.tolerance).clamp_(min=0).mul_(inverse) > distance
         behind |= distance > beyond.index_select(0, cell)
         return (inside & ~behind).to(torch.uint8)
 
@@ -415,23 +425,25 @@ class Visibility(nn.Module):
         inside = self.in_image(ego2img, bounds, camera).view(-1)
         # per column [X, Y, 1]: its camera's centre, the horizontal distance and the
         # azimuth cell (a column of the bordered map: 0 and columns + 1 are outside)
-        o = origin[camera][..., None]
-        dx = self.centre_x[:, None, None] - o[:, :, 0]
-        dy = self.centre_y[None, :, None] - o[:, :, 1]
+        def per_column(values):                  # [N] -> its column's camera's [X, Y, 1]
+            return values.index_select(0, camera.view(-1)).view(*camera.shape, 1)
+        o = [per_column(origin[:, a]) for a in range(3)]
+        dx = self.centre_x[:, None, None] - o[0]
+        dy = self.centre_y[None, :, None] - o[1]
         squared = dx * dx + dy * dy
         horizontal = torch.sqrt(squared).clamp(min=1e-3)
-        offset = torch.remainder(torch.atan2(dy, dx) - centre[camera][..., None] + math.pi,
+        offset = torch.remainder(torch.atan2(dy, dx) - per_column(centre) + math.pi,
                                  2 * math.pi) - math.pi
-        a = ((offset - first_az[camera][..., None]) / az_size[camera][..., None]).floor()
+        a = ((offset - per_column(first_az)) / per_column(az_size)).floor()
         # the map's first row (the border above is row 0) of this column
         base = camera[..., None] * ((rows + 2) * (columns + 2)) + a.clamp(-1, columns) + 1 \
             + (columns + 2)
-        per_row = 1.0 / tan_size[camera][..., None]
+        per_row = 1.0 / per_column(tan_size)
         # per voxel [X, Y, Z] (in place where a result is fresh): its row (warped elevation,
         # as ``warp`` with the divisions done per column), cell and distance
-        dz = self.centre_z - o[:, :, 2]
+        dz = self.centre_z - o[2]
         row = dz.abs().mul_(1.0 / (self.horizon * horizontal)).log1p_().mul_(torch.sign(dz))
-        row = row.mul_(per_row).sub_(first_tan[camera][..., None] * per_row).floor_()
+        row = row.mul_(per_row).sub_(per_column(first_tan) * per_row).floor_()
         cell = row.clamp_(-1, rows).mul_(columns + 2).add_(base).int().view(-1)
         distance = (dz * dz).add_(squared).sqrt_().view(-1)
         return inside, cell, distance, (dx, dy, dz)
@@ -473,30 +485,46 @@ class Visibility(nn.Module):
         sees nothing."""
         e = ego2img[:, :3]                                                    # [N, 3, 4]
         # each image edge as a plane through the camera, its normal pointing inwards:
-        # u >= u0 w, u < u1 w, v >= v0 w, v < v1 w (the first two also put it in front:
-        # they add up to (u1 - u0) w > 0)
+        # u >= u0 w, v >= v0 w, u < u1 w, v < v1 w (the strict ones last; u0 and u1 also
+        # put it in front: they add up to (u1 - u0) w > 0)
         b = bounds[:, :, None]
-        edges = torch.stack([e[:, 0] - b[:, 0] * e[:, 2], b[:, 2] * e[:, 2] - e[:, 0],
-                             e[:, 1] - b[:, 1] * e[:, 2], b[:, 3] * e[:, 2] - e[:, 1]], -1)
-        x, y, slope, constant = edges[camera].unbind(-2)                  # [X, Y, 4] each
-        # along a column, each is linear in the height: inside on one side of the layer
-        # where it crosses 0, so the image holds a range of layers [lowest, highest]
-        at_column = x * self.centre_x[:, None, None] + y * self.centre_y[:, None] + constant
+        edges = torch.stack([e[:, 0] - b[:, 0] * e[:, 2], e[:, 1] - b[:, 1] * e[:, 2],
+                             b[:, 2] * e[:, 2] - e[:, 0], b[:, 3] * e[:, 2] - e[:, 1]], 0)
+        # one edge at a time, on [X, Y] tensors of the column's camera's plane (a flat
+        # gather each: an [X, Y, 4] edge axis costs several times more, strided)
+        flat = camera.view(-1)
+        lowest = highest = None
         big = 1e6
-        crossing = torch.nan_to_num((-at_column / slope - self.centre_z[0]) / self.voxel,
-                                    nan=0.0, posinf=big, neginf=-big)          # in layers
-        # rising (slope > 0): the layers k >= crossing (k > crossing for the strict edges u1,
-        # v1); falling: k <= crossing (k <); level (or NaN): all of them or none (masks and
-        # sums, not selects: cheaper)
-        strict = self.strict_edges
-        up = strict * (torch.floor(crossing) + 1) + (1 - strict) * torch.ceil(crossing)
-        down = strict * (torch.ceil(crossing) - 1) + (1 - strict) * torch.floor(crossing)
-        rising, falling = (slope > 0).float(), (slope < 0).float()
-        level = 1 - rising - falling
-        none = big * (1 - 2 * (at_column > 0).float())           # level: none unless inside
-        lowest = (rising * up - falling * big + level * none).amax(-1, keepdim=True)
-        highest = (falling * down + rising * big - level * none).amin(-1, keepdim=True)
-        return (self.layers >= lowest) & (self.layers <= highest)
+        for i, edge in enumerate(edges.unbind(0)):
+            x, y, slope, constant = (edge[:, j].index_select(0, flat).view(camera.shape)
+                                     for j in range(4))
+            # along a column, the edge is linear in the height: inside on one side of the
+            # layer where it crosses 0, so the image holds a range of layers [lowest,
+            # highest]
+            at_column = x * self.centre_x[:, None] + y * self.centre_y + constant
+            crossing = torch.nan_to_num((-at_column / slope - self.centre_z[0]) / self.voxel,
+                                        nan=0.0, posinf=big, neginf=-big)      # in layers
+            # rising (slope > 0): the layers k >= crossing (k > crossing for the strict
+            # edges u1, v1); falling: k <= crossing (k <); level (or NaN): all of them or
+            # none (masks and sums, not selects: cheaper)
+            strict = i >= 2
+            up = torch.floor(crossing) + 1 if strict else torch.ceil(crossing)
+            down = torch.ceil(crossing) - 1 if strict else torch.floor(crossing)
+            rising, falling = (slope > 0).float(), (slope < 0).float()
+            level = 1 - rising - falling
+            none = big * (1 - 2 * (at_column > 0).float())       # level: none unless inside
+            low = rising * up - falling * big + level * none
+            high = falling * down + rising * big - level * none
+            lowest = low if lowest is None else torch.maximum(lowest, low)
+            highest = high if highest is None else torch.minimum(highest, high)
+        # the layers k in [lowest, highest]: k in [ceil(lowest), floor(highest)] clamped to
+        # the grid (NaN: none), a row of the table of every such range (a comparison per
+        # voxel runs element by element on the CPU)
+        Z = self.grid_shape[2]
+        first = torch.nan_to_num(torch.ceil(lowest), nan=Z).clamp_(0, Z)
+        last = torch.nan_to_num(torch.floor(highest), nan=-1).clamp_(-1, Z - 1)
+        ranges = (first * (Z + 1) + last + 1).long().view(-1)
+        return self.layer_ranges.index_select(0, ranges).view(*camera.shape, Z)
 
     def bordered_maps(self, kind, hazard, cells):
         """The depth maps as the voxel test reads them, flat over [N, rows + 2, columns + 2]
