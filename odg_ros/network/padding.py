@@ -23,7 +23,7 @@ only reads border voxels along the axis of its pass, which the passes before lea
 the border is reset between the two filters. Each class's closed grid then updates the
 running top score and its class. ``torch.where`` and comparisons with a number are avoided:
 on the CPU both run element by element, ten to twenty times slower than the bit and clamp
-operations of ``_select``, ``_is_not`` and ``_passes``.
+operations of ``_select``, ``is_not`` and ``_passes``.
 """
 from __future__ import annotations
 
@@ -46,9 +46,12 @@ def _select(mask: torch.Tensor, a: torch.Tensor, b: torch.Tensor) -> torch.Tenso
     return b ^ ((a ^ b) & (mask * 255))                     # 255: all of a's bits
 
 
-def _is_not(values: torch.Tensor, number: int) -> torch.Tensor:
-    """uint8 ``values != number`` as 1 or 0. On the CPU (torch 2.13) a comparison of uint8
-    with a number runs element by element, 15 to 20 times slower than these two passes."""
+def is_not(values: torch.Tensor, number: int) -> torch.Tensor:
+    """``values != number`` as uint8 1 or 0 (values of an integer dtype). On the CPU (torch
+    2.13) a comparison of uint8 with a number runs element by element, 15 to 20 times slower
+    than the two passes used for uint8 here."""
+    if values.dtype != torch.uint8:
+        return (values != number).to(torch.uint8)
     return (values ^ number).clamp_(max=1)
 
 
@@ -87,7 +90,7 @@ class OccupancyPadding(nn.Module):
             return torch.zeros_like(score)
         if self.cutoff == 0:
             return torch.ones_like(score)
-        # score >= cutoff without a comparison with a number (see _is_not)
+        # score >= cutoff without a comparison with a number (see is_not)
         return score.clamp(min=self.cutoff - 1).sub_(self.cutoff - 1).clamp_(max=1)
 
     @torch.no_grad()
@@ -96,7 +99,7 @@ class OccupancyPadding(nn.Module):
         (score x 255) -> the padded (labels, confidence), same shapes and dtypes."""
         B = labels.shape[0]
         C, (X, Y, Z) = self.num_classes, self.grid_shape
-        occupied = _is_not(labels, C)
+        occupied = is_not(labels, C)
         confidence = confidence * occupied
         # in the bordered layout: each voxel's class (a free voxel's does not matter: its
         # score is 0) and score, the border free
@@ -109,7 +112,7 @@ class OccupancyPadding(nn.Module):
             grids = torch.empty((B, len(chunk), scores.shape[1]), dtype=torch.uint8,
                                 device=labels.device)
             for i, c in enumerate(chunk):           # the class's scores, 0 elsewhere
-                torch.bitwise_and(scores, _is_not(classes, c).sub_(1), out=grids[:, i])
+                torch.bitwise_and(scores, is_not(classes, c).sub_(1), out=grids[:, i])
             flat, scratch = grids.view(-1), torch.empty_like(grids.view(-1))
             _three_voxel_passes(flat, scratch, self.strides, dilate=True)
             grids.view(-1, scores.shape[1]).bitwise_or_(self.border)  # the min filter's: 255

@@ -46,6 +46,7 @@ import torch
 from torch import nn
 
 from ..preprocess import image_bounds  # noqa: F401  (the bounds the step reads)
+from .padding import is_not
 
 # occluder kinds: 0 / 1 / 2 the mid-plane across that axis, 3 / 4 / 5 the line through the
 # centre along that axis, BALL about the centre, FREE none
@@ -70,13 +71,6 @@ CLEAR_SUBSAMPLE = 2
 # the calibration's training worlds reaches 0.95 (odg export --calibrate reports it; held-out
 # figures per scene class in docs/results/planner.md)
 DEFAULT_MIN_CLEAR = 0.85
-
-
-def _is_not(values: torch.Tensor, number: int) -> torch.Tensor:
-    """uint8 ``values != number`` as 1 or 0 (values uint8). On the CPU (torch 2.13) a
-    comparison of uint8 with a number runs element by element, 15 to 20 times slower than
-    these two passes."""
-    return (values ^ number).clamp_(max=1)
 
 
 def _kind_table() -> list[int]:
@@ -155,7 +149,7 @@ class Visibility(nn.Module):
         not occupied along exactly one axis is a plane across it (the road, a wall), along
         exactly two a line along the third (a pole), else a ball. ``stray`` bool [X*Y*Z]:
         voxels that occlude as if occupied (the grid's stray points, postprocess.py)."""
-        free = _is_not(labels, self.free_label) ^ 1
+        free = is_not(labels, self.free_label) ^ 1
         if stray is not None:
             free &= (~stray).to(torch.uint8)
         free = free.view(self.grid_shape)
@@ -263,7 +257,7 @@ class Visibility(nn.Module):
         # whether each sample is in an occupied voxel: a bit (its layer) of its column's mask,
         # read once per azimuth; then the occupied samples up to each
         # (multiplications and a bitwise and: ONNX has no shift of int32)
-        masks = _is_not(stacks, FREE).int().mul_(self.layer_bits).sum(-1, dtype=torch.int32)
+        masks = is_not(stacks, FREE).int().mul_(self.layer_bits).sum(-1, dtype=torch.int32)
         under = masks.index_select(0, column.view(-1)).view(N, A, 1, S)
         bit = self.layer_bits.index_select(0, layer.view(-1)).view(N, 1, E, S)
         # 0 or the layer's bit -> 0 or 1 (int32: ONNX sums no uint8)
@@ -442,7 +436,9 @@ class Visibility(nn.Module):
         # per voxel [X, Y, Z] (in place where a result is fresh): its row (warped elevation,
         # as ``warp`` with the divisions done per column), cell and distance
         dz = self.centre_z - o[2]
-        row = dz.abs().mul_(1.0 / (self.horizon * horizontal)).log1p_().mul_(torch.sign(dz))
+        # (the sign copied, not multiplied in: one [X, Y, Z] tensor fewer; at dz = 0 the
+        # zero's sign does not change the cell)
+        row = dz.abs().mul_(1.0 / (self.horizon * horizontal)).log1p_().copysign_(dz)
         row = row.mul_(per_row).sub_(per_column(first_tan) * per_row).floor_()
         cell = row.clamp_(-1, rows).mul_(columns + 2).add_(base).int().view(-1)
         distance = (dz * dz).add_(squared).sqrt_().view(-1)
