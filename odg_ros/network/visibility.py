@@ -273,14 +273,17 @@ class Visibility(nn.Module):
         bit = self.layer_bits.index_select(0, layer.view(-1)).view(N, 1, E, S)
         # 0 or the layer's bit -> 0 or 1 (int32: ONNX sums no uint8)
         occupied = (under & bit).clamp_(max=1)                                  # [N, A, E, S]
-        count = occupied.cumsum(-1, dtype=torch.int32)
+        # counts up to S fit int16, whose running sum and searches take half the time of
+        # int32's on the CPU (ONNX's CumSum has no int16: int32 in an export)
+        counting = torch.int32 if torch.onnx.is_in_onnx_export() else torch.int16
+        count = occupied.cumsum(-1, dtype=counting)
         window = torch.arange(WINDOW, device=kind.device)
         norm = torch.sqrt(1 + tan * tan)                     # ray length per horizontal unit
         geometry = (stacks, column, layer, place, hx, hy, tan, norm)
         # the windows of every ray: from its next occupied sample (S: none) after the end of
         # the window before; they depend on the occupied samples only, so all are tested at
         # once (one pass of the tests over CANDIDATES x WINDOW samples)
-        seen = torch.zeros((N, A, E, 1), dtype=torch.int32, device=kind.device)
+        seen = torch.zeros((N, A, E, 1), dtype=counting, device=kind.device)
         windows, exists = [], []
         for _ in range(CANDIDATES):
             entry = torch.searchsorted(count, seen + 1)                       # [N, A, E, 1]
