@@ -125,7 +125,7 @@ class OccupancyPadding(nn.Module):
                 # the largest closed score and the first class that has it (as max(dim)
                 # picks): classes in order, a strictly larger score takes the voxel; the
                 # labels so far are all below c, so a maximum sets c there
-                torch.maximum(label, (closed > top).view(torch.uint8).mul_(c), out=label)
+                torch.maximum(label, (closed > top).to(torch.uint8).mul_(c), out=label)
                 torch.maximum(top, closed, out=top)
         top, label = (t.view(B, X + 2, Y + 2, Z + 2)[:, 1:-1, 1:-1, 1:-1] for t in (top, label))
         keep = occupied & self._passes(confidence)

@@ -450,9 +450,7 @@ class Visibility(nn.Module):
         # per voxel [X, Y, Z] (in place where a result is fresh): its row (warped elevation,
         # as ``warp`` with the divisions done per column), cell and distance
         dz = self.centre_z - o[2]
-        # (the sign copied, not multiplied in: one [X, Y, Z] tensor fewer; at dz = 0 the
-        # zero's sign does not change the cell)
-        row = dz.abs().mul_(1.0 / (self.horizon * horizontal)).log1p_().copysign_(dz)
+        row = dz.abs().mul_(1.0 / (self.horizon * horizontal)).log1p_().mul_(torch.sign(dz))
         row = row.mul_(per_row).sub_(per_column(first_tan) * per_row).floor_()
         cell = row.clamp_(-1, rows).mul_(columns + 2).add_(base).int().view(-1)
         distance = (dz * dz).add_(squared).sqrt_().view(-1)
