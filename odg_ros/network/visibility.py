@@ -382,17 +382,25 @@ class Visibility(nn.Module):
     def column_cameras(self, ego2img: torch.Tensor, bounds: torch.Tensor) -> torch.Tensor:
         """long [X, Y]: per voxel column, the camera its centre (at the grid's middle
         height) projects nearest the image centre of (horizontally)."""
-        cx, cy = self.centre_x[:, None, None], self.centre_y[None, :, None]
-        e = ego2img[None, None]                                             # [1, 1, N, 4, 4]
-        u = e[..., 0, 0] * cx + e[..., 0, 1] * cy + (e[..., 0, 2] * self.middle_z
-                                                     + e[..., 0, 3])        # [X, Y, N]
-        z = e[..., 2, 0] * cx + e[..., 2, 1] * cy + (e[..., 2, 2] * self.middle_z
-                                                     + e[..., 2, 3])
+        # one camera at a time on contiguous [X, Y] tensors (an [X, Y, N] camera axis
+        # broadcasts: several times slower on the CPU), the nearest kept as it goes (the
+        # first on a tie, as argmin picks)
+        cx, cy = self.centre_x[:, None], self.centre_y[None, :]
         middle = 0.5 * (bounds[:, 0] + bounds[:, 2])
         half = 0.5 * (bounds[:, 2] - bounds[:, 0])
-        off_centre = (u - middle * z).abs() / (half * z.clamp(min=1e-3))
-        off_centre = torch.where(z > 1e-3, off_centre, torch.full_like(off_centre, 1e9))
-        return torch.nan_to_num(off_centre, nan=1e9).argmin(-1)
+        nearest = camera = None
+        for n, e in enumerate(ego2img.unbind(0)):
+            u = e[0, 0] * cx + e[0, 1] * cy + (e[0, 2] * self.middle_z + e[0, 3])  # [X, Y]
+            z = e[2, 0] * cx + e[2, 1] * cy + (e[2, 2] * self.middle_z + e[2, 3])
+            off_centre = (u - middle[n] * z).abs() / (half[n] * z.clamp(min=1e-3))
+            off_centre = torch.where(z > 1e-3, off_centre, torch.full_like(off_centre, 1e9))
+            off_centre = torch.nan_to_num(off_centre, nan=1e9)
+            if camera is None:
+                nearest, camera = off_centre, torch.zeros_like(off_centre, dtype=torch.long)
+                continue
+            camera = torch.where(off_centre < nearest, n, camera)
+            nearest = torch.minimum(nearest, off_centre)
+        return camera
 
     def forward(self, labels: torch.Tensor, ego2img: torch.Tensor, img2ego: torch.Tensor,
                 bounds: torch.Tensor, hazard: torch.Tensor | None = None,
