@@ -364,8 +364,8 @@ class Visibility(nn.Module):
         ball = is_ball.float()
         miss = 0.0
         for a in range(3):
-            weight = torch.where(_equals(k, LINE + a), 1.0 / (1.0 - d[a] * d[a]).clamp(min=1e-12),
-                                 ball)
+            weight = torch.where(_equals(k, LINE + a),
+                                 1.0 / (1.0 - d[a] * d[a]).clamp(min=1e-12), ball)
             miss = miss + weight * cross[a] * cross[a]
         on_ball = ~_below(k, LINE) & _below(k, FREE) & (miss <= BALL_RADIUS ** 2)
         hit = on_plane | on_ball
