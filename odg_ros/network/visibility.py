@@ -46,6 +46,7 @@ import torch
 from torch import nn
 
 from ..preprocess import image_bounds  # noqa: F401  (the bounds the step reads)
+from .padding import is_not
 
 # occluder kinds: 0 / 1 / 2 the mid-plane across that axis, 3 / 4 / 5 the line through the
 # centre along that axis, BALL about the centre, FREE none
@@ -70,6 +71,17 @@ CLEAR_SUBSAMPLE = 2
 # the calibration's training worlds reaches 0.95 (odg export --calibrate reports it; held-out
 # figures per scene class in docs/results/planner.md)
 DEFAULT_MIN_CLEAR = 0.85
+
+
+def _equals(kinds: torch.Tensor, kind: int) -> torch.Tensor:
+    """bool ``kinds == kind`` for uint8 kinds (on the CPU a comparison of uint8 with a number
+    runs element by element: eight times slower)."""
+    return torch.logical_not(kinds ^ kind)
+
+
+def _below(kinds: torch.Tensor, kind: int) -> torch.Tensor:
+    """bool ``kinds < kind`` for uint8 kinds (as ``_equals``)."""
+    return (kinds.clamp(max=kind) ^ kind).bool()
 
 
 def _kind_table() -> list[int]:
@@ -127,11 +139,13 @@ class Visibility(nn.Module):
         self.register_buffer("layer_bits", 2 ** torch.arange(self.grid_shape[2] + 2,
                                                              dtype=torch.int32, device=device),
                              persistent=False)
-        self.register_buffer("layers", torch.arange(self.grid_shape[2], dtype=torch.float32,
-                                                     device=device), persistent=False)
-        # which image edges hold strictly (u < u1 w, v < v1 w)
-        self.register_buffer("strict_edges", torch.tensor([0.0, 1.0, 0.0, 1.0], device=device),
-                             persistent=False)
+        # row first * (Z + 1) + last + 1: the layers first..last (first in 0..Z, last in
+        # -1..Z - 1)
+        layer = torch.arange(self.grid_shape[2], device=device)
+        bounds = torch.arange(-1, self.grid_shape[2] + 1, device=device)
+        self.register_buffer("layer_ranges", ((layer >= bounds[1:, None, None])
+                                              & (layer <= bounds[None, :-1, None]))
+                             .view(-1, self.grid_shape[2]), persistent=False)
         self.register_buffer("kind_table", torch.tensor(_kind_table(), dtype=torch.uint8,
                                                         device=device), persistent=False)
         for axis, name in enumerate("xyz"):
@@ -146,10 +160,10 @@ class Visibility(nn.Module):
         not occupied along exactly one axis is a plane across it (the road, a wall), along
         exactly two a line along the third (a pole), else a ball. ``stray`` bool [X*Y*Z]:
         voxels that occlude as if occupied (the grid's stray points, postprocess.py)."""
-        free = labels == self.free_label
+        free = is_not(labels, self.free_label) ^ 1
         if stray is not None:
-            free = free & ~stray
-        free = free.view(self.grid_shape).to(torch.uint8)
+            free &= (~stray).to(torch.uint8)
+        free = free.view(self.grid_shape)
         padded = nn.functional.pad(free, (1, 1, 1, 1, 1, 1), value=1)
         inner = (slice(1, -1),) * 3
         code = free * 8
@@ -254,19 +268,22 @@ class Visibility(nn.Module):
         # whether each sample is in an occupied voxel: a bit (its layer) of its column's mask,
         # read once per azimuth; then the occupied samples up to each
         # (multiplications and a bitwise and: ONNX has no shift of int32)
-        masks = (stacks != FREE).int().mul_(self.layer_bits).sum(-1, dtype=torch.int32)
+        masks = is_not(stacks, FREE).int().mul_(self.layer_bits).sum(-1, dtype=torch.int32)
         under = masks.index_select(0, column.view(-1)).view(N, A, 1, S)
         bit = self.layer_bits.index_select(0, layer.view(-1)).view(N, 1, E, S)
         # 0 or the layer's bit -> 0 or 1 (int32: ONNX sums no uint8)
         occupied = (under & bit).clamp_(max=1)                                  # [N, A, E, S]
-        count = occupied.cumsum(-1, dtype=torch.int32)
+        # counts up to S fit int16, whose running sum and searches take half the time of
+        # int32's on the CPU (ONNX's CumSum has no int16: int32 in an export)
+        counting = torch.int32 if torch.onnx.is_in_onnx_export() else torch.int16
+        count = occupied.cumsum(-1, dtype=counting)
         window = torch.arange(WINDOW, device=kind.device)
         norm = torch.sqrt(1 + tan * tan)                     # ray length per horizontal unit
         geometry = (stacks, column, layer, place, hx, hy, tan, norm)
         # the windows of every ray: from its next occupied sample (S: none) after the end of
         # the window before; they depend on the occupied samples only, so all are tested at
         # once (one pass of the tests over CANDIDATES x WINDOW samples)
-        seen = torch.zeros((N, A, E, 1), dtype=torch.int32, device=kind.device)
+        seen = torch.zeros((N, A, E, 1), dtype=counting, device=kind.device)
         windows, exists = [], []
         for _ in range(CANDIDATES):
             entry = torch.searchsorted(count, seen + 1)                       # [N, A, E, 1]
@@ -332,25 +349,25 @@ class Visibility(nn.Module):
         h_x, h_y = hx[..., None, None], hy[..., None, None]
         tn, n = tan[:, None, :, None], norm[:, None, :, None]
         # mid-plane: the horizontal distance back to where the ray crosses it
-        plane_of = [(k == a) for a in range(3)]
+        plane_of = [_equals(k, a) for a in range(3)]
         direction = torch.where(plane_of[0], h_x, torch.where(plane_of[1], h_y, tn))
         direction = torch.where(direction.abs() > 1e-6, direction,
                                 torch.full_like(direction, 1e-6))
         offset = torch.where(plane_of[0], x, torch.where(plane_of[1], y, z))
         back = offset / direction
-        on_plane = (k < LINE) & (back * n <= PLANE_REACH)
+        on_plane = _below(k, LINE) & (back * n <= PLANE_REACH)
         # ball: the distance of the voxel centre from the ray, |place x direction|; line:
         # from the line through the centre along axis a, (place x direction)_a / |e_a x d|
         d = (h_x / n, h_y / n, tn / n)
         cross = (y * d[2] - z * d[1], z * d[0] - x * d[2], x * d[1] - y * d[0])
-        is_ball = (k == BALL)
+        is_ball = _equals(k, BALL)
         ball = is_ball.float()
         miss = 0.0
         for a in range(3):
-            weight = torch.where(k == LINE + a, 1.0 / (1.0 - d[a] * d[a]).clamp(min=1e-12),
-                                 ball)
+            weight = torch.where(_equals(k, LINE + a),
+                                 1.0 / (1.0 - d[a] * d[a]).clamp(min=1e-12), ball)
             miss = miss + weight * cross[a] * cross[a]
-        on_ball = (k >= LINE) & (k < FREE) & (miss <= BALL_RADIUS ** 2)
+        on_ball = ~_below(k, LINE) & _below(k, FREE) & (miss <= BALL_RADIUS ** 2)
         hit = on_plane | on_ball
         if not full:
             return hit, None, None, None
@@ -365,17 +382,25 @@ class Visibility(nn.Module):
     def column_cameras(self, ego2img: torch.Tensor, bounds: torch.Tensor) -> torch.Tensor:
         """long [X, Y]: per voxel column, the camera its centre (at the grid's middle
         height) projects nearest the image centre of (horizontally)."""
-        cx, cy = self.centre_x[:, None, None], self.centre_y[None, :, None]
-        e = ego2img[None, None]                                             # [1, 1, N, 4, 4]
-        u = e[..., 0, 0] * cx + e[..., 0, 1] * cy + (e[..., 0, 2] * self.middle_z
-                                                     + e[..., 0, 3])        # [X, Y, N]
-        z = e[..., 2, 0] * cx + e[..., 2, 1] * cy + (e[..., 2, 2] * self.middle_z
-                                                     + e[..., 2, 3])
+        # one camera at a time on contiguous [X, Y] tensors (an [X, Y, N] camera axis
+        # broadcasts: several times slower on the CPU), the nearest kept as it goes (the
+        # first on a tie, as argmin picks)
+        cx, cy = self.centre_x[:, None], self.centre_y[None, :]
         middle = 0.5 * (bounds[:, 0] + bounds[:, 2])
         half = 0.5 * (bounds[:, 2] - bounds[:, 0])
-        off_centre = (u - middle * z).abs() / (half * z.clamp(min=1e-3))
-        off_centre = torch.where(z > 1e-3, off_centre, torch.full_like(off_centre, 1e9))
-        return torch.nan_to_num(off_centre, nan=1e9).argmin(-1)
+        nearest = camera = None
+        for n, e in enumerate(ego2img.unbind(0)):
+            u = e[0, 0] * cx + e[0, 1] * cy + (e[0, 2] * self.middle_z + e[0, 3])  # [X, Y]
+            z = e[2, 0] * cx + e[2, 1] * cy + (e[2, 2] * self.middle_z + e[2, 3])
+            off_centre = (u - middle[n] * z).abs() / (half[n] * z.clamp(min=1e-3))
+            off_centre = torch.where(z > 1e-3, off_centre, torch.full_like(off_centre, 1e9))
+            off_centre = torch.nan_to_num(off_centre, nan=1e9)
+            if camera is None:
+                nearest, camera = off_centre, torch.zeros_like(off_centre, dtype=torch.long)
+                continue
+            camera = torch.where(off_centre < nearest, n, camera)
+            nearest = torch.minimum(nearest, off_centre)
+        return camera
 
     def forward(self, labels: torch.Tensor, ego2img: torch.Tensor, img2ego: torch.Tensor,
                 bounds: torch.Tensor, hazard: torch.Tensor | None = None,
@@ -400,8 +425,9 @@ class Visibility(nn.Module):
         # allocated costs)
         n = [normal[a].index_select(0, cell).view(X, Y, Z) for a in range(3)]
         inverse = (n[0] * dx).addcmul_(n[1], dy).addcmul_(n[2], dz).view(-1)
-        behind = (distance - self.tolerance).mul_(inverse) > distance
-        behind &= inverse > 0
+        # (a voxel nearer than the tolerance is never behind a plane: clamped to 0, its
+        # product is not above its distance, as none is where the ray runs away)
+        behind = (distance - self.tolerance).clamp_(min=0).mul_(inverse) > distance
         behind |= distance > beyond.index_select(0, cell)
         return (inside & ~behind).to(torch.uint8)
 
@@ -415,23 +441,25 @@ class Visibility(nn.Module):
         inside = self.in_image(ego2img, bounds, camera).view(-1)
         # per column [X, Y, 1]: its camera's centre, the horizontal distance and the
         # azimuth cell (a column of the bordered map: 0 and columns + 1 are outside)
-        o = origin[camera][..., None]
-        dx = self.centre_x[:, None, None] - o[:, :, 0]
-        dy = self.centre_y[None, :, None] - o[:, :, 1]
+        def per_column(values):                  # [N] -> its column's camera's [X, Y, 1]
+            return values.index_select(0, camera.view(-1)).view(*camera.shape, 1)
+        o = [per_column(origin[:, a]) for a in range(3)]
+        dx = self.centre_x[:, None, None] - o[0]
+        dy = self.centre_y[None, :, None] - o[1]
         squared = dx * dx + dy * dy
         horizontal = torch.sqrt(squared).clamp(min=1e-3)
-        offset = torch.remainder(torch.atan2(dy, dx) - centre[camera][..., None] + math.pi,
+        offset = torch.remainder(torch.atan2(dy, dx) - per_column(centre) + math.pi,
                                  2 * math.pi) - math.pi
-        a = ((offset - first_az[camera][..., None]) / az_size[camera][..., None]).floor()
+        a = ((offset - per_column(first_az)) / per_column(az_size)).floor()
         # the map's first row (the border above is row 0) of this column
         base = camera[..., None] * ((rows + 2) * (columns + 2)) + a.clamp(-1, columns) + 1 \
             + (columns + 2)
-        per_row = 1.0 / tan_size[camera][..., None]
+        per_row = 1.0 / per_column(tan_size)
         # per voxel [X, Y, Z] (in place where a result is fresh): its row (warped elevation,
         # as ``warp`` with the divisions done per column), cell and distance
-        dz = self.centre_z - o[:, :, 2]
+        dz = self.centre_z - o[2]
         row = dz.abs().mul_(1.0 / (self.horizon * horizontal)).log1p_().mul_(torch.sign(dz))
-        row = row.mul_(per_row).sub_(first_tan[camera][..., None] * per_row).floor_()
+        row = row.mul_(per_row).sub_(per_column(first_tan) * per_row).floor_()
         cell = row.clamp_(-1, rows).mul_(columns + 2).add_(base).int().view(-1)
         distance = (dz * dz).add_(squared).sqrt_().view(-1)
         return inside, cell, distance, (dx, dy, dz)
@@ -473,30 +501,46 @@ class Visibility(nn.Module):
         sees nothing."""
         e = ego2img[:, :3]                                                    # [N, 3, 4]
         # each image edge as a plane through the camera, its normal pointing inwards:
-        # u >= u0 w, u < u1 w, v >= v0 w, v < v1 w (the first two also put it in front:
-        # they add up to (u1 - u0) w > 0)
+        # u >= u0 w, v >= v0 w, u < u1 w, v < v1 w (the strict ones last; u0 and u1 also
+        # put it in front: they add up to (u1 - u0) w > 0)
         b = bounds[:, :, None]
-        edges = torch.stack([e[:, 0] - b[:, 0] * e[:, 2], b[:, 2] * e[:, 2] - e[:, 0],
-                             e[:, 1] - b[:, 1] * e[:, 2], b[:, 3] * e[:, 2] - e[:, 1]], -1)
-        x, y, slope, constant = edges[camera].unbind(-2)                  # [X, Y, 4] each
-        # along a column, each is linear in the height: inside on one side of the layer
-        # where it crosses 0, so the image holds a range of layers [lowest, highest]
-        at_column = x * self.centre_x[:, None, None] + y * self.centre_y[:, None] + constant
+        edges = torch.stack([e[:, 0] - b[:, 0] * e[:, 2], e[:, 1] - b[:, 1] * e[:, 2],
+                             b[:, 2] * e[:, 2] - e[:, 0], b[:, 3] * e[:, 2] - e[:, 1]], 0)
+        # one edge at a time, on [X, Y] tensors of the column's camera's plane (a flat
+        # gather each: an [X, Y, 4] edge axis costs several times more, strided)
+        flat = camera.view(-1)
+        lowest = highest = None
         big = 1e6
-        crossing = torch.nan_to_num((-at_column / slope - self.centre_z[0]) / self.voxel,
-                                    nan=0.0, posinf=big, neginf=-big)          # in layers
-        # rising (slope > 0): the layers k >= crossing (k > crossing for the strict edges u1,
-        # v1); falling: k <= crossing (k <); level (or NaN): all of them or none (masks and
-        # sums, not selects: cheaper)
-        strict = self.strict_edges
-        up = strict * (torch.floor(crossing) + 1) + (1 - strict) * torch.ceil(crossing)
-        down = strict * (torch.ceil(crossing) - 1) + (1 - strict) * torch.floor(crossing)
-        rising, falling = (slope > 0).float(), (slope < 0).float()
-        level = 1 - rising - falling
-        none = big * (1 - 2 * (at_column > 0).float())           # level: none unless inside
-        lowest = (rising * up - falling * big + level * none).amax(-1, keepdim=True)
-        highest = (falling * down + rising * big - level * none).amin(-1, keepdim=True)
-        return (self.layers >= lowest) & (self.layers <= highest)
+        for i, edge in enumerate(edges.unbind(0)):
+            x, y, slope, constant = (edge[:, j].index_select(0, flat).view(camera.shape)
+                                     for j in range(4))
+            # along a column, the edge is linear in the height: inside on one side of the
+            # layer where it crosses 0, so the image holds a range of layers [lowest,
+            # highest]
+            at_column = x * self.centre_x[:, None] + y * self.centre_y + constant
+            crossing = torch.nan_to_num((-at_column / slope - self.centre_z[0]) / self.voxel,
+                                        nan=0.0, posinf=big, neginf=-big)      # in layers
+            # rising (slope > 0): the layers k >= crossing (k > crossing for the strict
+            # edges u1, v1); falling: k <= crossing (k <); level (or NaN): all of them or
+            # none (masks and sums, not selects: cheaper)
+            strict = i >= 2
+            up = torch.floor(crossing) + 1 if strict else torch.ceil(crossing)
+            down = torch.ceil(crossing) - 1 if strict else torch.floor(crossing)
+            rising, falling = (slope > 0).float(), (slope < 0).float()
+            level = 1 - rising - falling
+            none = big * (1 - 2 * (at_column > 0).float())       # level: none unless inside
+            low = rising * up - falling * big + level * none
+            high = falling * down + rising * big - level * none
+            lowest = low if lowest is None else torch.maximum(lowest, low)
+            highest = high if highest is None else torch.minimum(highest, high)
+        # the layers k in [lowest, highest]: k in [ceil(lowest), floor(highest)] clamped to
+        # the grid (NaN: none), a row of the table of every such range (a comparison per
+        # voxel runs element by element on the CPU)
+        Z = self.grid_shape[2]
+        first = torch.nan_to_num(torch.ceil(lowest), nan=Z).clamp_(0, Z)
+        last = torch.nan_to_num(torch.floor(highest), nan=-1).clamp_(-1, Z - 1)
+        ranges = (first * (Z + 1) + last + 1).long().view(-1)
+        return self.layer_ranges.index_select(0, ranges).view(*camera.shape, Z)
 
     def bordered_maps(self, kind, hazard, cells):
         """The depth maps as the voxel test reads them, flat over [N, rows + 2, columns + 2]

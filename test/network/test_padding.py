@@ -166,3 +166,25 @@ def test_padding_traces_as_one_graph():
     compiled = torch.compile(padding, fullgraph=True, dynamic=False, backend="aot_eager")
     for got, want in zip(compiled(labels, confidence), padding(labels, confidence)):
         assert torch.equal(got, want)
+
+
+@pytest.mark.parametrize("chunk", [1, 4, FREE])
+def test_every_chunk_of_classes_gives_the_same_grid(chunk):
+    """Classes filtered one at a time (the CPU), in chunks or all at once (a GPU): the same
+    grid as the reference, on random grids and on surfaces with holes of many classes."""
+    rng = np.random.default_rng(chunk)
+    shape = (23, 19, 7)
+    cases = [random_grid(rng, shape, density) for density in (0.05, 0.4, 0.95)]
+    labels = np.full(shape, FREE, np.uint8)
+    labels[:, :, 2] = rng.choice([11, 12, 13], shape[:2])
+    labels[rng.random(shape) < 0.1] = FREE
+    cases.append((labels, np.where(labels != FREE, rng.integers(60, 256, shape), 0)
+                  .astype(np.uint8)))
+    padding = OccupancyPadding(shape, FREE, 0.3)
+    padding.chunk = chunk
+    for labels, confidence in cases:
+        got = [t[0].numpy() for t in padding(torch.from_numpy(labels)[None],
+                                               torch.from_numpy(confidence)[None])]
+        want = reference(labels, confidence, 0.3)
+        np.testing.assert_array_equal(got[0], want[0])
+        np.testing.assert_array_equal(got[1], want[1])

@@ -419,3 +419,50 @@ def test_the_predictor_without_visibility_returns_none():
     assert on.observed.shape == on.grid.shape and on.observed.any()
     assert off.observed is None
     np.testing.assert_array_equal(on.grid, off.grid)
+
+
+def tilted_camera(yaw, pitch, roll, height):
+    """ego2img of forward_camera's camera turned by pitch (about the ego y axis: positive
+    looks down) and roll (about its optical axis), at ``height`` (m)."""
+    K = adjust_intrinsics(np.array([[1266.4, 0, 816.3], [0, 1266.4, 491.5], [0, 0, 1]]),
+                          (900, 1600), INPUT_HW)
+    c, s = np.cos(yaw), np.sin(yaw)
+    looking = np.array([[s, 0, c], [-c, 0, s], [0, -1, 0]])
+    cp, sp, cr, sr = np.cos(pitch), np.sin(pitch), np.cos(roll), np.sin(roll)
+    turn = np.array([[cp, 0, sp], [0, 1, 0], [-sp, 0, cp]])
+    twist = np.array([[cr, -sr, 0], [sr, cr, 0], [0, 0, 1]])        # about the camera's z
+    T = np.eye(4)
+    T[:3, :3] = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]]) @ turn \
+        @ np.array([[c, s, 0], [-s, c, 0], [0, 0, 1]]) @ looking @ twist
+    T[:3, 3] = (0, 0, height)
+    K4 = np.eye(4)
+    K4[:3, :3] = K
+    return K4 @ invert_transform(T)
+
+
+@pytest.mark.parametrize("yaw, pitch, roll, height", [
+    (0.0, 0.0, 0.0, 1.6), (0.4, 0.35, 0.0, 2.0), (-1.2, -0.3, 0.25, 0.5),
+    (2.5, 0.8, -0.6, 3.0), (3.1, 0.7, 1.2, 6.0)])
+def test_the_image_test_is_the_projection_of_each_voxel_centre(yaw, pitch, roll, height):
+    """in_image (a range of layers per column) against projecting every voxel centre in
+    float64, cameras looking up, down and rolled so that the image cuts columns at both
+    ends: the same wherever a centre is not within a thousandth of a pixel of an edge."""
+    ego2img = tilted_camera(yaw, pitch, roll, height)
+    bounds = image_bounds([(900, 1600)], INPUT_HW)
+    visibility = Visibility(SHAPE, PC_RANGE, 0.4, FREE)
+    e, _, b = geometry(ego2img, bounds)
+    camera = torch.zeros(SHAPE[:2], dtype=torch.long)
+    got = visibility.in_image(e, b, camera).numpy()
+    want = in_view(ego2img, bounds[0])
+    grid = np.stack(np.meshgrid(*[centre(np.arange(n), a) for a, n in enumerate(SHAPE)],
+                                indexing="ij"), -1)
+    p = grid @ ego2img[:3, :3].T + ego2img[:3, 3]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u, v = p[..., 0] / p[..., 2], p[..., 1] / p[..., 2]
+    u0, v0, u1, v1 = bounds[0]
+    edge = np.min(np.abs(np.stack([u - u0, u - u1, v - v0, v - v1])), 0) < 1e-3
+    clear = ~edge & (np.abs(p[..., 2]) > 0.2)
+    np.testing.assert_array_equal(got[clear], want[clear])
+    # some columns hold the image over part of their height only
+    partial = got.any(-1) & ~got.all(-1)
+    assert partial.sum() > 100 and want.sum() > 1000
