@@ -19,6 +19,7 @@ setup(
         ("share/" + package_name + "/config/bags", glob("config/bags/*.yaml")),
         ("share/" + package_name + "/model", glob("model/*.yaml") + glob("model/*.md")
          + glob("model/*.pt")),
+        ("share/" + package_name + "/model/int8", glob("model/int8/*.json")),
     ],
     install_requires=["numpy", "scipy", "pyyaml", "tqdm", "pillow", "matplotlib"],
     zip_safe=True,

@@ -47,7 +47,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help=f"replay speed, x real time (default {DEFAULT_RATE:g}: 12 Hz "
                              "camera sets every 333 ms, about what the CPU model keeps up with)")
     # network/precision.PRECISIONS, not imported here: `odg demo --help` stays torch-free
-    parser.add_argument("--precision", choices=("auto", "fp32", "bf16-encoder", "bf16", "fp16"),
+    parser.add_argument("--precision",
+                        choices=("auto", "fp32", "bf16-encoder", "int8-encoder", "bf16", "fp16"),
                         default="auto",
                         help="the node's precision parameter (default auto, the node's: "
                              "bf16-encoder on a CPU with AVX512-BF16/AMX, else fp32)")

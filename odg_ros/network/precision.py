@@ -1,6 +1,7 @@
 """Inference device and precision: fp32, bf16 / fp16 autocast (geometry stays float32 inside,
 see sampling.full_precision), or bf16-encoder: the image encoder (ResNet + FPN, most of the
-CPU step's arithmetic) in bf16 and the decoder in fp32. Shared by the commands, the node, the
+CPU step's arithmetic) in bf16 and the decoder in fp32, or int8-encoder: that encoder in static
+int8 on CPU (network/int8_encoder.py), the decoder in fp32. Shared by the commands, the node, the
 benchmark, the sweep and the online predictor."""
 from __future__ import annotations
 
@@ -11,7 +12,7 @@ from functools import lru_cache
 import torch
 from torch import nn
 
-PRECISIONS = ("fp32", "bf16", "bf16-encoder", "fp16")
+PRECISIONS = ("fp32", "bf16", "bf16-encoder", "int8-encoder", "fp16")
 # the node's precision parameter: one of those, or auto (resolve_precision)
 NODE_PRECISIONS = ("auto",) + PRECISIONS
 
@@ -29,13 +30,21 @@ def resolve_device(name: str) -> str:
 
 
 def precision_context(precision: str, device):
-    """The decoder's context: fp32 and bf16-encoder nothing; bf16 / fp16 autocast on the
-    device (fp16 only on CUDA)."""
+    """The decoder's context: fp32, bf16-encoder and int8-encoder nothing; bf16 / fp16 autocast
+    on the device (fp16 only on CUDA; int8-encoder only on CPU)."""
     device_type = torch.device(device).type
     if precision not in PRECISIONS:
         raise ValueError(f"precision {precision!r}: expected one of {PRECISIONS}")
     if precision == "fp16" and device_type != "cuda":
         raise ValueError("fp16 autocast is for CUDA; use bf16 on CPU")
+    if precision == "int8-encoder":
+        if device_type != "cpu":
+            raise ValueError("int8-encoder is for CPU (PyTorch's x86 quantized kernels); use "
+                             "fp32, bf16 or fp16 on CUDA")
+        from .int8_encoder import ENGINE, int8_available
+        if not int8_available():
+            raise ValueError(f"int8-encoder needs PyTorch's {ENGINE} quantized engine, which "
+                             "this build lacks")
     dtype = decoder_half_dtype(precision)
     if dtype is None:
         return nullcontext()
@@ -64,7 +73,8 @@ def half_dtype(precision: str) -> torch.dtype | None:
 
 
 def decoder_half_dtype(precision: str) -> torch.dtype | None:
-    """The decoder's: bf16 / fp16 -> the torch dtype; fp32, bf16-encoder -> None."""
+    """The decoder's: bf16 / fp16 -> the torch dtype; fp32, bf16-encoder, int8-encoder ->
+    None."""
     return {"bf16": torch.bfloat16, "fp16": torch.float16}.get(precision)
 
 
@@ -114,4 +124,8 @@ def slow_precision_warning(precision: str, device) -> str | None:
             not cpu_has_native_bf16():
         return (f"{precision} on this CPU has no native bf16 kernels (no AVX512-BF16 / AMX): "
                 "expect it several times slower than fp32; use precision fp32 (or auto) here")
+    if precision == "int8-encoder" and torch.device(device).type == "cpu" and \
+            not _cpu_flags() & {"avx512_vnni", "avx_vnni", "amx_int8"}:
+        return ("int8-encoder on this CPU has no VNNI int8 dot products (AVX512-VNNI, "
+                "AVX-VNNI or AMX): correct, but expect little or no gain over fp32")
     return None

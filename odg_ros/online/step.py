@@ -29,6 +29,7 @@ from ..model_config import ModelConfig
 from ..network.backbone import folded_for_inference
 from ..network.budget import QueryBudget, needed_queries
 from ..network.calibration import Calibration
+from ..network import int8_encoder
 from ..network.feature_ring import FeatureRing
 from ..network.padding import OccupancyPadding
 from ..network.postprocess import ranked_boxes, stray_voxels, voxelise
@@ -120,6 +121,17 @@ class OnlineStep(nn.Module):
             # every step (one kernel each); the geometry stays float32 (sampling.full_precision)
             self.backbone = self.backbone.to(self.half)
             self.neck = with_half_matrix_weights(self.neck, self.half)
+        self.int8_encoder = None
+        if precision == "int8-encoder":
+            # static int8 (network/int8_encoder.py): the activation ranges from the side file
+            # of these weights, the weight scales from the weights
+            fingerprint = int8_encoder.encoder_fingerprint(model.backbone, model.neck)
+            ranges = int8_encoder.load_ranges(int8_encoder.ranges_path(fingerprint),
+                                              fingerprint)
+            H, W = cfg.image_size
+            self.int8_encoder = int8_encoder.quantized_encoder(
+                self.backbone, self.neck, ranges, torch.zeros(cfg.num_cams, 3, H, W,
+                                                             device=self.device))
         decoder_half = decoder_half_dtype(precision)
         if decoder_half is not None:
             self.model = copy.copy(model)                # shares all but the decoder
@@ -136,6 +148,8 @@ class OnlineStep(nn.Module):
         ``ODG.extract_features`` with the folded channels-last backbone (in bf16 / fp16
         weights and activations where the precision asks for it)."""
         x = images.contiguous(memory_format=torch.channels_last)
+        if self.int8_encoder is not None:
+            return [f.unsqueeze(0) for f in self.int8_encoder(x)]
         if self.half is not None:
             x = x.to(self.half)
         return [f.unsqueeze(0) for f in self.neck(self.backbone(x))]

@@ -48,7 +48,7 @@ def test_schema_enums_match_the_code():
     ("history_frames", -1, "history_frames=-1: expected >= 0"),
     ("history_frames", 1.5, "expected int"),
     ("score_threshold", 1.5, "expected -1 to 1"),
-    ("precision", "fp64", "expected one of: auto, fp32, bf16, bf16-encoder, fp16"),
+    ("precision", "fp64", "expected one of: auto, fp32, bf16, bf16-encoder, int8-encoder, fp16"),
     ("camera_names", ["CAM_FRONT", 3], "list of strings"),
     ("warn_throttle", "abc", "expected float"),
     ("no_such_parameter", 1, "unknown parameter 'no_such_parameter'"),

@@ -20,7 +20,7 @@ def test_help_prints_the_parameters_and_exits():
     result = run_node("--help")
     assert result.returncode == 0, result.stderr
     assert "checkpoint (string, default shipped)" in result.stdout
-    assert ("precision (string, default auto; one of: auto, fp32, bf16, bf16-encoder, fp16)"
+    assert ("precision (string, default auto; one of: auto, fp32, bf16, bf16-encoder, int8-encoder, fp16)"
             in result.stdout)
     assert result.stderr == ""                   # no ROS logging: nothing was started
 
