@@ -1,6 +1,7 @@
 """A module of odg_ros as it was at a git revision, imported beside this code's own: the
 "before" side of the side-by-side benchmarks (bench_render, bench_raycast)."""
 import importlib.util
+import json
 import subprocess
 import sys
 import tempfile
@@ -22,3 +23,13 @@ def module_at(rev: str, path: str):
     sys.modules[name] = module           # its dataclasses look their module up
     spec.loader.exec_module(module)
     return module
+
+
+def report(result: dict, failure: str | None) -> int:
+    """Print ``result`` as JSON; a comparison with the revision that failed says so on
+    stderr and exits 1."""
+    print(json.dumps(result, indent=2))
+    if failure:
+        print(failure, file=sys.stderr)
+        return 1
+    return 0

@@ -17,7 +17,6 @@ marks, and the median per-set ratios after / before.
 from __future__ import annotations
 
 import argparse
-import json
 import statistics
 import sys
 import time
@@ -25,7 +24,7 @@ import time
 import torch
 from tqdm import tqdm
 
-from tools.revision import module_at
+from tools.revision import module_at, report
 
 
 def before_modules(step, cfg, against: str) -> None:
@@ -99,11 +98,7 @@ def main(argv=None) -> int:
         for s in stages}
     result["after_over_before"]["step"] = round(statistics.median(
         a / b for a, b in zip(steps["after"], steps["before"])), 3)
-    print(json.dumps(result, indent=2))
-    if differ:
-        print(f"stage_times_against: {differ} outputs differ", file=sys.stderr)
-        return 1
-    return 0
+    return report(result, differ and f"stage_times_against: {differ} outputs differ")
 
 
 if __name__ == "__main__":

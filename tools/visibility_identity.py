@@ -15,7 +15,6 @@ differs.
 from __future__ import annotations
 
 import argparse
-import json
 import statistics
 import sys
 import time
@@ -24,7 +23,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from tools.revision import module_at
+from tools.revision import module_at, report
 
 
 def visibility_inputs(model, cfg, infos: str, limit: int) -> list:
@@ -88,12 +87,8 @@ def main(argv=None) -> int:
     result.update({f"{k}_ms_median": round(1e3 * statistics.median(v), 2)
                    for k, v in seconds.items()})
     result["new_over_old_median"] = round(statistics.median(ratios), 3)
-    print(json.dumps(result, indent=2))
     differ = [n for n, r in result["splits"].items() if r["identical"] != r["keyframes"]]
-    if differ:
-        print(f"visibility_identity: the observed mask differs in {differ}", file=sys.stderr)
-        return 1
-    return 0
+    return report(result, differ and f"visibility_identity: the observed mask differs in {differ}")
 
 
 if __name__ == "__main__":
