@@ -31,6 +31,8 @@ import numpy as np
 import torch
 from torch import nn
 
+from .uint8_compare import is_not
+
 
 def passing_cutoff(score_threshold: float) -> int:
     """The smallest uint8 score s with ``s / 255 > score_threshold`` as the grid's float32
@@ -44,15 +46,6 @@ def _select(mask: torch.Tensor, a: torch.Tensor, b: torch.Tensor) -> torch.Tenso
     """``torch.where(mask, a, b)`` for uint8 ``a``, ``b`` as bit operations (mask uint8 0 or
     1)."""
     return b ^ ((a ^ b) & (mask * 255))                     # 255: all of a's bits
-
-
-def is_not(values: torch.Tensor, number: int) -> torch.Tensor:
-    """``values != number`` as uint8 1 or 0 (values of an integer dtype). On the CPU (torch
-    2.13) a comparison of uint8 with a number runs element by element, 15 to 20 times slower
-    than the two passes used for uint8 here."""
-    if values.dtype != torch.uint8:
-        return (values != number).to(torch.uint8)
-    return (values ^ number).clamp_(max=1)
 
 
 def _three_voxel_passes(flat: torch.Tensor, scratch: torch.Tensor, strides,

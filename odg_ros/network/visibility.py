@@ -46,7 +46,7 @@ import torch
 from torch import nn
 
 from ..preprocess import image_bounds  # noqa: F401  (the bounds the step reads)
-from .padding import is_not
+from .uint8_compare import is_not, uint8_below, uint8_equals
 
 # occluder kinds: 0 / 1 / 2 the mid-plane across that axis, 3 / 4 / 5 the line through the
 # centre along that axis, BALL about the centre, FREE none
@@ -71,17 +71,6 @@ CLEAR_SUBSAMPLE = 2
 # the calibration's training worlds reaches 0.95 (odg export --calibrate reports it; held-out
 # figures per scene class in docs/results/planner.md)
 DEFAULT_MIN_CLEAR = 0.85
-
-
-def _equals(kinds: torch.Tensor, kind: int) -> torch.Tensor:
-    """bool ``kinds == kind`` for uint8 kinds (on the CPU a comparison of uint8 with a number
-    runs element by element: eight times slower)."""
-    return torch.logical_not(kinds ^ kind)
-
-
-def _below(kinds: torch.Tensor, kind: int) -> torch.Tensor:
-    """bool ``kinds < kind`` for uint8 kinds (as ``_equals``)."""
-    return (kinds.clamp(max=kind) ^ kind).bool()
 
 
 def _kind_table() -> list[int]:
@@ -349,25 +338,25 @@ class Visibility(nn.Module):
         h_x, h_y = hx[..., None, None], hy[..., None, None]
         tn, n = tan[:, None, :, None], norm[:, None, :, None]
         # mid-plane: the horizontal distance back to where the ray crosses it
-        plane_of = [_equals(k, a) for a in range(3)]
+        plane_of = [uint8_equals(k, a) for a in range(3)]
         direction = torch.where(plane_of[0], h_x, torch.where(plane_of[1], h_y, tn))
         direction = torch.where(direction.abs() > 1e-6, direction,
                                 torch.full_like(direction, 1e-6))
         offset = torch.where(plane_of[0], x, torch.where(plane_of[1], y, z))
         back = offset / direction
-        on_plane = _below(k, LINE) & (back * n <= PLANE_REACH)
+        on_plane = uint8_below(k, LINE) & (back * n <= PLANE_REACH)
         # ball: the distance of the voxel centre from the ray, |place x direction|; line:
         # from the line through the centre along axis a, (place x direction)_a / |e_a x d|
         d = (h_x / n, h_y / n, tn / n)
         cross = (y * d[2] - z * d[1], z * d[0] - x * d[2], x * d[1] - y * d[0])
-        is_ball = _equals(k, BALL)
+        is_ball = uint8_equals(k, BALL)
         ball = is_ball.float()
         miss = 0.0
         for a in range(3):
-            weight = torch.where(_equals(k, LINE + a),
+            weight = torch.where(uint8_equals(k, LINE + a),
                                  1.0 / (1.0 - d[a] * d[a]).clamp(min=1e-12), ball)
             miss = miss + weight * cross[a] * cross[a]
-        on_ball = ~_below(k, LINE) & _below(k, FREE) & (miss <= BALL_RADIUS ** 2)
+        on_ball = ~uint8_below(k, LINE) & uint8_below(k, FREE) & (miss <= BALL_RADIUS ** 2)
         hit = on_plane | on_ball
         if not full:
             return hit, None, None, None
