@@ -7,8 +7,10 @@ a hash of the float encoder's weights: the range each activation observer settle
 encoder ran over training-world camera images (``python -m tools.calibrate_int8_encoder``).
 Loading them instead of calibrating at node start keeps the start fast and every start's
 arithmetic the same; the weights' scales are computed from the weights themselves at load.
-The x86 engine's activations use 7 of the 8 bits (``reduce_range``) so the products cannot
-saturate on a CPU without VNNI; there the encoder is still correct, only slower."""
+Activations use all 8 bits on a CPU with VNNI (or AMX), whose products of 8-bit values sum
+into int32; elsewhere the same ranges on 7 bits (``reduce_range``), so that the int16 sums of
+those CPUs cannot saturate: correct there, coarser and slower. The stem convolution stays in
+float32 (FLOAT_MODULES)."""
 from __future__ import annotations
 
 import copy
@@ -25,9 +27,14 @@ from torch.ao.quantization import QConfig, QConfigMapping, get_default_qconfig_m
 from torch.ao.quantization.observer import HistogramObserver, MinMaxObserver
 from torch.ao.quantization.quantize_fx import convert_fx, prepare_fx
 
+from . import precision
+
 ENGINE = "x86"
 RANGES_DIR = "model/int8"
-RANGES_FORMAT = 1
+RANGES_FORMAT = 2
+# kept in float32: the stem (3 input channels: int8 gains nothing there, and its error was
+# the largest of any one layer's)
+FLOAT_MODULES = ("backbone.conv1",)
 
 
 class Encoder(nn.Module):
@@ -62,19 +69,27 @@ def encoder_fingerprint(backbone: nn.Module, neck: nn.Module) -> str:
     return digest.hexdigest()[:16]
 
 
+def _mapping(activation) -> QConfigMapping:
+    """The x86 engine's per-channel symmetric int8 weights, ``activation`` observers, the
+    float modules left out."""
+    weight = get_default_qconfig_mapping(ENGINE).global_qconfig.weight
+    mapping = get_default_qconfig_mapping(ENGINE).set_global(
+        QConfig(activation=activation, weight=weight))
+    for name in FLOAT_MODULES:
+        mapping = mapping.set_module_name(name, None)
+    return mapping
+
+
 def _calibration_mapping() -> QConfigMapping:
-    """The x86 engine's defaults: histogram activation observers (reduce_range), per-channel
-    symmetric int8 weights."""
-    return get_default_qconfig_mapping(ENGINE)
+    """Histogram activation observers over all 8 bits."""
+    return _mapping(HistogramObserver.with_args(reduce_range=False))
 
 
-def _fixed_range_mapping() -> QConfigMapping:
-    """As the calibration's, with min/max activation observers whose ranges are then set from
-    the side file (a histogram observer's chosen range gives the same scale and zero point)."""
-    calibration = _calibration_mapping().global_qconfig
-    activation = MinMaxObserver.with_args(reduce_range=True)
-    return get_default_qconfig_mapping(ENGINE).set_global(
-        QConfig(activation=activation, weight=calibration.weight))
+def _fixed_range_mapping(reduce_range: bool) -> QConfigMapping:
+    """Min/max activation observers whose ranges are then set from the side file (a histogram
+    observer's chosen range gives the same scale and zero point); ``reduce_range``: 7 bits
+    over the same range."""
+    return _mapping(MinMaxObserver.with_args(reduce_range=reduce_range))
 
 
 def _activation_observers(prepared: nn.Module) -> dict[str, nn.Module]:
@@ -142,9 +157,10 @@ def quantized_encoder(folded_backbone: nn.Module, neck: nn.Module,
         raise ValueError(f"int8-encoder needs PyTorch's {ENGINE} quantized engine, which this "
                          "build lacks (an x86-64 CPU build has it)")
     torch.backends.quantized.engine = ENGINE
+    # without VNNI the products of two 8-bit values could saturate an int16 sum: 7 bits there
     with _quiet():
         prepared = prepare_fx(Encoder(copy.deepcopy(folded_backbone), copy.deepcopy(neck)).eval(),
-                              _fixed_range_mapping(), (example,))
+                              _fixed_range_mapping(reduce_range=not precision.cpu_has_vnni()), (example,))
     observers = _activation_observers(prepared)
     if set(observers) != set(ranges):
         raise MissingRanges("int8-encoder: the side file's observers "

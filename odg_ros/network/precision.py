@@ -103,6 +103,12 @@ def cpu_has_native_bf16() -> bool:
     return bool(_cpu_flags() & {"avx512_bf16", "amx_bf16"})
 
 
+def cpu_has_vnni() -> bool:
+    """This CPU multiplies 8-bit values and sums the products into int32 in one instruction
+    (AVX512-VNNI, AVX-VNNI or AMX); without it PyTorch's int8 kernels sum pairs in int16."""
+    return bool(_cpu_flags() & {"avx512_vnni", "avx_vnni", "amx_int8"})
+
+
 @lru_cache(maxsize=1)
 def _cpu_flags() -> frozenset[str]:
     """The CPU's feature flags (the first core's, Linux), or none."""
@@ -125,7 +131,8 @@ def slow_precision_warning(precision: str, device) -> str | None:
         return (f"{precision} on this CPU has no native bf16 kernels (no AVX512-BF16 / AMX): "
                 "expect it several times slower than fp32; use precision fp32 (or auto) here")
     if precision == "int8-encoder" and torch.device(device).type == "cpu" and \
-            not _cpu_flags() & {"avx512_vnni", "avx_vnni", "amx_int8"}:
+            not cpu_has_vnni():
         return ("int8-encoder on this CPU has no VNNI int8 dot products (AVX512-VNNI, "
-                "AVX-VNNI or AMX): correct, but expect little or no gain over fp32")
+                "AVX-VNNI or AMX): its activations get 7 bits instead of 8 (coarser), and "
+                "expect little or no gain over fp32")
     return None

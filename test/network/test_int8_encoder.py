@@ -61,10 +61,13 @@ def test_int8_encoder_is_within_tolerance_of_fp32_and_fails_with_wrong_scales(sh
             assert max(relative_errors(reference, broken(x))) > TOLERANCE, factor
 
 
-def test_ranges_reproduce_the_calibrated_quantization_exactly(shipped):
+def test_ranges_reproduce_the_calibrated_quantization_exactly(shipped, monkeypatch):
     """The side file keeps each histogram observer's chosen range: an encoder built from it
-    computes bit for bit what the calibrated observers' own conversion computes."""
+    (on a CPU with VNNI: 8-bit activations, as calibrated) computes bit for bit what the
+    calibrated observers' own conversion computes."""
     from torch.ao.quantization.quantize_fx import convert_fx, prepare_fx
+    from odg_ros.network import precision
+    monkeypatch.setattr(precision, "cpu_has_vnni", lambda: True)
     _, _, step, _, content = shipped
     calibration = [camera_like(seed) for seed in range(3)]
     prepared = prepare_fx(int8_encoder.Encoder(step.backbone, step.neck).eval(),
@@ -77,6 +80,37 @@ def test_ranges_reproduce_the_calibrated_quantization_exactly(shipped):
         from_file = int8_encoder.quantized_encoder(step.backbone, step.neck,
                                                    content["ranges"], x)(x)
     assert all(torch.equal(a, b) for a, b in zip(direct, from_file))
+
+
+def quantized_modules(encoder):
+    return {name: m for name, m in encoder.named_modules()
+            if type(m).__module__.startswith("torch.ao.nn.quantized")}
+
+
+def test_stem_stays_float_and_activations_take_7_bits_without_vnni(shipped, monkeypatch):
+    """The stem convolution is a float one (its error was the largest of any layer's in
+    int8), every other convolution an int8 one. Without VNNI the same ranges are spread over
+    7 bits, the output scales twice the 8-bit ones, and the levels stay within tolerance."""
+    from odg_ros.network import precision
+    _, _, step, _, content = shipped
+    x = camera_like(100)
+    encoders = {}
+    for vnni in (True, False):
+        monkeypatch.setattr(precision, "cpu_has_vnni", lambda vnni=vnni: vnni)
+        encoders[vnni] = int8_encoder.quantized_encoder(step.backbone, step.neck,
+                                                        content["ranges"], x)
+    eight = encoders[True]
+    assert type(eight.get_submodule("backbone.conv1")) is torch.nn.Conv2d
+    convs = {n for n, m in int8_encoder.Encoder(step.backbone, step.neck).named_modules()
+             if isinstance(m, torch.nn.Conv2d)} - set(int8_encoder.FLOAT_MODULES)
+    assert convs <= set(quantized_modules(eight)), convs - set(quantized_modules(eight))
+    seven = quantized_modules(encoders[False])
+    for name, module in quantized_modules(eight).items():
+        if hasattr(module, "scale"):
+            assert seven[name].scale == pytest.approx(module.scale * 255 / 127, rel=1e-5), name
+    with torch.no_grad():
+        reference = step.neck(step.backbone(x))
+        assert max(relative_errors(reference, encoders[False](x))) < TOLERANCE
 
 
 def test_shipped_ranges_belong_to_the_shipped_checkpoint_and_run_in_the_step(shipped):
@@ -133,6 +167,6 @@ def test_int8_encoder_setting_is_cpu_only():
 def test_int8_encoder_warns_without_vnni(monkeypatch):
     from odg_ros.network import precision
     monkeypatch.setattr(precision, "_cpu_flags", lambda: frozenset({"avx2"}))
-    assert "no VNNI" in slow_precision_warning("int8-encoder", "cpu")
+    assert "7 bits" in slow_precision_warning("int8-encoder", "cpu")
     monkeypatch.setattr(precision, "_cpu_flags", lambda: frozenset({"avx2", "avx512_vnni"}))
     assert slow_precision_warning("int8-encoder", "cpu") is None
