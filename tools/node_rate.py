@@ -19,7 +19,9 @@
         [--threads N] [--no-shares] [--json]
 
 Prints both with their ratios (node ``stage_model_ms`` / step wall time; node grids per
-second / step rate), the load average before and after (the machine may be shared) and
+second / step rate), the load average before and after (the machine may be shared), how
+much faster a matrix product ran on all cores than on one just before and after
+(``odg_ros/bench/core_scaling.py``: on a shared machine the other cores come and go) and
 the CPU. The node part needs the ROS 2 Python packages (``make setup``), as ``odg demo``
 does; --step-only leaves it out.
 """
@@ -164,6 +166,7 @@ def main(argv=None) -> int:
     if args.threads:      # before torch loads, here and in the node's process
         os.environ["OMP_NUM_THREADS"] = str(args.threads)
 
+    from odg_ros.bench.core_scaling import core_scaling, format_scaling
     from odg_ros.bench.stage_shares import format_shares
     from odg_ros.data.synth.generate import DEFAULT_IMAGE_HW
     from odg_ros.demo.demo_world import WorldSpec, build_demo_world, resolve_checkpoint
@@ -171,15 +174,18 @@ def main(argv=None) -> int:
     checkpoint = resolve_checkpoint(args.checkpoint)
     world = build_demo_world(args.out, WorldSpec(image_hw=tuple(DEFAULT_IMAGE_HW)), log=log)
     load_before = os.getloadavg()
+    scaling_before = core_scaling()
     step = time_step(checkpoint, world.infos, args.precision, args.steps, log,
                      not args.no_shares)
     node = {"grids_per_s": None, "stage_ms": {}} if args.step_only else \
         run_node(world, checkpoint, args.out, args.rate, args.precision, log)
+    scaling_after = core_scaling()
     model_ms = node["stage_ms"].get("model")
     result = {
         "date": date.today().isoformat(), "cpu": cpu_name(), "cores": os.cpu_count(),
         "load_average_before": [round(v, 2) for v in load_before],
         "load_average_after": [round(v, 2) for v in os.getloadavg()],
+        "core_scaling": {"before": scaling_before, "after": scaling_after},
         "checkpoint": str(checkpoint), "rate": args.rate, "step": step, "node": node,
         # the node's model stage against the step alone: 1.0 when nothing else slows it
         "node_model_ms_over_step_ms": (round(model_ms / step["step_ms_median"], 3)
@@ -193,6 +199,7 @@ def main(argv=None) -> int:
         return 0
     print(f"{result['date']}, {result['cpu']} ({result['cores']} cores), load average "
           f"{load_before[0]:.1f} before, {result['load_average_after'][0]:.1f} after")
+    print(format_scaling(scaling_before, scaling_after))
     print(f"step alone ({step['precision']}, {step['mode']}, {step['threads']} threads): "
           f"{step['step_ms_median']:.0f} ms wall ({step['steps_per_s']:.2f} steps/s), "
           f"{step['cpu_ms_median']:.0f} ms CPU, median of {step['steps']}")
