@@ -61,6 +61,16 @@ def raw_output(predictor, budget=None):
                                         frame_index, False, budget=budget)
 
 
+def eager_reference(model, cfg, **options):
+    """An eager CPU predictor whose every kernel runs on torch's threads, as a traced,
+    compiled or replayed step's do: the reference those are compared with bit for bit (the
+    eager node runs its decoder on one thread, which sums in another order)."""
+    from odg_ros.online.predictor import OnlinePredictor
+    predictor = OnlinePredictor(model, cfg, "cpu", **options)
+    predictor.online_step.parallel_encoder_only = False
+    return predictor
+
+
 def make_sets(cfg, num_sets, seed=0):
     """Random images and a car driving forward while turning, nuScenes rig."""
     rng = np.random.default_rng(seed)

@@ -116,6 +116,8 @@ class OnlinePredictor:
         self._images = self._images_host.to(self.device)
         self._packed = self._packed_host.to(self.device)
         self._function = self.online_step
+        # eager on the CPU: the encoder on torch's threads, the rest on one (OnlineStep)
+        self.online_step.parallel_encoder_only = self.mode == "eager" and not cuda
         if compiled_step is not None:
             self._function = load_compiled_step(
                 compiled_step, self.online_step, model, self.precision, self.visibility,

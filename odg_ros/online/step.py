@@ -138,6 +138,10 @@ class OnlineStep(nn.Module):
             self.model._modules = dict(model._modules)
             self.model.decoder = with_half_matrix_weights(model.decoder, decoder_half)
         self.ring = FeatureRing(capacity, cfg.num_groups)
+        # CPU, eager (the predictor sets it): the encoder on torch's threads, the rest of the
+        # step on one. The decoder's and the grid's kernels are small: on a shared CPU their
+        # threads' wake-ups cost more than the threads give (docs/node.md, Speed)
+        self.parallel_encoder_only = False
         with torch.no_grad():                                               # shapes only
             H, W = cfg.image_size
             self.ring.check(self.features(torch.zeros(cfg.num_cams, 3, H, W,
@@ -161,10 +165,25 @@ class OnlineStep(nn.Module):
         uint8 [X*Y*Z] (1: a camera sees the voxel; [0] without visibility); with a query
         ``budget`` (network/budget.py) also the queries its keep-scores call needed [2]
         (static, dynamic), from which the host picks the next step's budget."""
+        # a traced or compiled step never changes threads (nor reads them)
+        split = self.parallel_encoder_only and not torch.compiler.is_compiling() and \
+            not torch.jit.is_tracing() and torch.get_num_threads() > 1
+        if not split:
+            return self._step(images, packed, budget)
+        threads = torch.get_num_threads()
+        try:
+            return self._step(images, packed, budget, one_thread_after_encoder=True)
+        finally:
+            torch.set_num_threads(threads)
+
+    def _step(self, images: torch.Tensor, packed: torch.Tensor, budget: QueryBudget | None,
+              one_thread_after_encoder: bool = False):
         ego2img, ego_warp, time_delta, frame_index, slot = self.layout.unpack(packed)
         with mark("backbone"):          # marks.py: the stage times of odg bench
             x = ((images.float() / 255.0 - self.mean) / self.std).movedim(-1, -3)
             self.ring.write_slot(self.features(x), slot)
+        if one_thread_after_encoder:
+            torch.set_num_threads(1)
         with precision_context(self.precision, self.device), mark("decoder"):
             output = self.model.decode_stored(self.ring.all_levels(), ego2img, ego_warp,
                                               time_delta, frame_index, False, budget=budget)

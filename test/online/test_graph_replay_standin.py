@@ -11,7 +11,7 @@ import torch
 from odg_ros.network.budget import budget_ladder
 from odg_ros.online import predictor as predictor_module
 from odg_ros.online.predictor import OnlinePredictor
-from testing.online import RecordedGraph, budget_model, make_model, make_sets
+from testing.online import RecordedGraph, budget_model, eager_reference, make_model, make_sets
 
 
 @pytest.fixture
@@ -28,8 +28,9 @@ def recorded_graphs(monkeypatch):
 def test_graphs_mode_outputs_are_each_sets_own_and_stay_as_handed_out(recorded_graphs):
     model, cfg = make_model()
     replayed = OnlinePredictor(model, cfg, "cpu", max_gap=1.0, compile="graphs")
-    eager = OnlinePredictor(model, cfg, "cpu", max_gap=1.0)
+    eager = eager_reference(model, cfg, max_gap=1.0)
     assert replayed.mode == "graphs" and len(recorded_graphs) == 1
+    assert not replayed.online_step.parallel_encoder_only      # a graph keeps its threads
     assert len(recorded_graphs[0].ops) > 500                    # the whole step was recorded
     handed_out = []
     for s in make_sets(cfg, 5):
@@ -52,7 +53,7 @@ def test_auto_replays_the_graph_of_each_steps_budget(recorded_graphs):
     model, cfg = budget_model(need_threshold=1e9)             # nothing needed: calm scenes
     replayed = OnlinePredictor(model, cfg, "cpu", max_gap=1.0, compile="graphs",
                                query_budget="auto")
-    eager = OnlinePredictor(model, cfg, "cpu", max_gap=1.0, query_budget="auto")
+    eager = eager_reference(model, cfg, max_gap=1.0, query_budget="auto")
     ladder = budget_ladder(cfg)
     assert len(recorded_graphs) == len(ladder) == 3
     graph_of = dict(zip(ladder, recorded_graphs))
@@ -79,7 +80,7 @@ def test_a_static_buffer_reassigned_after_the_capture_gives_stale_results(record
     inputs), so its results are not the set's. The stand-in shows it as the GPU would."""
     model, cfg = make_model()
     replayed = OnlinePredictor(model, cfg, "cpu", max_gap=1.0, compile="graphs")
-    eager = OnlinePredictor(model, cfg, "cpu", max_gap=1.0)
+    eager = eager_reference(model, cfg, max_gap=1.0)
     new = getattr(replayed, buffer).clone()
     # on the CPU the host and the device buffer are one tensor: both become the new one
     setattr(replayed, buffer, new)

@@ -11,8 +11,8 @@ from odg_ros.network.postprocess import box_list, occupancy_grid
 from odg_ros.online.predictor import OnlinePredictor, resolve_mode
 from odg_ros.preprocess import normalize
 from testing.helpers import assert_layers_close, assert_published_like
-from testing.online import (HostSyncCounter, make_model, make_sets, raw_output,
-                            stepped_predictor)
+from testing.online import (HostSyncCounter, eager_reference, make_model, make_sets,
+                            raw_output, stepped_predictor)
 
 from testing import reference_postprocess
 
@@ -83,7 +83,7 @@ def test_one_graph_over_the_first_twelve_steps():
                                         fullgraph=True, dynamic=False)
     predictor._warm_up()            # compiled at start-up, as the constructor does
     sets = make_sets(cfg, 11)
-    eager = OnlinePredictor(model, cfg, "cpu", max_gap=1.0, min_interval=0.9)
+    eager = eager_reference(model, cfg, max_gap=1.0, min_interval=0.9)
     for s in sets + [sets[0]]:                       # the last one goes back in time: reset
         a, b = predictor.step(*s), eager.step(*s)
         np.testing.assert_array_equal(a.grid, b.grid)
@@ -310,3 +310,31 @@ def test_bf16_encoder_step_runs_the_encoder_in_bf16_and_the_decoder_in_fp32():
     features = step.ring.all_levels()[0]
     assert features.dtype == torch.float32 and features.abs().sum() > 0
     assert torch.equal(features, features.bfloat16().float())          # bf16 values
+
+
+def test_eager_cpu_step_runs_the_encoder_on_torchs_threads_and_the_rest_on_one():
+    """The node's eager CPU step: the encoder (and the ring write) on the threads torch has,
+    the decoder and everything after it on one; torch's count is back after the step, and a
+    predictor told to use every thread throughout (what a compiled step does) keeps them."""
+    model, cfg = make_model()
+    seen = []
+    def record(stage):
+        return lambda module, inputs, output: seen.append((stage, torch.get_num_threads()))
+    threads_before = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        for parallel_throughout in (False, True):
+            predictor = OnlinePredictor(model, cfg, "cpu", max_gap=1.0)
+            assert predictor.online_step.parallel_encoder_only
+            predictor.online_step.parallel_encoder_only = not parallel_throughout
+            step = predictor.online_step
+            hooks = [step.backbone.register_forward_hook(record("encoder")),
+                     step.model.decoder.register_forward_hook(record("decoder"))]
+            seen.clear()
+            predictor.step(*make_sets(cfg, 1)[0])
+            for hook in hooks:
+                hook.remove()
+            expected = [("encoder", 2), ("decoder", 2 if parallel_throughout else 1)]
+            assert seen == expected and torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(threads_before)
