@@ -15,11 +15,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import pickle
 import sys
 from pathlib import Path
 
 import numpy as np
+
+from odg_ros.data.prepare import load_infos
 
 
 def agreement(folder: Path, reference: Path, tokens: list[str], free: int):
@@ -45,7 +46,7 @@ def main(argv=None) -> int:
     parser.add_argument("--free-label", type=int, default=17, help="Occ3D's free (17)")
     args = parser.parse_args(argv)
     sets = dict(item.split("=", 1) for item in args.data)
-    tokens = {name: [i["token"] for i in pickle.load(open(path, "rb"))["infos"]]
+    tokens = {name: [i["token"] for i in load_infos(path)["infos"]]
               for name, path in sets.items()}
     tokens["all"] = [t for name in sets for t in tokens[name]]
     results = {p: json.loads((args.dir / f"{p}.json").read_text()) for p in args.precisions}

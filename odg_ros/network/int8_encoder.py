@@ -159,8 +159,9 @@ def quantized_encoder(folded_backbone: nn.Module, neck: nn.Module,
     torch.backends.quantized.engine = ENGINE
     # without VNNI the products of two 8-bit values could saturate an int16 sum: 7 bits there
     with _quiet():
+        mapping = _fixed_range_mapping(reduce_range=not precision.cpu_has_vnni())
         prepared = prepare_fx(Encoder(copy.deepcopy(folded_backbone), copy.deepcopy(neck)).eval(),
-                              _fixed_range_mapping(reduce_range=not precision.cpu_has_vnni()), (example,))
+                              mapping, (example,))
     observers = _activation_observers(prepared)
     if set(observers) != set(ranges):
         raise MissingRanges("int8-encoder: the side file's observers "
